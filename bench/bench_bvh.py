@@ -1,0 +1,162 @@
+"""Benchmark of `tofcore.bvh`: build time, rays/s and tests per ray on room scenes.
+
+The scene is a room (floor, back and side walls) with a 1 m box and a UV
+sphere, every surface subdivided so the whole mesh has about the requested
+number of triangles.  Three ray sets, 512 x 424 rays each:
+
+* ``primary``: from a pinhole at (0, 0.2, 1.2) m looking along +y, 70° wide;
+* ``secondary``: from random surface points (area-uniform), cosine-distributed
+  about the normal facing the camera side, leaving triangle ignored;
+* ``shadow``: `occluded` from the primary hit points to a point light 5 cm
+  beside the pinhole, ``t_max`` = distance to the light.
+
+Run ``python bench/bench_bvh.py`` (``--sizes 10000 500000 1000000``,
+``--repeat 3``, ``--workers 1 2``).  Times are the best of ``--repeat`` runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+from tofcore.bvh import BVH  # noqa: E402
+
+WIDTH_PX, HEIGHT_PX = 512, 424
+
+
+def grid(corner, edge_u, edge_v, n_u, n_v):
+    """Quad grid ``corner + i/n_u * edge_u + j/n_v * edge_v`` as (vertices, triangles)."""
+    i, j = np.meshgrid(np.arange(n_u + 1), np.arange(n_v + 1), indexing="ij")
+    pts = (np.asarray(corner) + (i[..., None] / n_u) * np.asarray(edge_u)
+           + (j[..., None] / n_v) * np.asarray(edge_v))
+    idx = np.arange((n_u + 1) * (n_v + 1)).reshape(n_u + 1, n_v + 1)
+    a, b, c, d = idx[:-1, :-1], idx[1:, :-1], idx[1:, 1:], idx[:-1, 1:]
+    tri = np.concatenate([np.stack([a, b, c], -1).reshape(-1, 3), np.stack([a, c, d], -1).reshape(-1, 3)])
+    return pts.reshape(-1, 3), tri
+
+
+def uv_sphere(center, radius, n_lat, n_lon):
+    """UV sphere as (vertices, triangles); the pole rows are degenerate-free fans."""
+    verts, tris = grid((0, 0, 0), (np.pi, 0, 0), (0, 2 * np.pi, 0), n_lat, n_lon)
+    theta, phi = verts[:, 0], verts[:, 1]
+    pts = np.stack([np.sin(theta) * np.cos(phi), np.sin(theta) * np.sin(phi), np.cos(theta)], -1)
+    pts = np.asarray(center) + radius * pts
+    # merge the duplicated poles and seam, then drop triangles that became degenerate
+    key = np.round(pts, 9)
+    _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    tris = inverse.reshape(-1)[tris]
+    tris = tris[(tris[:, 0] != tris[:, 1]) & (tris[:, 1] != tris[:, 2]) & (tris[:, 0] != tris[:, 2])]
+    return pts[first], tris
+
+
+def room_scene(n_triangles):
+    """Room with a box and a sphere, about ``n_triangles`` triangles (metres, z up)."""
+    n = max(2, int(round(np.sqrt(n_triangles / 12))))
+    h = max(1, n // 2)
+    parts = [
+        grid((-3, 0, 0), (6, 0, 0), (0, 6, 0), n, n),  # floor
+        grid((-3, 6, 0), (6, 0, 0), (0, 0, 3), n, n),  # back wall
+        grid((-3, 0, 0), (0, 6, 0), (0, 0, 3), n, n),  # left wall
+        grid((3, 0, 0), (0, 6, 0), (0, 0, 3), n, n),  # right wall
+        uv_sphere((1.2, 2.5, 0.5), 0.5, h, n),
+    ]
+    c, e = np.array([-0.9, 3.0, 0.0]), np.eye(3)  # 1 m box, faces as grids
+    for axis in range(3):
+        u, v = e[(axis + 1) % 3], e[(axis + 2) % 3]
+        parts.append(grid(c, u, v, h, h))
+        parts.append(grid(c + e[axis], u, v, h, h))
+    verts, tris, base = [], [], 0
+    for p, t in parts:
+        verts.append(p)
+        tris.append(t + base)
+        base += len(p)
+    return np.concatenate(verts).astype(np.float32), np.concatenate(tris).astype(np.int32)
+
+
+def primary_rays(rng):
+    """Pinhole rays, one per pixel with a random offset, looking along +y."""
+    eye = np.array([0.0, 0.2, 1.2], np.float32)
+    tan_half = np.tan(np.radians(70) / 2)
+    x = (np.arange(WIDTH_PX) + rng.random(WIDTH_PX)) / WIDTH_PX * 2 - 1
+    y = (np.arange(HEIGHT_PX) + rng.random(HEIGHT_PX)) / HEIGHT_PX * 2 - 1
+    xx, yy = np.meshgrid(x * tan_half, -y * tan_half * HEIGHT_PX / WIDTH_PX)
+    d = np.stack([xx.ravel(), np.ones(xx.size), yy.ravel()], -1)
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return np.broadcast_to(eye, d.shape).astype(np.float32), d.astype(np.float32)
+
+
+def secondary_rays(verts, tris, rng, n_rays):
+    """Rays leaving area-uniform surface points, cosine-distributed about a normal."""
+    p = verts[tris].astype(np.float64)
+    normal = np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+    area = np.linalg.norm(normal, axis=1)
+    prim = rng.choice(len(tris), n_rays, p=area / area.sum())
+    a, b = rng.random(n_rays), rng.random(n_rays)
+    flip = a + b > 1
+    a[flip], b[flip] = 1 - a[flip], 1 - b[flip]
+    origin = p[prim, 0] + a[:, None] * (p[prim, 1] - p[prim, 0]) + b[:, None] * (p[prim, 2] - p[prim, 0])
+    nrm = normal[prim] / area[prim, None]
+    nrm *= np.where(((np.array([0, 0.2, 1.2]) - origin) * nrm).sum(1) < 0, -1, 1)[:, None]
+    d = rng.standard_normal((n_rays, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    d += nrm  # cosine-distributed about nrm
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    return origin.astype(np.float32), d.astype(np.float32), prim.astype(np.int32)
+
+
+def timed(fn, repeat):
+    """Best wall time of ``repeat`` calls, and the last result."""
+    best, out = np.inf, None
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return best, out
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 500_000, 1_000_000],
+                    help="approximate triangle counts (default: 10000 500000 1000000)")
+    ap.add_argument("--repeat", type=int, default=3, help="runs per timing, best kept (default: 3)")
+    ap.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="thread counts (default: 1 2)")
+    args = ap.parse_args(argv)
+    rng = np.random.default_rng(7)
+    print(f"numpy {np.__version__}; {WIDTH_PX}x{HEIGHT_PX} = {WIDTH_PX * HEIGHT_PX} rays per set")
+    print("| triangles | build s | nodes | depth | rays | workers | Mrays/s | box tests/ray | tri tests/ray |")
+    print("|---|---|---|---|---|---|---|---|---|")
+    for size in args.sizes:
+        verts, tris = room_scene(size)
+        build_s, bvh = timed(lambda: BVH.build(verts, tris), 1)
+        st = bvh.stats
+        o, d = primary_rays(rng)
+        first = bvh.intersect(o, d)
+        hit = first.prim >= 0
+        p = o[hit] + first.t[hit, None] * d[hit]
+        light = np.array([0.05, 0.2, 1.2], np.float32)
+        to_light = light - p
+        dist = np.linalg.norm(to_light, axis=1)
+        shadow = (p, to_light / dist[:, None], dist.astype(np.float32), first.prim[hit])
+        so, sd, sprim = secondary_rays(verts, tris, rng, WIDTH_PX * HEIGHT_PX)
+        sets = {
+            "primary": lambda w, c=None: bvh.intersect(o, d, workers=w, counters=c),
+            "secondary": lambda w, c=None: bvh.intersect(so, sd, ignore_prim=sprim, workers=w, counters=c),
+            "shadow": lambda w, c=None: bvh.occluded(*shadow[:3], ignore_prim=shadow[3], workers=w, counters=c),
+        }
+        for name, run in sets.items():
+            counts = {}
+            run(1, counts)
+            for w in args.workers:
+                sec, _ = timed(lambda: run(w), args.repeat)
+                print(f"| {st['triangles']} | {build_s:.2f} | {st['nodes']} | {st['depth']} | {name} | {w} | "
+                      f"{counts['rays'] / sec / 1e6:.2f} | {counts['box_tests'] / counts['rays']:.1f} | "
+                      f"{counts['tri_tests'] / counts['rays']:.1f} |", flush=True)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,614 @@
+"""Ray-triangle bounding volume hierarchy in pure NumPy.
+
+The scene is a triangle mesh in world space (metres, float32).  `BVH.build`
+makes a binary tree with a binned surface area heuristic (SAH), built level by
+level with array operations, and collapses it into a 4-wide tree whose child
+boxes are stored as float32 structure-of-arrays.  `BVH.intersect` (closest hit)
+and `BVH.occluded` (any hit, early exit per ray) traverse it breadth first over
+flat arrays of (ray, node) pairs, a few thousand rays at a time.
+`intersect_brute` is the reference every test compares against.
+
+Conventions
+-----------
+* Rays are ``origin + t * direction`` with unit ``direction``; ``t`` is the
+  distance in metres.  Only hits with ``0 < t < t_max`` count.
+* A hit reports the triangle index into the ``triangles`` array given to
+  `BVH.build` and barycentrics ``u, v`` such that the point is
+  ``(1 - u - v) * v0 + u * v1 + v * v2``.
+* ``ignore_prim`` names, per ray, one triangle that never counts as hit (the
+  triangle the ray leaves from; ``-1`` for none).
+
+Triangle test
+-------------
+Möller–Trumbore in float32 (Möller & Trumbore 1997, "Fast, minimum storage
+ray-triangle intersection"):
+
+.. math::
+
+    p = d \\times e_2,\\quad \\det = e_1 \\cdot p,\\quad s = o - v_0,\\quad
+    q = s \\times e_1,\\quad
+    u = \\frac{s \\cdot p}{\\det},\\quad v = \\frac{d \\cdot q}{\\det},\\quad
+    t = \\frac{e_2 \\cdot q}{\\det}
+
+with :math:`e_1 = v_1 - v_0`, :math:`e_2 = v_2 - v_0`.  The barycentric test
+accepts ``u, v >= -BARY_EPS`` and ``u + v <= 1 + BARY_EPS``, so a ray through
+an edge or vertex shared by two triangles hits at least one of them.  Node
+boxes are padded (`BOX_PAD`) so that the tree never culls a triangle the test
+accepts: the BVH and the brute force then agree exactly, up to the choice
+between triangles hit at the same ``t``.
+
+Traversal
+---------
+Per ray: inverse direction (zero components replaced by ``±1e-30``), and an
+octant code (sign bits of the direction).  Every node table is stored once per
+octant, with the near and far planes of each axis already chosen by the sign
+of the direction, so a slab test is six gathers of 4-child rows, six
+subtractions, six multiplications and elementwise ``minimum``/``maximum``.
+Per-ray values are stored repeated four times, as rows of the same shape, so
+every arithmetic operation runs on contiguous arrays.  Leaves hold up to
+``leaf_size`` triangles as one padded row (padding is NaN and never hits).
+Leaves met at a tree level are tested before the next level is expanded, and
+the box test clips every ray at its best hit so far.
+"""
+
+from __future__ import annotations
+
+import time
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+BARY_EPS = 1e-6
+"""Barycentric tolerance of the triangle test (closes cracks along shared edges)."""
+
+BOX_PAD = 2.0**-16
+"""Relative padding of node boxes: times (largest |coordinate| + largest extent) of the box."""
+
+WIDTH = 4
+"""Children per node of the traversed tree."""
+
+N_BINS = 32
+"""SAH bins per axis and node."""
+
+RAY_CHUNK = 8192
+"""Rays traversed together; keeps the per-level temporaries in L2."""
+
+_TINY_DIR = 1e-30  # direction components smaller than this are replaced (finite inverse)
+_BUILD_BATCH = 16384  # nodes whose SAH bins are evaluated together (bounds build memory)
+
+
+@dataclass(frozen=True)
+class Hits:
+    """Closest hits of a batch of rays.
+
+    Attributes
+    ----------
+    t : (R,) float32 distance along the unit direction in metres; ``inf`` on a miss.
+    prim : (R,) int32 triangle index; ``-1`` on a miss.
+    u, v : (R,) float32 barycentrics of vertices 1 and 2; ``0`` on a miss.
+    """
+
+    t: np.ndarray
+    prim: np.ndarray
+    u: np.ndarray
+    v: np.ndarray
+
+
+# ----------------------------------------------------------------------------- triangle test
+
+
+def _ray_frame(d):
+    """Orthonormal frame ``(b1, b2)`` perpendicular to unit directions ``d`` (R, 3).
+
+    Duff et al. 2017, "Building an orthonormal basis, revisited" (branchless),
+    evaluated in float64 and returned as two (R, 3) float32 arrays.
+    """
+    d = d.astype(np.float64)
+    sign = np.where(d[:, 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + d[:, 2])
+    b = d[:, 0] * d[:, 1] * a
+    b1 = np.stack([1.0 + sign * d[:, 0] ** 2 * a, sign * b, -sign * d[:, 0]], 1)
+    b2 = np.stack([b, sign + d[:, 1] ** 2 * a, -d[:, 1]], 1)
+    return b1.astype(np.float32), b2.astype(np.float32)
+
+
+def _watertight(o, b1, b2, d, v0, v1, v2, t_max):
+    """Watertight ray-triangle test for broadcastable float32 arrays.
+
+    ``o, b1, b2, d`` (ray origin and frame) and ``v0, v1, v2`` (vertices) are
+    3-tuples of arrays (x, y, z); ``t_max`` is the exclusive upper bound of
+    ``t``.  Returns ``(hit, t, u, v)``, meaningful where ``hit``.  NaN vertices
+    never hit.  The brute force and the BVH both call this function, so they
+    round identically.
+
+    Notes
+    -----
+    After Woop, Benthin & Wald 2013, "Watertight ray/triangle intersection",
+    with a projection onto the ray's orthonormal frame instead of their
+    shear.  The vertices relative to the origin, :math:`a = v_0 - o` etc., get
+    frame coordinates :math:`(a \cdot b_1, a \cdot b_2, a \cdot d)`; in the
+    plane of the first two the ray is the origin, and the edge functions
+
+    .. math::
+
+        U = c_1 b_2 - c_2 b_1,\quad V = a_1 c_2 - a_2 c_1,\quad W = b_1 a_2 - b_2 a_1
+
+    must share one sign (zero counts as both).  Then
+    :math:`t = (U a_3 + V b_3 + W c_3) / (U + V + W)`, :math:`u = V / (U + V + W)`,
+    :math:`v = W / (U + V + W)`.  A vertex gets the same frame coordinates in
+    every triangle that uses it, and an edge function changes only its sign
+    between the two triangles of an edge, so a ray cannot pass between them.
+    """
+
+    def frame(v):
+        rx, ry, rz = v[0] - o[0], v[1] - o[1], v[2] - o[2]
+        return [(rx * f[0]) + (ry * f[1]) + (rz * f[2]) for f in (b1, b2, d)]
+
+    a1, a2, a3 = frame(v0)
+    p1, p2, p3 = frame(v1)
+    c1, c2, c3 = frame(v2)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        w_u = c1 * p2 - c2 * p1
+        w_v = a1 * c2 - a2 * c1
+        w_w = p1 * a2 - p2 * a1
+        lo = np.minimum(np.minimum(w_u, w_v), w_w)
+        hi = np.maximum(np.maximum(w_u, w_v), w_w)
+        hit = (lo >= 0) | (hi <= 0)
+        det = w_u + w_v + w_w
+        t = (w_u * a3 + w_v * p3 + w_w * c3) / det
+        hit &= t > 0
+        hit &= t < t_max
+        return hit, t, w_v / det, w_w / det
+
+
+def _as_rays(origins, directions, t_max, ignore_prim):
+    """Validate and convert ray arrays to float32 (R,3), float32 (R,), int64 (R,)."""
+    o = np.ascontiguousarray(origins, dtype=np.float32).reshape(-1, 3)
+    d = np.ascontiguousarray(directions, dtype=np.float32).reshape(-1, 3)
+    n = len(o)
+    if len(d) != n:
+        raise ValueError(f"directions must have the shape of origins {o.shape}, got {d.shape}")
+    tm = np.full(n, np.inf, np.float32) if t_max is None else np.asarray(t_max, np.float32)
+    tm = np.ascontiguousarray(np.broadcast_to(tm, (n,)))
+    ig = np.full(n, -1, np.int64) if ignore_prim is None else np.asarray(ignore_prim, np.int64)
+    ig = np.ascontiguousarray(np.broadcast_to(ig, (n,)))
+    return o, d, tm, ig
+
+
+def intersect_brute(vertices, triangles, origins, directions, t_max=None, ignore_prim=None, *,
+                    chunk_elems: int = 1 << 21) -> Hits:
+    """Closest hits by testing every ray against every triangle (reference).
+
+    Same conventions and triangle test as `BVH.intersect`; ties in ``t`` go to
+    the lowest triangle index.  Rays are processed in chunks of about
+    ``chunk_elems`` ray-triangle pairs, so memory stays bounded.
+    """
+    v = np.asarray(vertices, np.float32)
+    tri = np.asarray(triangles, np.int64)
+    o, d, tm, ig = _as_rays(origins, directions, t_max, ignore_prim)
+    n, m = len(o), len(tri)
+    vc = [tuple(v[tri[:, i], k][None, :] for k in range(3)) for i in range(3)]  # (1, M) per vertex, axis
+    b1, b2 = _ray_frame(d)
+    out_t = np.full(n, np.inf, np.float32)
+    out_p = np.full(n, -1, np.int32)
+    out_u = np.zeros(n, np.float32)
+    out_v = np.zeros(n, np.float32)
+    step = max(1, chunk_elems // max(m, 1))
+    for s in range(0, n if m else 0, step):
+        e = min(n, s + step)
+        oc, b1c, b2c, dc = (tuple(x[s:e, k][:, None] for k in range(3)) for x in (o, b1, b2, d))
+        hit, t, u, vv = _watertight(oc, b1c, b2c, dc, *vc, tm[s:e, None])
+        hit &= np.arange(m)[None, :] != ig[s:e, None]
+        t = np.where(hit, t, np.float32(np.inf))
+        best = np.argmin(t, axis=1)
+        rows = np.arange(e - s)
+        ok = np.isfinite(t[rows, best])
+        out_t[s:e] = np.where(ok, t[rows, best], np.inf)
+        out_p[s:e] = np.where(ok, best, -1)
+        out_u[s:e] = np.where(ok, u[rows, best], 0.0)
+        out_v[s:e] = np.where(ok, vv[rows, best], 0.0)
+    return Hits(t=out_t, prim=out_p, u=out_u, v=out_v)
+
+
+# ----------------------------------------------------------------------------- build
+
+
+def _sah_split(lo, hi, cen, seg, n_nodes, n_bins):
+    """Best binned-SAH split of ``n_nodes`` nodes whose elements are grouped by ``seg``.
+
+    ``lo, hi, cen`` are (3, E) float32 element boxes and centroids, ``seg`` the
+    (E,) node of each element, sorted.  Each node's centroid bounds are cut
+    into ``n_bins`` equal bins per axis; the cost of a cut between bins is
+    ``area(left) * count(left) + area(right) * count(right)``.  Returns
+    ``(go_left, ok)``: (E,) bool side of each element, (n_nodes,) bool whether
+    a cut with both sides non-empty exists.
+    """
+    starts = np.flatnonzero(np.r_[True, seg[1:] != seg[:-1]])
+    c_min = np.minimum.reduceat(cen, starts, axis=1)  # (3, K)
+    c_max = np.maximum.reduceat(cen, starts, axis=1)
+    extent = c_max - c_min
+    with np.errstate(divide="ignore"):
+        scale = np.where(extent > 0, n_bins * (1 - 1e-6) / extent, 0.0).astype(np.float32)
+    best_cost = np.full(n_nodes, np.inf)
+    best_axis = np.zeros(n_nodes, np.int64)
+    best_cut = np.zeros(n_nodes, np.int64)
+    bins = np.empty((3, len(seg)), np.int64)
+    for axis in range(3):
+        b = ((cen[axis] - c_min[axis][seg]) * scale[axis][seg]).astype(np.int64)
+        np.clip(b, 0, n_bins - 1, out=b)
+        bins[axis] = b
+        key = seg * n_bins + b
+        count = np.bincount(key, minlength=n_nodes * n_bins).reshape(n_nodes, n_bins)
+        b_lo = np.full((3, n_nodes * n_bins), np.inf, np.float32)
+        b_hi = np.full((3, n_nodes * n_bins), -np.inf, np.float32)
+        for k in range(3):
+            np.minimum.at(b_lo[k], key, lo[k])
+            np.maximum.at(b_hi[k], key, hi[k])
+        b_lo = b_lo.reshape(3, n_nodes, n_bins)
+        b_hi = b_hi.reshape(3, n_nodes, n_bins)
+        n_left = np.cumsum(count, axis=1)[:, :-1]
+        n_right = n_left[:, -1:] + count[:, -1:] - n_left
+        area_left = _half_area(np.minimum.accumulate(b_lo, axis=2), np.maximum.accumulate(b_hi, axis=2))
+        rev_lo = np.minimum.accumulate(b_lo[:, :, ::-1], axis=2)[:, :, ::-1]
+        rev_hi = np.maximum.accumulate(b_hi[:, :, ::-1], axis=2)[:, :, ::-1]
+        area_right = _half_area(rev_lo, rev_hi)
+        with np.errstate(invalid="ignore"):
+            cost = area_left[:, :-1] * n_left + area_right[:, 1:] * n_right
+        cost[(n_left == 0) | (n_right == 0)] = np.inf
+        cut = np.argmin(cost, axis=1)
+        c = cost[np.arange(n_nodes), cut]
+        better = c < best_cost
+        best_cost[better] = c[better]
+        best_axis[better] = axis
+        best_cut[better] = cut[better]
+    elem_bin = bins[best_axis[seg], np.arange(len(seg))]
+    return elem_bin <= best_cut[seg], np.isfinite(best_cost)
+
+
+def _half_area(lo, hi):
+    """Half the surface area of (3, ...) boxes, float64 (0 for empty boxes)."""
+    ext = np.maximum(hi.astype(np.float64) - lo, 0.0)
+    return ext[0] * ext[1] + ext[1] * ext[2] + ext[2] * ext[0]
+
+
+def _build_binary(lo, hi, leaf_size, n_bins):
+    """Top-down binned-SAH binary tree over triangle boxes, one tree level at a time.
+
+    ``lo, hi`` are (3, M) float32 triangle boxes.  All nodes of a level are
+    split together (in batches of `_BUILD_BATCH` nodes); a node with at most
+    ``leaf_size`` triangles is a leaf; a node whose centroids cannot be
+    separated by the bins is cut at its middle.  Triangles of a node stay
+    contiguous in ``order`` (stable partition in place).
+
+    Returns ``(order, node_lo, node_hi, left, right, start, count)``: node ids
+    are breadth-first, ``left = right = -1`` on leaves, and a leaf's triangles
+    are ``order[start:start + count]``.
+    """
+    m = lo.shape[1]
+    cen = (lo + hi) * np.float32(0.5)
+    order = np.arange(m)
+    lvl_start = np.zeros(1, np.int64)  # first position in `order` of each node of the level
+    lvl_count = np.full(1, m, np.int64)  # triangle count of each node of the level
+    out_lo, out_hi, out_left, out_right, out_start, out_count = [], [], [], [], [], []
+    n_done = 0  # nodes of the levels above
+    while lvl_count.size:
+        k = lvl_count.size
+        node_lo = np.empty((k, 3), np.float32)
+        node_hi = np.empty((k, 3), np.float32)
+        split = lvl_count > leaf_size
+        n_left = np.zeros(k, np.int64)
+        for b0 in range(0, k, _BUILD_BATCH):
+            b1 = min(k, b0 + _BUILD_BATCH)
+            st, ct = lvl_start[b0:b1], lvl_count[b0:b1]
+            offs = np.cumsum(ct) - ct
+            seg = np.repeat(np.arange(b1 - b0), ct)
+            pos = np.arange(int(ct.sum())) + np.repeat(st - offs, ct)
+            tri = order[pos]
+            e_lo, e_hi = lo[:, tri], hi[:, tri]
+            node_lo[b0:b1] = np.minimum.reduceat(e_lo, offs, axis=1).T
+            node_hi[b0:b1] = np.maximum.reduceat(e_hi, offs, axis=1).T
+            sp = split[b0:b1]
+            if not sp.any():
+                continue
+            inner = sp[seg]
+            seg_i = np.cumsum(sp)[seg[inner]] - 1  # index among the splitting nodes
+            n_i = int(sp.sum())
+            go_left, ok = _sah_split(e_lo[:, inner], e_hi[:, inner], cen[:, tri[inner]], seg_i, n_i, n_bins)
+            local = np.arange(len(seg_i)) - (np.cumsum(ct[sp]) - ct[sp])[seg_i]
+            go_left = np.where(ok[seg_i], go_left, local < (ct[sp] // 2)[seg_i])
+            # stable partition within each node: lefts first, in their current order
+            c_left = np.cumsum(go_left)
+            before = (c_left - go_left)[np.cumsum(ct[sp]) - ct[sp]]  # lefts before each node
+            rank_left = c_left - 1 - before[seg_i]
+            nl = np.bincount(seg_i, weights=go_left, minlength=n_i).astype(np.int64)
+            new_local = np.where(go_left, rank_left, nl[seg_i] + local - (rank_left + 1))
+            order[st[sp][seg_i] + new_local] = tri[inner]
+            n_left[b0:b1][sp] = nl
+        ids = n_done + k + 2 * (np.cumsum(split) - 1)
+        out_lo.append(node_lo)
+        out_hi.append(node_hi)
+        out_left.append(np.where(split, ids, -1))
+        out_right.append(np.where(split, ids + 1, -1))
+        out_start.append(lvl_start)
+        out_count.append(lvl_count)
+        n_done += k
+        s, c, nl = lvl_start[split], lvl_count[split], n_left[split]
+        lvl_start = np.stack([s, s + nl], axis=1).ravel()
+        lvl_count = np.stack([nl, c - nl], axis=1).ravel()
+    cat = np.concatenate
+    return order, cat(out_lo), cat(out_hi), cat(out_left), cat(out_right), cat(out_start), cat(out_count)
+
+
+def _collapse(left, right, area):
+    """Collapse a binary tree into a `WIDTH`-wide one, one wide level at a time.
+
+    Each wide node starts from a binary internal node's two children and
+    repeatedly replaces its largest-area internal child by that child's two
+    children until it has `WIDTH` children.  Returns ``(slots, depth)``:
+    (W, WIDTH) binary ids of the children of each wide node (``-1`` empty),
+    wide nodes breadth-first, and the number of wide levels.
+    """
+    internal = left >= 0
+    if not internal[0]:
+        slots = np.full((1, WIDTH), -1, np.int64)
+        slots[0, 0] = 0
+        return slots, 1
+    levels = []
+    frontier = np.zeros(1, np.int64)  # binary ids of the wide nodes of the level
+    while frontier.size:
+        f = frontier.size
+        slots = np.full((f, WIDTH), -1, np.int64)
+        slots[:, 0], slots[:, 1] = left[frontier], right[frontier]
+        for j in range(2, WIDTH):
+            is_inner = (slots >= 0) & internal[np.maximum(slots, 0)]
+            a = np.where(is_inner, area[np.maximum(slots, 0)], -1.0)
+            pick = np.argmax(a, axis=1)
+            rows = np.flatnonzero(is_inner[np.arange(f), pick])
+            c = slots[rows, pick[rows]]
+            slots[rows, pick[rows]] = left[c]
+            slots[rows, j] = right[c]
+        levels.append(slots)
+        frontier = slots[(slots >= 0) & internal[np.maximum(slots, 0)]]
+    return np.concatenate(levels), len(levels)
+
+
+class BVH:
+    """4-wide binned-SAH bounding volume hierarchy over a triangle mesh.
+
+    Build with `BVH.build`; query with `intersect` (closest hit) and
+    `occluded` (any hit).  Instances are read-only, so one BVH may be queried
+    from several threads.
+    """
+
+    def __init__(self, *, near, far, children, tri_v0, tri_v1, tri_v2, tri_prim, stats):
+        self._near = near  # 3 × (8W, WIDTH) float32: entry plane per axis, row = node * 8 + octant
+        self._far = far  # 3 × (8W, WIDTH) float32: exit plane per axis
+        self._children = children  # (8W, WIDTH) int64: child node * 8 + octant, or ~leaf
+        self._tri_v0 = tri_v0  # 3 × (L, leaf_size) float32 per leaf slot, NaN padding
+        self._tri_v1 = tri_v1  # 3 × (L, leaf_size) float32
+        self._tri_v2 = tri_v2  # 3 × (L, leaf_size) float32
+        self._tri_prim = tri_prim  # (L, leaf_size) int64 triangle index, -1 padding
+        self._stats = stats
+
+    @classmethod
+    def build(cls, vertices: np.ndarray, triangles: np.ndarray, *, leaf_size: int = 4) -> "BVH":
+        """Build the tree.
+
+        Parameters
+        ----------
+        vertices : (N, 3) float32 world positions in metres.
+        triangles : (M, 3) int32 vertex indices, validated and non-degenerate.
+        leaf_size : most triangles per leaf (>= 1).
+
+        Notes
+        -----
+        Binned SAH with `N_BINS` bins per axis over centroid bounds, all nodes
+        of a level at once (`_build_binary`), boxes padded by `BOX_PAD`, then
+        collapsed to `WIDTH` children per node (`_collapse`).
+        """
+        if leaf_size < 1:
+            raise ValueError(f"BVH.build: leaf_size must be >= 1, got {leaf_size!r}")
+        t0 = time.perf_counter()
+        v = np.asarray(vertices, np.float32)
+        tri = np.asarray(triangles, np.int64)
+        if v.ndim != 2 or v.shape[1] != 3 or tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0:
+            raise ValueError(f"BVH.build: need (N, 3) vertices and (M >= 1, 3) triangles, "
+                             f"got {v.shape} and {tri.shape}")
+        corners = v[tri]  # (M, 3 vertices, 3 axes)
+        lo = np.ascontiguousarray(corners.min(axis=1).T)
+        hi = np.ascontiguousarray(corners.max(axis=1).T)
+        order, b_lo, b_hi, left, right, start, count = _build_binary(lo, hi, leaf_size, N_BINS)
+        pad = BOX_PAD * (np.maximum(np.abs(b_lo), np.abs(b_hi)).max(axis=1)
+                         + (b_hi - b_lo).max(axis=1))
+        b_lo = b_lo - pad[:, None]
+        b_hi = b_hi + pad[:, None]
+        slots, depth = _collapse(left, right, _half_area(b_lo.T, b_hi.T))
+
+        is_leaf = left < 0
+        leaf_row = np.cumsum(is_leaf) - 1  # binary node -> leaf row
+        w = len(slots)
+        wide_id = np.full(len(left), -1, np.int64)
+        inner_slots = (slots >= 0) & ~is_leaf[np.maximum(slots, 0)]
+        wide_id[slots[inner_slots]] = np.arange(1, w)  # breadth-first, root is wide node 0
+        safe = np.maximum(slots, 0)
+        child = np.where(is_leaf[safe], ~leaf_row[safe], wide_id[safe])
+        child[slots < 0] = 0
+        c_lo = np.where((slots >= 0)[..., None], b_lo[safe], np.float32(np.inf))  # (W, WIDTH, 3)
+        c_hi = np.where((slots >= 0)[..., None], b_hi[safe], np.float32(-np.inf))
+        octant = np.arange(8)
+        near, far = [], []
+        for axis in range(3):
+            neg = ((octant >> axis) & 1).astype(bool)[None, :, None]
+            lo_a, hi_a = c_lo[:, None, :, axis], c_hi[:, None, :, axis]
+            near.append(np.where(neg, hi_a, lo_a).reshape(8 * w, WIDTH).astype(np.float32))
+            far.append(np.where(neg, lo_a, hi_a).reshape(8 * w, WIDTH).astype(np.float32))
+        children = np.where(child[:, None, :] >= 0, child[:, None, :] * 8 + octant[None, :, None],
+                            child[:, None, :]).reshape(8 * w, WIDTH)
+
+        leaves = np.flatnonzero(is_leaf)
+        k = np.arange(leaf_size)
+        valid = k[None, :] < count[leaves, None]
+        prim = np.where(valid, order[np.minimum(start[leaves, None] + k, len(tri) - 1)], -1)
+        pv = np.where(valid[..., None, None], corners[np.maximum(prim, 0)], np.float32(np.nan))
+        rows = lambda a: tuple(np.ascontiguousarray(a[..., i]) for i in range(3))  # noqa: E731
+        sizes = count[leaves]
+        stats = {
+            "triangles": len(tri),
+            "nodes": w,
+            "binary_nodes": len(left),
+            "leaves": len(leaves),
+            "depth": depth,
+            "leaf_size_max": int(sizes.max()),
+            "leaf_size_mean": float(sizes.mean()),
+            "leaf_size_hist": np.bincount(sizes, minlength=leaf_size + 1)[1:].tolist(),
+            "build_time_s": time.perf_counter() - t0,
+        }
+        return cls(near=tuple(near), far=tuple(far), children=children,
+                   tri_v0=rows(pv[:, :, 0]), tri_v1=rows(pv[:, :, 1]), tri_v2=rows(pv[:, :, 2]),
+                   tri_prim=prim, stats=stats)
+
+    @property
+    def stats(self) -> dict:
+        """Node count (4-wide and binary), leaves, depth, leaf sizes, build time in s."""
+        return dict(self._stats)
+
+    def intersect(self, origins, directions, t_max=None, ignore_prim=None, *,
+                  workers: int = 2, counters: dict | None = None) -> Hits:
+        """Closest hit with ``0 < t < t_max`` of each ray.
+
+        Parameters
+        ----------
+        origins, directions : (R, 3) float32, world frame; directions unit length.
+        t_max : (R,) float32 in metres, or None for no limit.
+        ignore_prim : (R,) int32 triangle never reported per ray (-1 none), or None.
+        workers : threads over ray chunks; the result does not depend on it.
+        counters : if given, ``box_tests``, ``tri_tests`` and ``rays`` are added to it.
+        """
+        return self._run(origins, directions, t_max, ignore_prim, False, workers, counters)
+
+    def occluded(self, origins, directions, t_max, ignore_prim=None, *,
+                 workers: int = 2, counters: dict | None = None) -> np.ndarray:
+        """(R,) bool: whether any triangle is hit with ``0 < t < t_max``.
+
+        Same parameters as `intersect`; a ray stops traversing at its first hit.
+        """
+        return self._run(origins, directions, t_max, ignore_prim, True, workers, counters)
+
+    def _run(self, origins, directions, t_max, ignore_prim, any_hit, workers, counters):
+        """Split rays into chunks of `RAY_CHUNK`, trace them on ``workers`` threads, join."""
+        o, d, tm, ig = _as_rays(origins, directions, t_max, ignore_prim)
+        bounds = [(s, min(len(o), s + RAY_CHUNK)) for s in range(0, len(o), RAY_CHUNK)]
+        use_ignore = bool((ig >= 0).any())
+        job = lambda se: self._trace(o[se[0]:se[1]], d[se[0]:se[1]], tm[se[0]:se[1]],  # noqa: E731
+                                     ig[se[0]:se[1]] if use_ignore else None, any_hit)
+        if workers > 1 and len(bounds) > 1:
+            with ThreadPoolExecutor(max_workers=workers) as pool:
+                parts = list(pool.map(job, bounds))
+        else:
+            parts = [job(se) for se in bounds]
+        if counters is not None:
+            counters["rays"] = counters.get("rays", 0) + len(o)
+            counters["box_tests"] = counters.get("box_tests", 0) + sum(p[-1][0] for p in parts)
+            counters["tri_tests"] = counters.get("tri_tests", 0) + sum(p[-1][1] for p in parts)
+        if any_hit:
+            return np.concatenate([p[0] for p in parts]) if parts else np.zeros(0, bool)
+        if not parts:
+            e = np.zeros(0, np.float32)
+            return Hits(t=e, prim=np.zeros(0, np.int32), u=e, v=e.copy())
+        return Hits(*(np.concatenate([p[i] for p in parts]) for i in range(4)))
+
+    def _trace(self, o, d, t_max, ignore, any_hit):
+        """Traverse one chunk of rays breadth first over (ray, node) pairs.
+
+        Returns ``(t, prim, u, v, counts)`` or, for ``any_hit``,
+        ``(occluded, counts)``; ``counts = (box tests, triangle tests)``.
+        """
+        n, width_leaf = len(o), self._tri_prim.shape[1]
+        neg = d < 0
+        octant = neg[:, 0] + 2 * neg[:, 1] + 4 * neg[:, 2]
+        safe_d = np.where(np.abs(d) < _TINY_DIR, np.where(neg, -_TINY_DIR, _TINY_DIR), d)
+        inv_d = (np.float32(1.0) / safe_d).astype(np.float32)
+        rep = lambda x, k: np.repeat(x, k).reshape(n, k)  # noqa: E731  per-ray rows
+        o_box = [rep(o[:, a], WIDTH) for a in range(3)]  # (n, WIDTH) origin rows
+        inv_box = [rep(inv_d[:, a], WIDTH) for a in range(3)]  # (n, WIDTH) inverse direction rows
+        t_box = rep(t_max, WIDTH)  # (n, WIDTH) best hit so far (box clip distance)
+        same = width_leaf == WIDTH
+        o_leaf = o_box if same else [rep(o[:, a], width_leaf) for a in range(3)]
+        b1, b2 = _ray_frame(d)
+        frame_leaf = [[rep(x[:, a], width_leaf) for a in range(3)] for x in (b1, b2, d)]  # ray frame rows
+        t_leaf = t_box if same else rep(t_max, width_leaf)  # (n, leaf_size) best hit so far
+        ig_leaf = None if ignore is None else rep(ignore, width_leaf)
+        prim = np.full(n, -1, np.int32)  # best triangle so far
+        bary_u = np.zeros(n, np.float32)  # barycentrics of the best hit
+        bary_v = np.zeros(n, np.float32)
+        occluded = np.zeros(n, bool)  # any hit found (any_hit mode)
+        pair_ray = np.arange(n)  # ray of each (ray, node) pair of the level
+        pair_node = octant.astype(np.int64)  # node * 8 + octant (root is node 0)
+        n_box = n_tri = 0  # box and triangle tests
+        take = np.take
+        while pair_ray.size:
+            n_box += WIDTH * pair_ray.size
+            tn = take(self._near[0], pair_node, axis=0)
+            tn -= take(o_box[0], pair_ray, axis=0)
+            tn *= take(inv_box[0], pair_ray, axis=0)
+            tf = take(self._far[0], pair_node, axis=0)
+            tf -= take(o_box[0], pair_ray, axis=0)
+            tf *= take(inv_box[0], pair_ray, axis=0)
+            for a in (1, 2):
+                oa = take(o_box[a], pair_ray, axis=0)
+                ia = take(inv_box[a], pair_ray, axis=0)
+                x = take(self._near[a], pair_node, axis=0)
+                x -= oa
+                x *= ia
+                np.maximum(tn, x, out=tn)
+                x = take(self._far[a], pair_node, axis=0)
+                x -= oa
+                x *= ia
+                np.minimum(tf, x, out=tf)
+            np.maximum(tn, 0.0, out=tn)
+            np.minimum(tf, take(t_box, pair_ray, axis=0), out=tf)
+            flat = np.flatnonzero(tn <= tf)
+            child = take(take(self._children, pair_node, axis=0), flat)
+            ray = take(pair_ray, flat >> 2)
+            is_leaf = child < 0
+            inner = np.flatnonzero(~is_leaf)
+            pair_ray, pair_node = take(ray, inner), take(child, inner)
+            lf = np.flatnonzero(is_leaf)
+            if not lf.size:
+                continue
+            leaf_ray, leaf = take(ray, lf), ~take(child, lf)
+            n_tri += width_leaf * leaf.size
+            ro = tuple(take(o_leaf[a], leaf_ray, axis=0) for a in range(3))
+            rf = ([take(x[a], leaf_ray, axis=0) for a in range(3)] for x in frame_leaf)
+            tv = ([take(x[a], leaf, axis=0) for a in range(3)] for x in (self._tri_v0, self._tri_v1, self._tri_v2))
+            hit, t, u, v = _watertight(ro, *rf, *tv, take(t_leaf, leaf_ray, axis=0))
+            tri = take(self._tri_prim, leaf, axis=0)
+            if ig_leaf is not None:
+                hit &= tri != take(ig_leaf, leaf_ray, axis=0)
+            f = np.flatnonzero(hit)
+            if not f.size:
+                continue
+            r = take(leaf_ray, f // width_leaf)
+            if any_hit:
+                occluded[r] = True
+                t_box[r] = -np.inf
+                if not same:
+                    t_leaf[r] = -np.inf
+                keep = np.flatnonzero(~occluded[pair_ray])
+                pair_ray, pair_node = take(pair_ray, keep), take(pair_node, keep)
+                continue
+            t, u, v, tri = (take(x, f) for x in (t, u, v, tri))
+            if r.size > 1 and (r[1:] == r[:-1]).any():  # several hits of one ray: keep the nearest
+                s = np.lexsort((t, r))
+                first = s[np.r_[True, r[s[1:]] != r[s[:-1]]]]
+                r, t, u, v, tri = r[first], t[first], u[first], v[first], tri[first]
+            t_box[r] = t[:, None]
+            if not same:
+                t_leaf[r] = t[:, None]
+            prim[r], bary_u[r], bary_v[r] = tri, u, v
+        counts = (n_box, n_tri)
+        if any_hit:
+            return occluded, counts
+        t_hit = np.where(prim >= 0, t_box[:, 0], np.float32(np.inf)).astype(np.float32)
+        return t_hit, prim, bary_u, bary_v, counts

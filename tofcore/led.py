@@ -1,0 +1,58 @@
+"""IR emitters of the sensor: point and Lambertian LEDs at their real offsets from the lens.
+
+==================  ======  =========  ===========================================================
+name                unit    default    meaning
+==================  ======  =========  ===========================================================
+``position_m``      m       (0,0,0)    position in the sensor frame (x right, y down, z forward)
+``intensity_w_sr``  W/sr    1.0        radiant intensity I0 (on the axis for a Lambertian LED)
+``kind``            –       "point"    ``"point"`` (isotropic) or ``"lambertian"`` (facing +z)
+==================  ======  =========  ===========================================================
+
+Both are point emitters as seen from the scene: the irradiance they cause at
+a surface point is :math:`E = I(\\theta) \\cos\\theta_x / d^2` (thesis eq. 2.8)
+with :math:`I(\\theta) = I_0` for a point LED and :math:`I(\\theta) = I_0
+\\cos\\theta` for a Lambertian LED (eq. 2.9), θ measured from the optical axis.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import ConfigError
+
+KINDS = ("point", "lambertian")
+
+
+@dataclass(frozen=True, kw_only=True)
+class LED:
+    """One IR emitter; see the module docstring for the parameter table."""
+
+    position_m: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    intensity_w_sr: float = 1.0
+    kind: str = "point"
+
+    def __post_init__(self) -> None:
+        pos = np.asarray(self.position_m, dtype=np.float64)
+        if pos.shape != (3,) or not np.isfinite(pos).all():
+            raise ConfigError(f"LED: position_m must be three finite numbers (metres, sensor frame), "
+                              f"got {self.position_m!r}")
+        object.__setattr__(self, "position_m", tuple(float(x) for x in pos))
+        if not isinstance(self.intensity_w_sr, (int, float, np.number)) or not np.isfinite(self.intensity_w_sr) \
+                or self.intensity_w_sr < 0:
+            raise ConfigError(f"LED: intensity_w_sr must be a finite number >= 0, got {self.intensity_w_sr!r}")
+        if self.kind not in KINDS:
+            raise ConfigError(f"LED: kind must be one of {list(KINDS)}, got {self.kind!r}")
+
+    def intensity(self, cos_axis: np.ndarray) -> np.ndarray:
+        """Radiant intensity I(θ) in W/sr towards directions with cos θ = ``cos_axis`` from the +z axis.
+
+        Notes
+        -----
+        Point LED: :math:`I = I_0` (eq. 2.8). Lambertian LED:
+        :math:`I = I_0 \\max(0, \\cos\\theta)` (eq. 2.9); it emits nothing backwards.
+        """
+        if self.kind == "point":
+            return np.full(np.shape(cos_axis), self.intensity_w_sr)
+        return self.intensity_w_sr * np.maximum(cos_axis, 0.0)

@@ -1,0 +1,151 @@
+"""What a ray finds where it hits: position, normals, shading frame and material parameters.
+
+:func:`surface_at` turns the BVH's (triangle, barycentrics) into the local
+geometry the integrator needs. Conventions:
+
+* positions in float64 (path lengths are summed from them, DESIGN.md): the
+  float64 ray is intersected again with the plane of the triangle the BVH
+  found, so a hit point lies on its ray to float64 precision, not to the
+  float32 precision of the BVH's barycentrics;
+* the geometric normal is flipped to face the incoming ray (surfaces are
+  two-sided), the shading normal (interpolated vertex normals, then the
+  normal map) is flipped to the same side;
+* the shading frame is an orthonormal basis (tangent, bitangent, normal) with
+  the shading normal as z, built branch-free (Duff et al. 2017, "Building an
+  orthonormal basis, revisited").
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .bsdf import SurfaceParams
+from .material import PARAMETER_NAMES
+from .scene import Scene
+
+
+@dataclass(frozen=True)
+class Surface:
+    """Local geometry at N hit points (world frame)."""
+
+    position: np.ndarray          # (N, 3) float64, metres
+    geometric_normal: np.ndarray  # (N, 3) float64, unit, facing the incoming ray
+    tangent: np.ndarray           # (N, 3) float64, shading frame x
+    bitangent: np.ndarray         # (N, 3) float64, shading frame y
+    shading_normal: np.ndarray    # (N, 3) float64, shading frame z, same side as geometric_normal
+    params: SurfaceParams         # reflection model parameters per point
+
+    def to_local(self, w: np.ndarray) -> np.ndarray:
+        """World directions (N, 3) into the shading frame."""
+        return np.stack([_dot(w, self.tangent), _dot(w, self.bitangent), _dot(w, self.shading_normal)], axis=1)
+
+    def to_world(self, w: np.ndarray) -> np.ndarray:
+        """Shading-frame directions (N, 3) into the world frame."""
+        return (w[:, 0:1] * self.tangent + w[:, 1:2] * self.bitangent + w[:, 2:3] * self.shading_normal)
+
+
+def _dot(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    return np.einsum("ij,ij->i", a, b)
+
+
+def _normalize(v: np.ndarray) -> np.ndarray:
+    return v / np.linalg.norm(v, axis=1, keepdims=True)
+
+
+def orthonormal_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Tangent and bitangent completing unit normals ``n`` (N, 3) to a right-handed frame (Duff et al. 2017)."""
+    sign = np.where(n[:, 2] >= 0, 1.0, -1.0)
+    a = -1.0 / (sign + n[:, 2])
+    b = n[:, 0] * n[:, 1] * a
+    t = np.stack([1.0 + sign * n[:, 0] ** 2 * a, sign * b, -sign * n[:, 0]], axis=1)
+    bt = np.stack([b, sign + n[:, 1] ** 2 * a, -n[:, 1]], axis=1)
+    return t, bt
+
+
+class MaterialTable:
+    """Per-material parameters as arrays, for vectorised lookup by material index."""
+
+    def __init__(self, scene: Scene):
+        self.scene = scene
+        self.values = {k: np.array([getattr(m, k) for m in scene.materials]) for k in PARAMETER_NAMES}
+        self.textured = [i for i, m in enumerate(scene.materials) if m.textures]
+
+    @property
+    def has_textures(self) -> bool:
+        return bool(self.textured)
+
+
+def surface_at(scene: Scene, table: MaterialTable, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
+               ray_origin: np.ndarray, ray_direction: np.ndarray) -> Surface:
+    """Surface where rays (float64 origins, unit directions; world frame) hit triangles ``prim`` at barycentrics (u, v)."""
+    tri = scene.triangles[prim]
+    w0 = (1.0 - u - v).astype(np.float64)[:, None]
+    u64 = u.astype(np.float64)[:, None]
+    v64 = v.astype(np.float64)[:, None]
+    verts = scene.vertices
+    ng = scene.face_normals[prim].astype(np.float64)
+    # Float64 ray-plane intersection (the BVH's float32 barycentrics only select the triangle).
+    cos_ray = _dot(ray_direction, ng)
+    steep = np.abs(cos_ray) > 1e-9
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = _dot(verts[tri[:, 0]].astype(np.float64) - ray_origin, ng) / cos_ray
+    position = np.where(steep[:, None], ray_origin + t[:, None] * ray_direction,
+                        w0 * verts[tri[:, 0]] + u64 * verts[tri[:, 1]] + v64 * verts[tri[:, 2]])
+
+    facing = np.where(_dot(ng, ray_direction) > 0, -1.0, 1.0)[:, None]
+    ng = ng * facing
+    if scene.normals is not None:
+        nrm = scene.normals
+        ns = _normalize(w0 * nrm[tri[:, 0]] + u64 * nrm[tri[:, 1]] + v64 * nrm[tri[:, 2]])
+    else:
+        ns = ng.copy()
+
+    mat = scene.material_ids[prim]
+    values = {k: table.values[k][mat] for k in PARAMETER_NAMES}
+    if table.has_textures:
+        uv = w0 * scene.uvs[tri[:, 0]] + u64 * scene.uvs[tri[:, 1]] + v64 * scene.uvs[tri[:, 2]]
+        for i in table.textured:
+            sel = np.flatnonzero(mat == i)
+            if len(sel) == 0:
+                continue
+            m = scene.materials[i]
+            for key in ("reflectance", "roughness", "metallic"):
+                tex = getattr(m, f"{key}_texture")
+                if tex is not None:
+                    values[key][sel] = tex.sample(uv[sel])
+            if m.normal_texture is not None:
+                ns[sel] = _perturb(scene, prim[sel], ns[sel] * np.sign(_dot(ns[sel], ng[sel]))[:, None],
+                                   m.normal_texture.sample(uv[sel])[:, :3])
+    ns = ns * np.where(_dot(ns, ng) < 0, -1.0, 1.0)[:, None]
+    tangent, bitangent = orthonormal_basis(ns)
+    params = SurfaceParams(
+        reflectance=np.clip(values["reflectance"], 0.0, 1.0), roughness=np.maximum(values["roughness"], 0.0),
+        metallic=np.clip(values["metallic"], 0.0, 1.0), ior=values["ior"], extinction=values["extinction"])
+    return Surface(position=position, geometric_normal=ng, tangent=tangent, bitangent=bitangent,
+                   shading_normal=ns, params=params)
+
+
+def _perturb(scene: Scene, prim: np.ndarray, n: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+    """Apply a tangent-space normal map (RGB in [0, 1]) to shading normals ``n``.
+
+    The tangent follows increasing u on the triangle (dP/du from the UV
+    parametrisation, Gram–Schmidt against n); the bitangent is n × t.
+    """
+    tri = scene.triangles[prim]
+    p = scene.vertices.astype(np.float64)
+    uv = scene.uvs.astype(np.float64)
+    e1, e2 = p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]]
+    d1, d2 = uv[tri[:, 1]] - uv[tri[:, 0]], uv[tri[:, 2]] - uv[tri[:, 0]]
+    det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        dpdu = (e1 * d2[:, 1:2] - e2 * d1[:, 1:2]) / det[:, None]
+    fallback, _ = orthonormal_basis(n)
+    dpdu = np.where(np.isfinite(dpdu).all(axis=1, keepdims=True), dpdu, fallback)
+    t = dpdu - _dot(dpdu, n)[:, None] * n
+    norm = np.linalg.norm(t, axis=1, keepdims=True)
+    t = np.where(norm > 1e-12, t / np.maximum(norm, 1e-300), fallback)
+    b = np.cross(n, t)
+    m = 2.0 * rgb.astype(np.float64) - 1.0
+    return _normalize(m[:, 0:1] * t + m[:, 1:2] * b + np.maximum(m[:, 2:3], 1e-3) * n)

@@ -1,0 +1,502 @@
+"""Light transport: a wavefront path tracer that buckets light by bounce count and path length.
+
+For every pixel and sample a camera ray leaves the lens; at every surface
+vertex x_k the tracer connects to **every LED** with a shadow ray (next-event
+estimation), then samples the BSDF for the next direction, until ``max_depth``
+vertices or a miss (SPEC §1, thesis §5.1). Each LED connection is a
+contribution with
+
+* weight w (radiance at the lens, W m⁻² sr⁻¹, per unit LED intensity scale),
+* optical path length L = |LED → x_k| + |x_k → x_{k-1}| + … + |x_1 → lens| (float64, metres),
+* bounce count k (1 = direct reflection, ≥ 2 = multipath).
+
+Per pixel and per k the tracer accumulates Σw and Σw·g_j(L/c) for the
+correlation functions g_j of the caller's sensor model (DESIGN.md "path-length
+bucketing"). Rays that leave the scene pick up ambient radiance, which is
+unmodulated and summed apart from the LED signal.
+
+Estimator, for a path with throughput β_k = Π f cosθ / p after k−1 sampled
+bounces (thesis eq. 2.31 with eq. 2.8):
+
+.. math:: w = \\beta_k \\, f(x_k, \\omega_o, \\omega_{LED}) \\, |\\cos\\theta_{x_k}| \\, I(\\theta_{LED}) / d^2
+
+Determinism: random numbers are hashes of (seed, pixel, sample, dimension)
+(:mod:`tofcore.rng`); every chunk holds whole pixels and sums them in sample
+order, so the result is the same bit for bit whatever the chunk size.
+Memory is bounded by the chunk size (rays in flight), not by spp.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable, Iterator, Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import rng
+from .ambient import Ambient
+from .bsdf import eval_bsdf, sample_bsdf
+from .camera import Camera
+from .errors import ConfigError
+from .led import LED
+from .scene import Scene
+from .surface import MaterialTable, Surface, surface_at
+
+SPEED_OF_LIGHT_M_S = 299_792_458.0
+
+Correlation = Callable[[np.ndarray], np.ndarray]
+"""g_j(τ): delay τ in seconds (float64 array) → correlation value per contribution (same shape)."""
+
+# Random dimensions: each decision of a path owns one.
+_DIM_PIXEL_U, _DIM_PIXEL_V, _DIM_LENS_U, _DIM_LENS_V = 0, 1, 2, 3
+_DIMS_PER_BOUNCE = 3  # lobe choice, direction u1, direction u2
+
+
+def _bounce_dim(vertex: int, which: int) -> int:
+    return 4 + _DIMS_PER_BOUNCE * (vertex - 1) + which
+
+
+@dataclass(frozen=True)
+class FirstHit:
+    """Noise-free ground truth from one ray through each pixel centre (pinhole at the lens centre).
+
+    Misses: NaN distances/positions/normals, ids −1.
+    """
+
+    distance_m: np.ndarray   # (H, W) float64, radial distance lens → surface
+    position_m: np.ndarray   # (H, W, 3) float32, world frame
+    normal: np.ndarray       # (H, W, 3) float32, world frame, facing the camera
+    material_id: np.ndarray  # (H, W) int32
+    object_id: np.ndarray    # (H, W) int32
+    direction: np.ndarray    # (H, W, 3) float32, world-frame unit ray directions
+
+
+@dataclass
+class TraceStats:
+    """Counters of one trace."""
+
+    camera_rays: int = 0
+    bounce_rays: int = 0
+    shadow_rays: int = 0
+    seconds: float = 0.0
+    passes: int = 0
+    skipped_shadow_rays: int = 0  # first-hit shadow rays known to be unoccluded (LED at a pinhole)
+    camera_seconds: float = 0.0   # time inside the BVH for each kind of ray
+    bounce_seconds: float = 0.0
+    shadow_seconds: float = 0.0
+
+    @property
+    def rays(self) -> int:
+        return self.camera_rays + self.bounce_rays + self.shadow_rays
+
+    def as_dict(self) -> dict:
+        return {"camera_rays": self.camera_rays, "bounce_rays": self.bounce_rays, "shadow_rays": self.shadow_rays,
+                "rays": self.rays, "seconds": self.seconds, "passes": self.passes,
+                "skipped_shadow_rays": self.skipped_shadow_rays,
+                "camera_seconds": self.camera_seconds, "bounce_seconds": self.bounce_seconds,
+                "shadow_seconds": self.shadow_seconds,
+                "rays_per_second": self.rays / self.seconds if self.seconds > 0 else None}
+
+
+@dataclass(eq=False)
+class Transport:
+    """Accumulated light transport of one frame; sums, with means and errors as methods.
+
+    Sums are over samples; divide by ``sample_count`` (done by the accessors).
+    Channels of the per-sample squares: 0 = signal Σw, 1..J = correlations, J+1 = ambient.
+    """
+
+    width: int
+    height: int
+    max_depth: int
+    n_correlations: int
+    sample_count: np.ndarray      # (P,) int64 samples per pixel, P = H·W
+    signal_sum: np.ndarray        # (K, P) float64: Σ w per bounce bucket k = 1..K
+    correlation_sum: np.ndarray   # (K, J, P) float64: Σ w·g_j(L/c)
+    ambient_sum: np.ndarray       # (P,) float64: Σ ambient radiance (unmodulated)
+    square_sum: np.ndarray        # (J+2, P) float64: Σ over samples of (per-sample channel total)²
+    first_hit: FirstHit
+    transient_sum: np.ndarray | None = None  # (P, B) float64: Σ w per path-length bin
+    transient_bin_m: float | None = None
+    stats: TraceStats = field(default_factory=TraceStats)
+
+    # ------------------------------------------------------------- accessors
+    def _per_sample(self, sums: np.ndarray) -> np.ndarray:
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = sums / self.sample_count
+        return mean.reshape(sums.shape[:-1] + (self.height, self.width))
+
+    def signal(self, max_k: int | None = None) -> np.ndarray:
+        """(H, W) mean LED radiance at the lens summed over bounces k ≤ ``max_k`` (all by default)."""
+        return self._per_sample(self.signal_sum[: self._k(max_k)].sum(axis=0))
+
+    def correlation(self, max_k: int | None = None) -> np.ndarray:
+        """(J, H, W) mean Σ w·g_j summed over bounces k ≤ ``max_k`` (all by default): the partial sums of §6.3.1."""
+        return self._per_sample(self.correlation_sum[: self._k(max_k)].sum(axis=0))
+
+    def signal_per_bounce(self) -> np.ndarray:
+        """(K, H, W) mean signal of each bounce bucket k = 1..K."""
+        return self._per_sample(self.signal_sum)
+
+    def correlation_per_bounce(self) -> np.ndarray:
+        """(K, J, H, W) mean correlation sums of each bounce bucket."""
+        return self._per_sample(self.correlation_sum)
+
+    def ambient(self) -> np.ndarray:
+        """(H, W) mean ambient (unmodulated) radiance at the lens."""
+        return self._per_sample(self.ambient_sum)
+
+    def transient(self) -> np.ndarray | None:
+        """(H, W, B) mean radiance per path-length bin of width ``transient_bin_m`` (bin b centred at (b+½)·width)."""
+        if self.transient_sum is None:
+            return None
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = self.transient_sum / self.sample_count[:, None]
+        return mean.reshape(self.height, self.width, -1)
+
+    def variance_of_mean(self) -> np.ndarray:
+        """(J+2, H, W) variance of the per-pixel mean of each channel (signal, correlations…, ambient).
+
+        From the per-sample totals: Var[mean] = (E[x²] − E[x]²) / (n − 1); NaN where n < 2.
+        """
+        totals = np.concatenate([self.signal_sum.sum(axis=0)[None], self.correlation_sum.sum(axis=0),
+                                 self.ambient_sum[None]])
+        n = self.sample_count.astype(np.float64)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            mean = totals / n
+            var = np.maximum(self.square_sum / n - mean**2, 0.0) / (n - 1)
+        var[:, n < 2] = np.nan
+        return var.reshape(-1, self.height, self.width)
+
+    def _k(self, max_k: int | None) -> int:
+        if max_k is None:
+            return self.max_depth
+        if not 1 <= max_k <= self.max_depth:
+            raise ConfigError(f"Transport: max_k must be in [1, {self.max_depth}], got {max_k!r}")
+        return max_k
+
+
+def pass_schedule(spp: int) -> list[int]:
+    """Samples per progressive pass: 1, 1, 2, 4, 8, 16, 16, … summing to ``spp``.
+
+    Depends on spp only (never on chunk size), so results are reproducible, and
+    the first passes of a longer render equal a shorter render.
+    """
+    passes, done, size = [], 0, 1
+    while done < spp:
+        n = min(size, spp - done)
+        passes.append(n)
+        done += n
+        if len(passes) > 1:
+            size = min(2 * size, 16)
+    return passes
+
+
+@dataclass(frozen=True)
+class _Context:
+    """Everything a chunk needs, fixed for the whole trace."""
+
+    scene: Scene
+    table: MaterialTable
+    camera: Camera
+    world_from_sensor: np.ndarray
+    lens_center: np.ndarray
+    led_positions: np.ndarray   # (L, 3) world frame
+    led_axis: np.ndarray        # (3,) world frame optical axis (+z of the sensor)
+    leds: tuple[LED, ...]
+    skip_first_shadow: np.ndarray  # (L,) bool: LED at the centre of a pinhole lens
+    correlations: tuple[Correlation, ...]
+    ambient: Ambient | None
+    max_depth: int
+    key: np.uint64
+    offset_scale: float
+    transient_bins: int
+    transient_bin_m: float | None
+
+
+def trace(scene: Scene, camera: Camera, leds: Sequence[LED], **kwargs) -> Transport:
+    """Trace a whole frame; see :func:`trace_progressive` for the parameters."""
+    transport = None
+    for transport in trace_progressive(scene, camera, leds, **kwargs):
+        pass
+    return transport
+
+
+def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
+                      world_from_sensor: np.ndarray | None = None,
+                      correlations: Sequence[Correlation] = (),
+                      ambient: Ambient | None = None,
+                      spp: int = 16, max_depth: int = 5, seed: int = 0,
+                      chunk_size: int = 1 << 16,
+                      transient_bin_m: float | None = None, transient_max_m: float | None = None,
+                      ) -> Iterator[Transport]:
+    """Trace in progressive passes, yielding the accumulated :class:`Transport` after each.
+
+    Parameters
+    ----------
+    scene, camera, leds : what to render; LED positions are in the sensor frame.
+    world_from_sensor : 4×4 pose (sensor frame = OpenCV: x right, y down, z forward); identity by default.
+    correlations : g_j(τ), τ in seconds, one per sensor bucket/phase image.
+    ambient : background radiance; ``None`` or black skips all ambient work.
+    spp : samples per pixel in total; max_depth : surface vertices per path (1 = direct only).
+    seed : non-negative int; the same seed gives the same frame for any ``chunk_size``.
+    chunk_size : rays in flight at once; bounds memory.
+    transient_bin_m, transient_max_m : optional histogram of w over path length (bin width, range), metres.
+
+    The yielded object is the live accumulator: copy what you keep between passes.
+    """
+    ctx = _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_depth, seed,
+                   transient_bin_m, transient_max_m)
+    if not isinstance(spp, (int, np.integer)) or spp < 1:
+        raise ConfigError(f"trace: spp must be an integer >= 1, got {spp!r}")
+    if not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
+        raise ConfigError(f"trace: chunk_size must be an integer >= 1, got {chunk_size!r}")
+    start = time.perf_counter()
+    n_pix = camera.width * camera.height
+    n_corr = len(ctx.correlations)
+    stats = TraceStats()
+    transport = Transport(
+        width=camera.width, height=camera.height, max_depth=max_depth, n_correlations=n_corr,
+        sample_count=np.zeros(n_pix, np.int64),
+        signal_sum=np.zeros((max_depth, n_pix)), correlation_sum=np.zeros((max_depth, n_corr, n_pix)),
+        ambient_sum=np.zeros(n_pix), square_sum=np.zeros((n_corr + 2, n_pix)),
+        first_hit=_first_hit(ctx, stats),
+        transient_sum=np.zeros((n_pix, ctx.transient_bins)) if ctx.transient_bins else None,
+        transient_bin_m=ctx.transient_bin_m, stats=stats)
+    first_sample = 0
+    for n_samples in pass_schedule(int(spp)):
+        pixels_per_chunk = max(1, chunk_size // n_samples)
+        for p0 in range(0, n_pix, pixels_per_chunk):
+            p1 = min(n_pix, p0 + pixels_per_chunk)
+            _trace_chunk(ctx, transport, p0, p1, first_sample, n_samples)
+        transport.sample_count += n_samples
+        first_sample += n_samples
+        stats.passes += 1
+        stats.seconds = time.perf_counter() - start
+        yield transport
+
+
+def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_depth, seed,
+             transient_bin_m, transient_max_m) -> _Context:
+    if not isinstance(scene, Scene):
+        raise ConfigError(f"trace: scene must be a tofcore.Scene, got {type(scene).__name__}")
+    if not isinstance(camera, Camera):
+        raise ConfigError(f"trace: camera must be a tofcore.Camera, got {type(camera).__name__}")
+    leds = tuple(leds)
+    if not leds or not all(isinstance(x, LED) for x in leds):
+        raise ConfigError(f"trace: leds must be a non-empty sequence of tofcore.LED, got {leds!r}")
+    if not isinstance(max_depth, (int, np.integer)) or max_depth < 1:
+        raise ConfigError(f"trace: max_depth must be an integer >= 1, got {max_depth!r}")
+    pose = np.eye(4) if world_from_sensor is None else np.asarray(world_from_sensor, dtype=np.float64)
+    if pose.shape != (4, 4) or not np.isfinite(pose).all():
+        raise ConfigError(f"trace: world_from_sensor must be a finite 4x4 matrix, got shape {pose.shape}")
+    rot = pose[:3, :3]
+    if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) or np.linalg.det(rot) < 0 \
+            or not np.allclose(pose[3], [0, 0, 0, 1]):
+        raise ConfigError("trace: world_from_sensor must be a rigid transform (rotation + translation, "
+                          "no scale or shear; last row 0 0 0 1)")
+    correlations = tuple(correlations)
+    for j, g in enumerate(correlations):
+        if not callable(g):
+            raise ConfigError(f"trace: correlations[{j}] must be callable g(tau_s), got {type(g).__name__}")
+    bins = 0
+    if transient_bin_m is not None:
+        if not transient_bin_m > 0 or not transient_max_m or not transient_max_m > transient_bin_m:
+            raise ConfigError(f"trace: transient_bin_m must be > 0 and transient_max_m > transient_bin_m, "
+                              f"got {transient_bin_m!r} and {transient_max_m!r}")
+        bins = int(np.ceil(transient_max_m / transient_bin_m))
+    positions = np.array([x.position_m for x in leds])
+    led_world = positions @ rot.T + pose[:3, 3]
+    pinhole = camera.aperture_radius_m == 0
+    lo, hi = scene.bounds
+    extent = float(np.max(np.abs(np.concatenate([lo, hi, pose[:3, 3]]))))
+    return _Context(
+        scene=scene, table=MaterialTable(scene), camera=camera, world_from_sensor=pose, lens_center=pose[:3, 3],
+        led_positions=led_world, led_axis=rot[:, 2], leds=leds,
+        skip_first_shadow=np.all(positions == 0.0, axis=1) & pinhole,
+        correlations=correlations, ambient=None if ambient is None or ambient.is_black else ambient,
+        max_depth=int(max_depth), key=rng.seed_key(seed),
+        offset_scale=_OFFSET_RELATIVE * max(extent, 1e-3),
+        transient_bins=bins, transient_bin_m=transient_bin_m)
+
+
+_OFFSET_RELATIVE = 2.0**-16
+"""Ray-origin offset along the geometric normal, relative to the scene's extent.
+
+~1.5e-5 m per metre of scene: about 250 float32 ulps of the largest coordinate,
+far above the rounding of a float32 hit point (so no self-hit on neighbouring
+triangles) and far below any feature a ToF pixel resolves (so the corner of
+two walls shows no gap — the fixed epsilon of the thesis did, §6.3). The
+triangle a ray leaves is excluded outright (``ignore_prim``).
+"""
+
+
+def _first_hit(ctx: _Context, stats: TraceStats) -> FirstHit:
+    cam = ctx.camera
+    rot = ctx.world_from_sensor[:3, :3]
+    d = cam.pixel_center_directions().reshape(-1, 3).astype(np.float64) @ rot.T
+    n = len(d)
+    origin = np.broadcast_to(ctx.lens_center, (n, 3))
+    hits = ctx.scene.bvh.intersect(origin.astype(np.float32), d.astype(np.float32))
+    stats.camera_rays += n
+    hit = hits.prim >= 0
+    distance = np.full(n, np.nan)
+    position = np.full((n, 3), np.nan, np.float32)
+    normal = np.full((n, 3), np.nan, np.float32)
+    material = np.full(n, -1, np.int32)
+    obj = np.full(n, -1, np.int32)
+    if hit.any():
+        surf = surface_at(ctx.scene, ctx.table, hits.prim[hit], hits.u[hit], hits.v[hit], origin[hit], d[hit])
+        distance[hit] = np.linalg.norm(surf.position - ctx.lens_center, axis=1)
+        position[hit] = surf.position
+        normal[hit] = surf.geometric_normal
+        material[hit] = ctx.scene.material_ids[hits.prim[hit]]
+        obj[hit] = ctx.scene.object_ids[hits.prim[hit]]
+    shape = (cam.height, cam.width)
+    return FirstHit(distance_m=distance.reshape(shape), position_m=position.reshape(shape + (3,)),
+                    normal=normal.reshape(shape + (3,)), material_id=material.reshape(shape),
+                    object_id=obj.reshape(shape), direction=d.astype(np.float32).reshape(shape + (3,)))
+
+
+def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, first_sample: int, n_samples: int) -> None:
+    """Trace samples [first_sample, first_sample + n_samples) of pixels [p0, p1) and add them to ``out``."""
+    n_pix = p1 - p0
+    n_corr = len(ctx.correlations)
+    stats = out.stats
+    # Path state, one entry per live path (compacted after every bounce):
+    slot = np.arange(n_pix * n_samples)                         # index of the path within the chunk
+    local_pixel = slot // n_samples                             # pixel within the chunk; paths ordered (pixel, sample)
+    pixel = p0 + local_pixel                                    # flat pixel index in the frame
+    sample = first_sample + slot % n_samples                    # sample index of the pixel
+    throughput = np.ones(len(slot))                             # β: Π f cosθ / pdf so far
+    path_length = np.zeros(len(slot))                           # metres travelled from the lens, float64
+    prev_prim = np.full(len(slot), -1, np.int32)                # triangle the ray leaves (never hit again)
+    # Per-path totals over all bounces, for the per-sample variance: signal, correlations..., ambient.
+    path_total = np.zeros((n_corr + 2, len(slot)))
+
+    cam = ctx.camera
+    rot = ctx.world_from_sensor[:3, :3]
+    o_s, d_s = cam.generate_rays(
+        pixel, rng.uniform(ctx.key, pixel, sample, _DIM_PIXEL_U), rng.uniform(ctx.key, pixel, sample, _DIM_PIXEL_V),
+        rng.uniform(ctx.key, pixel, sample, _DIM_LENS_U), rng.uniform(ctx.key, pixel, sample, _DIM_LENS_V))
+    origin = o_s @ rot.T + ctx.lens_center                      # ray origins (offset off the surface after bounce 1)
+    direction = d_s @ rot.T                                     # unit ray directions, world frame
+    prev_point = origin                                         # true position of the previous vertex (lens point first)
+
+    for depth in range(1, ctx.max_depth + 1):
+        clock = time.perf_counter()
+        hits = ctx.scene.bvh.intersect(origin.astype(np.float32), direction.astype(np.float32),
+                                       ignore_prim=prev_prim)
+        if depth == 1:
+            stats.camera_rays += len(slot)
+            stats.camera_seconds += time.perf_counter() - clock
+        else:
+            stats.bounce_rays += len(slot)
+            stats.bounce_seconds += time.perf_counter() - clock
+        hit = hits.prim >= 0
+        if ctx.ambient is not None and not hit.all():
+            miss = ~hit
+            path_total[-1, slot[miss]] += throughput[miss] * ctx.ambient.radiance(direction[miss])
+        # Compact: keep the paths that hit a surface.
+        keep = np.flatnonzero(hit)
+        slot, local_pixel, pixel, sample = slot[keep], local_pixel[keep], pixel[keep], sample[keep]
+        throughput, path_length = throughput[keep], path_length[keep]
+        origin, direction, prev_point, prim = origin[keep], direction[keep], prev_point[keep], hits.prim[keep]
+        if len(slot) == 0:
+            break
+        surf = surface_at(ctx.scene, ctx.table, prim, hits.u[keep], hits.v[keep], origin, direction)
+        path_length = path_length + np.linalg.norm(surf.position - prev_point, axis=1)
+        wo = surf.to_local(-direction)
+        spawn = surf.position + surf.geometric_normal * ctx.offset_scale
+
+        # Next-event estimation to every LED, summed per path in LED order.
+        w_sum = np.zeros(len(slot))
+        wg_sum = np.zeros((n_corr, len(slot)))
+        for i, led in enumerate(ctx.leds):
+            w, led_distance = _connect_led(ctx, stats, surf, spawn, wo, prim, throughput, i, led, depth)
+            total_length = path_length + led_distance
+            if ctx.transient_bins:
+                _add_transient(ctx, out, p0, p1, local_pixel, w, total_length)
+            w_sum += w
+            tau = total_length / SPEED_OF_LIGHT_M_S
+            for j, g in enumerate(ctx.correlations):
+                wg_sum[j] += w * g(tau)
+        k = depth - 1
+        out.signal_sum[k, p0:p1] += np.bincount(local_pixel, w_sum, minlength=n_pix)
+        for j in range(n_corr):
+            out.correlation_sum[k, j, p0:p1] += np.bincount(local_pixel, wg_sum[j], minlength=n_pix)
+        path_total[0, slot] += w_sum
+        path_total[1:n_corr + 1, slot] += wg_sum
+
+        if depth == ctx.max_depth:
+            break
+        # Sample the BSDF for the next direction.
+        bs = sample_bsdf(surf.params, wo,
+                         rng.uniform(ctx.key, pixel, sample, _bounce_dim(depth, 0)),
+                         rng.uniform(ctx.key, pixel, sample, _bounce_dim(depth, 1)),
+                         rng.uniform(ctx.key, pixel, sample, _bounce_dim(depth, 2)))
+        new_dir = surf.to_world(bs.wi)
+        # A direction below the geometric surface would leak through it (shading normals): end the path.
+        alive = (bs.weight > 0) & (np.einsum("ij,ij->i", new_dir, surf.geometric_normal) > 0)
+        keep = np.flatnonzero(alive)
+        slot, local_pixel, pixel, sample = slot[keep], local_pixel[keep], pixel[keep], sample[keep]
+        throughput = throughput[keep] * bs.weight[keep]
+        path_length, prev_prim = path_length[keep], prim[keep]
+        prev_point, origin = surf.position[keep], spawn[keep]
+        direction = new_dir[keep] / np.linalg.norm(new_dir[keep], axis=1, keepdims=True)
+        if len(slot) == 0:
+            break
+
+    all_slots = np.arange(path_total.shape[1])
+    local = all_slots // n_samples
+    sq = np.stack([np.bincount(local, path_total[c] ** 2, minlength=n_pix) for c in range(n_corr + 2)])
+    out.square_sum[:, p0:p1] += sq
+    if ctx.ambient is not None:
+        out.ambient_sum[p0:p1] += np.bincount(local, path_total[-1], minlength=n_pix)
+
+
+def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndarray, wo: np.ndarray,
+                 prim: np.ndarray, throughput: np.ndarray, i: int, led: LED, depth: int
+                 ) -> tuple[np.ndarray, np.ndarray]:
+    """Next-event estimate to LED ``i``: (weight w per path, distance hit point → LED)."""
+    to_led = ctx.led_positions[i] - surf.position
+    dist = np.linalg.norm(to_led, axis=1)
+    wi_world = to_led / dist[:, None]
+    cos_geo = np.einsum("ij,ij->i", wi_world, surf.geometric_normal)
+    cos_shading = np.einsum("ij,ij->i", wi_world, surf.shading_normal)
+    intensity = led.intensity(-wi_world @ ctx.led_axis)
+    f = eval_bsdf(surf.params, wo, surf.to_local(wi_world))
+    w = throughput * f * np.maximum(cos_shading, 0.0) * intensity / dist**2
+    w = np.where(cos_geo > 0, w, 0.0)
+    test = np.flatnonzero(w > 0)
+    if depth == 1 and ctx.skip_first_shadow[i]:
+        stats.skipped_shadow_rays += len(test)
+    elif len(test):
+        clock = time.perf_counter()
+        blocked = ctx.scene.bvh.occluded(spawn[test].astype(np.float32), wi_world[test].astype(np.float32),
+                                         (dist[test] - ctx.offset_scale).astype(np.float32),
+                                         ignore_prim=prim[test])
+        stats.shadow_rays += len(test)
+        stats.shadow_seconds += time.perf_counter() - clock
+        w[test[blocked]] = 0.0
+    return w, dist
+
+
+def _add_transient(ctx: _Context, out: Transport, p0: int, p1: int, local_pixel: np.ndarray, w: np.ndarray,
+                   length: np.ndarray) -> None:
+    """Add weights to the path-length histogram, split linearly between the two nearest bin centres.
+
+    The split keeps Σw and Σw·L of every contribution inside the range (moment-preserving, DESIGN.md).
+    """
+    nb = ctx.transient_bins
+    x = length / ctx.transient_bin_m - 0.5
+    b0 = np.floor(x)
+    frac = x - b0
+    b0 = b0.astype(np.int64)
+    n = (p1 - p0) * nb
+    hist = np.zeros(n)
+    for b, wt in ((b0, w * (1.0 - frac)), (b0 + 1, w * frac)):
+        ok = (b >= 0) & (b < nb) & (wt != 0)
+        hist += np.bincount(local_pixel[ok] * nb + b[ok], wt[ok], minlength=n)
+    out.transient_sum[p0:p1] += hist.reshape(p1 - p0, nb)
