@@ -12,8 +12,9 @@ the light / next vertex. Parameters are a `SurfaceParams` of (N,) arrays.
   Delta (mirror) lobes are not included: their f_r is a Dirac delta.
 * ``pdf_bsdf(params, wo, wi)`` returns the solid-angle density (1/sr) with which
   ``sample_bsdf`` produces ``wi`` through its non-delta lobes (the full
-  one-sample-MIS mixture over lobes). It integrates to 1 over the hemisphere,
-  or to 1 − P(mirror) when the specular lobe is a delta.
+  one-sample-MIS mixture over lobes). Over the upper hemisphere it integrates
+  to 1 minus the probability of a mirror sample and of a microfacet reflection
+  that lands below the horizon (returned with weight 0).
 * ``sample_bsdf(params, wo, u_lobe, u1, u2)`` returns a `BsdfSample`: the new
   direction ``wi``, the ``weight`` f_r cos θ_i / pdf (0 for an invalid sample:
   ``wo`` or ``wi`` at or below the surface), the ``pdf`` and an ``is_delta``
@@ -52,11 +53,17 @@ Departures from the thesis
   product is symmetric in ω_i and ω_o, so f_r stays reciprocal (eq. 2.13), and
   the diffuse albedo seen from ω_o is at most (1 − F(θ_o)) times the Oren–Nayar
   albedo, so it shrinks exactly where the specular lobe takes the energy
-  F(θ_o); with the half-vector weight a grazing viewer gets a near-mirror lobe
-  *and* an almost undiminished diffuse lobe, and the sum exceeds 1.
+  F(θ_o). With the half-vector weight a grazing viewer gets a near-mirror lobe
+  *and* an almost undiminished diffuse lobe: for ρ = 1, σ = 0.1, η = 1.52 the
+  albedo would be 1.11 at θ_o = 70°, 1.36 at 85° and 1.61 at 89.9°.
 * **Oren–Nayar clamped at 0.** Eq. 2.28 goes negative for σ ≳ 1 rad when both
   directions are near grazing on opposite sides (cos(φ_o − φ_i) < 0, β → 90°),
   breaking eq. 2.11; the sum 2.30 is clamped at 0.
+* **Energy.** Measured with ρ = 1 (white furnace, ``tests/tofcore/test_bsdf.py``)
+  the albedo stays ≤ 1 for η ≥ 1.05 at every σ and angle. Eq. 2.28–2.30 alone
+  is not bounded: with η = 1 (no Fresnel factors) the albedo reaches ≈ 1.05
+  (σ ≈ 0.3, θ_o → 90°). ρ is the albedo of the body *under* the interface:
+  with η = 1.52 the diffuse part returns ≈ 0.87 ρ at normal incidence.
 * **Conductor tint.** The thesis code multiplies the conductor Fresnel by the
   diffuse reflectance; here a metal's reflectance comes from η and k alone and
   ``reflectance`` only scales the diffuse lobe.
@@ -69,7 +76,8 @@ name         type    unit    meaning (thesis default)
 reflectance  float   1       near-IR diffuse albedo ρ in [0, 1]
 roughness    float   rad     σ ≥ 0: Oren–Nayar σ and Beckmann α = √2 σ (0.5)
 metallic     float   1       mask m in [0, 1]: f_r = (1 − m) dielectric + m conductor
-ior          float   1       η > 0: dielectric index; conductor real part (1.52)
+ior          float   1       η > 0: dielectric index and conductor real part (1.52);
+                             a blend 0 < m < 1 uses the same η for both parts
 extinction   float   1       k ≥ 0, conductor absorption (ignored by the dielectric part)
 ===========  ======  ======  ==========================================================
 
@@ -112,6 +120,15 @@ SMOOTH_ROUGHNESS_RAD = 1e-4
 #: with a poor albedo estimate from being starved; any value in (0, 0.5) is unbiased).
 MIN_LOBE_PROBABILITY = 0.05
 
+# field -> (rule as worded in the error message, check); NaN fails every check.
+_PARAMETER_RULES = {
+    "reflectance": ("in [0, 1]", lambda x: (x >= 0.0) & (x <= 1.0)),
+    "roughness": ("finite and >= 0 (radians)", lambda x: np.isfinite(x) & (x >= 0.0)),
+    "metallic": ("in [0, 1]", lambda x: (x >= 0.0) & (x <= 1.0)),
+    "ior": ("finite and > 0", lambda x: np.isfinite(x) & (x > 0.0)),
+    "extinction": ("finite and >= 0", lambda x: np.isfinite(x) & (x >= 0.0)),
+}
+
 
 @dataclass(frozen=True, kw_only=True)
 class SurfaceParams:
@@ -132,17 +149,10 @@ class SurfaceParams:
         arrays = np.broadcast_arrays(
             *(np.atleast_1d(np.asarray(getattr(self, name), dtype=np.float64)) for name in names)
         )
-        rules = {
-            "reflectance": ("in [0, 1]", lambda x: (x >= 0.0) & (x <= 1.0)),
-            "roughness": ("finite and >= 0 (radians)", lambda x: np.isfinite(x) & (x >= 0.0)),
-            "metallic": ("in [0, 1]", lambda x: (x >= 0.0) & (x <= 1.0)),
-            "ior": ("finite and > 0", lambda x: np.isfinite(x) & (x > 0.0)),
-            "extinction": ("finite and >= 0", lambda x: np.isfinite(x) & (x >= 0.0)),
-        }
         for name, array in zip(names, arrays):
             if array.ndim != 1:
                 raise SceneError(f"SurfaceParams: {name} must be 1-D, got shape {array.shape!r}")
-            rule, check = rules[name]
+            rule, check = _PARAMETER_RULES[name]
             bad = ~check(array)
             if np.any(bad):
                 raise SceneError(
@@ -319,7 +329,7 @@ def torrance_sparrow(
         f_r = \frac{F_r(\omega_h)\,D(\omega_h)\,G(\omega_o, \omega_i)}
                    {4\cos\theta_i\cos\theta_o} \quad (2.24)
     """
-    denominator = 4.0 * np.asarray(cos_theta_i, dtype=np.float64) * np.asarray(cos_theta_o, dtype=np.float64)
+    denominator = 4.0 * np.multiply(cos_theta_i, cos_theta_o, dtype=np.float64)
     valid = denominator > 0.0
     numerator = np.asarray(fresnel) * np.asarray(distribution) * np.asarray(geometry)
     return np.where(valid, numerator / np.where(valid, denominator, 1.0), 0.0)
@@ -345,9 +355,8 @@ def specular_probability(params: SurfaceParams, cos_theta_o: ArrayLike) -> Float
     a dielectric with η = 1) gets probability 0.
     """
     specular = specular_fresnel(params, cos_theta_o)
-    diffuse = (
-        (1.0 - params.metallic) * (1.0 - fresnel_dielectric(cos_theta_o, params.ior)) * params.reflectance
-    )
+    transmitted = 1.0 - fresnel_dielectric(cos_theta_o, params.ior)
+    diffuse = (1.0 - params.metallic) * transmitted * params.reflectance
     total = specular + diffuse
     share = specular / np.where(total > 0.0, total, 1.0)
     has_specular = (params.metallic > 0.0) | (params.ior != 1.0)
@@ -388,7 +397,9 @@ def eval_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> FloatArray
     cos_o = wo[..., 2]
     cos_i = wi[..., 2]
     valid = (cos_o > 0.0) & (cos_i > 0.0)
-    transmitted = (1.0 - fresnel_dielectric(cos_i, params.ior)) * (1.0 - fresnel_dielectric(cos_o, params.ior))
+    transmitted = (1.0 - fresnel_dielectric(cos_i, params.ior)) * (
+        1.0 - fresnel_dielectric(cos_o, params.ior)
+    )
     diffuse = (1.0 - params.metallic) * transmitted * oren_nayar(
         params.reflectance, params.roughness, cos_i, cos_o, cos_azimuth_difference(wo, wi)
     )
@@ -442,9 +453,8 @@ def pdf_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> FloatArray:
     cos_oh = np.sum(wo * h, axis=-1)
     alpha = _rough_alpha(params)
     reflect_jacobian = 1.0 / (4.0 * np.where(cos_oh > 0.0, cos_oh, 1.0))
-    specular = np.where(
-        (cos_oh > 0.0) & (alpha > 0.0), pdf_vcavity_visible_normal(wo, h, alpha) * reflect_jacobian, 0.0
-    )
+    rough = (cos_oh > 0.0) & (alpha > 0.0)
+    specular = np.where(rough, pdf_vcavity_visible_normal(wo, h, alpha) * reflect_jacobian, 0.0)
     probability = specular_probability(params, cos_o)
     density = probability * specular + (1.0 - probability) * pdf_cosine_hemisphere(cos_i)
     return np.where(valid, density, 0.0)

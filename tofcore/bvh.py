@@ -53,6 +53,7 @@ the box test clips every ray at its best hit so far.
 
 from __future__ import annotations
 
+import functools
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
@@ -74,6 +75,11 @@ N_BINS = 32
 RAY_CHUNK = 8192
 """Rays traversed together; keeps the per-level temporaries in L2."""
 
+_WIDTH_BITS = WIDTH.bit_length() - 1  # flat (pair, child) index >> this = pair
+_NODE_ROWS = 7  # rows of a node record: entry planes x, y, z; exit planes x, y, z; children
+_LEAF_ROWS = 10  # rows of a leaf record: v0 xyz, v1 xyz, v2 xyz, triangle index
+_RAY_BOX_ROWS = 7  # rows of a ray's box record: origin xyz, inverse direction xyz, best t
+_RAY_LEAF_ROWS = 13  # rows of a ray's leaf record: origin xyz, frame b1, b2, d (xyz each), best t
 _TINY_DIR = 1e-30  # direction components smaller than this are replaced (finite inverse)
 _BUILD_BATCH = 16384  # nodes whose SAH bins are evaluated together (bounds build memory)
 
@@ -114,7 +120,7 @@ def _ray_frame(d):
 
 
 def _watertight(o, b1, b2, d, v0, v1, v2, t_max):
-    """Watertight ray-triangle test for broadcastable float32 arrays.
+    r"""Watertight ray-triangle test for broadcastable float32 arrays.
 
     ``o, b1, b2, d`` (ray origin and frame) and ``v0, v1, v2`` (vertices) are
     3-tuples of arrays (x, y, z); ``t_max`` is the exclusive upper bound of
@@ -381,14 +387,9 @@ class BVH:
     from several threads.
     """
 
-    def __init__(self, *, near, far, children, tri_v0, tri_v1, tri_v2, tri_prim, stats):
-        self._near = near  # 3 × (8W, WIDTH) float32: entry plane per axis, row = node * 8 + octant
-        self._far = far  # 3 × (8W, WIDTH) float32: exit plane per axis
-        self._children = children  # (8W, WIDTH) int64: child node * 8 + octant, or ~leaf
-        self._tri_v0 = tri_v0  # 3 × (L, leaf_size) float32 per leaf slot, NaN padding
-        self._tri_v1 = tri_v1  # 3 × (L, leaf_size) float32
-        self._tri_v2 = tri_v2  # 3 × (L, leaf_size) float32
-        self._tri_prim = tri_prim  # (L, leaf_size) int64 triangle index, -1 padding
+    def __init__(self, *, nodes, leaves, stats):
+        self._nodes = nodes  # (8 W * _NODE_ROWS, WIDTH) int32 node records, see `build`
+        self._leaves = leaves  # (L * _LEAF_ROWS, leaf_size) int32 leaf records, see `build`
         self._stats = stats
 
     @classmethod
@@ -406,6 +407,17 @@ class BVH:
         Binned SAH with `N_BINS` bins per axis over centroid bounds, all nodes
         of a level at once (`_build_binary`), boxes padded by `BOX_PAD`, then
         collapsed to `WIDTH` children per node (`_collapse`).
+
+        Storage: one record of `_NODE_ROWS` rows of `WIDTH` children per node
+        and ray octant (bit ``a`` set when the direction's axis ``a`` is
+        negative): the entry planes x, y, z (the box minimum on a positive
+        axis, the maximum on a negative one), the exit planes x, y, z (float32)
+        and the children (int32): the first row of the child's record for the
+        same octant, or ``~`` the first row of a leaf record.  Empty slots have
+        boxes that no ray enters.  A leaf record has `_LEAF_ROWS` rows of
+        ``leaf_size`` triangles: v0, v1, v2 per axis (float32, NaN padding)
+        and the triangle index (int32, -1 padding).  A (ray, node) pair then
+        reads two adjacent cache lines.
         """
         if leaf_size < 1:
             raise ValueError(f"BVH.build: leaf_size must be >= 1, got {leaf_size!r}")
@@ -426,32 +438,35 @@ class BVH:
         slots, depth = _collapse(left, right, _half_area(b_lo.T, b_hi.T))
 
         is_leaf = left < 0
-        leaf_row = np.cumsum(is_leaf) - 1  # binary node -> leaf row
+        leaf_id = np.cumsum(is_leaf) - 1  # binary node -> leaf
         w = len(slots)
         wide_id = np.full(len(left), -1, np.int64)
         inner_slots = (slots >= 0) & ~is_leaf[np.maximum(slots, 0)]
         wide_id[slots[inner_slots]] = np.arange(1, w)  # breadth-first, root is wide node 0
         safe = np.maximum(slots, 0)
-        child = np.where(is_leaf[safe], ~leaf_row[safe], wide_id[safe])
-        child[slots < 0] = 0
-        c_lo = np.where((slots >= 0)[..., None], b_lo[safe], np.float32(np.inf))  # (W, WIDTH, 3)
-        c_hi = np.where((slots >= 0)[..., None], b_hi[safe], np.float32(-np.inf))
+        used = (slots >= 0)[..., None]
+        c_lo = np.where(used, b_lo[safe], np.float32(np.inf))  # (W, WIDTH, 3)
+        c_hi = np.where(used, b_hi[safe], np.float32(-np.inf))
         octant = np.arange(8)
-        near, far = [], []
+        nodes = np.empty((w, 8, _NODE_ROWS, WIDTH), np.int32)
+        planes = nodes.view(np.float32)
         for axis in range(3):
             neg = ((octant >> axis) & 1).astype(bool)[None, :, None]
             lo_a, hi_a = c_lo[:, None, :, axis], c_hi[:, None, :, axis]
-            near.append(np.where(neg, hi_a, lo_a).reshape(8 * w, WIDTH).astype(np.float32))
-            far.append(np.where(neg, lo_a, hi_a).reshape(8 * w, WIDTH).astype(np.float32))
-        children = np.where(child[:, None, :] >= 0, child[:, None, :] * 8 + octant[None, :, None],
-                            child[:, None, :]).reshape(8 * w, WIDTH)
+            planes[:, :, axis] = np.where(neg, hi_a, lo_a)
+            planes[:, :, 3 + axis] = np.where(neg, lo_a, hi_a)
+        to_node = (np.maximum(wide_id[safe], 0)[:, None, :] * 8 + octant[None, :, None]) * _NODE_ROWS
+        to_leaf = ~(leaf_id[safe] * _LEAF_ROWS)[:, None, :]
+        nodes[:, :, 6] = np.where((is_leaf[safe] & used[..., 0])[:, None, :], to_leaf, to_node)
 
         leaves = np.flatnonzero(is_leaf)
         k = np.arange(leaf_size)
         valid = k[None, :] < count[leaves, None]
         prim = np.where(valid, order[np.minimum(start[leaves, None] + k, len(tri) - 1)], -1)
         pv = np.where(valid[..., None, None], corners[np.maximum(prim, 0)], np.float32(np.nan))
-        rows = lambda a: tuple(np.ascontiguousarray(a[..., i]) for i in range(3))  # noqa: E731
+        leaf_rec = np.empty((len(leaves), _LEAF_ROWS, leaf_size), np.int32)
+        leaf_rec[:, :9].view(np.float32)[...] = pv.reshape(len(leaves), leaf_size, 9).transpose(0, 2, 1)
+        leaf_rec[:, 9] = prim
         sizes = count[leaves]
         stats = {
             "triangles": len(tri),
@@ -464,9 +479,7 @@ class BVH:
             "leaf_size_hist": np.bincount(sizes, minlength=leaf_size + 1)[1:].tolist(),
             "build_time_s": time.perf_counter() - t0,
         }
-        return cls(near=tuple(near), far=tuple(far), children=children,
-                   tri_v0=rows(pv[:, :, 0]), tri_v1=rows(pv[:, :, 1]), tri_v2=rows(pv[:, :, 2]),
-                   tri_prim=prim, stats=stats)
+        return cls(nodes=nodes.reshape(-1, WIDTH), leaves=leaf_rec.reshape(-1, leaf_size), stats=stats)
 
     @property
     def stats(self) -> dict:
@@ -523,92 +536,94 @@ class BVH:
 
         Returns ``(t, prim, u, v, counts)`` or, for ``any_hit``,
         ``(occluded, counts)``; ``counts = (box tests, triangle tests)``.
+        Record rows are read with ``take(records[k:], first_rows)``.
         """
-        n, width_leaf = len(o), self._tri_prim.shape[1]
+        n, width_leaf = len(o), self._leaves.shape[1]
         neg = d < 0
-        octant = neg[:, 0] + 2 * neg[:, 1] + 4 * neg[:, 2]
         safe_d = np.where(np.abs(d) < _TINY_DIR, np.where(neg, -_TINY_DIR, _TINY_DIR), d)
-        inv_d = (np.float32(1.0) / safe_d).astype(np.float32)
-        rep = lambda x, k: np.repeat(x, k).reshape(n, k)  # noqa: E731  per-ray rows
-        o_box = [rep(o[:, a], WIDTH) for a in range(3)]  # (n, WIDTH) origin rows
-        inv_box = [rep(inv_d[:, a], WIDTH) for a in range(3)]  # (n, WIDTH) inverse direction rows
-        t_box = rep(t_max, WIDTH)  # (n, WIDTH) best hit so far (box clip distance)
-        same = width_leaf == WIDTH
-        o_leaf = o_box if same else [rep(o[:, a], width_leaf) for a in range(3)]
-        b1, b2 = _ray_frame(d)
-        frame_leaf = [[rep(x[:, a], width_leaf) for a in range(3)] for x in (b1, b2, d)]  # ray frame rows
-        t_leaf = t_box if same else rep(t_max, width_leaf)  # (n, leaf_size) best hit so far
-        ig_leaf = None if ignore is None else rep(ignore, width_leaf)
+        ray_box = np.empty((n, _RAY_BOX_ROWS, WIDTH), np.float32)  # ray records, each row repeated
+        ray_box[:, 0:3] = o[:, :, None]
+        ray_box[:, 3:6] = (np.float32(1.0) / safe_d)[:, :, None]
+        ray_box[:, 6] = t_max[:, None]
+        ray_leaf = np.empty((n, _RAY_LEAF_ROWS, width_leaf), np.float32)
+        ray_leaf[:, 0:3] = o[:, :, None]
+        for i, f in enumerate(_ray_frame(d) + (d,)):
+            ray_leaf[:, 3 + 3 * i:6 + 3 * i] = f[:, :, None]
+        ray_leaf[:, 12] = t_max[:, None]
+        box_rows = [ray_box.reshape(-1, WIDTH)[k:] for k in range(_RAY_BOX_ROWS)]
+        leaf_rows = [ray_leaf.reshape(-1, width_leaf)[k:] for k in range(_RAY_LEAF_ROWS)]
+        node_rows = [self._nodes.view(np.float32)[k:] for k in range(6)]
+        tri_rows = [self._leaves.view(np.float32)[k:] for k in range(9)]
+        ignore_rows = None if ignore is None else np.repeat(ignore.astype(np.int32), width_leaf).reshape(n, -1)
         prim = np.full(n, -1, np.int32)  # best triangle so far
         bary_u = np.zeros(n, np.float32)  # barycentrics of the best hit
         bary_v = np.zeros(n, np.float32)
         occluded = np.zeros(n, bool)  # any hit found (any_hit mode)
         pair_ray = np.arange(n)  # ray of each (ray, node) pair of the level
-        pair_node = octant.astype(np.int64)  # node * 8 + octant (root is node 0)
+        pair_node = (neg[:, 0] + 2 * neg[:, 1] + 4 * neg[:, 2]) * _NODE_ROWS  # root record row for the octant
         n_box = n_tri = 0  # box and triangle tests
-        take = np.take
+        take = functools.partial(np.take, axis=0, mode="clip")  # valid indices; 'clip' skips a checked copy
         while pair_ray.size:
             n_box += WIDTH * pair_ray.size
-            tn = take(self._near[0], pair_node, axis=0)
-            tn -= take(o_box[0], pair_ray, axis=0)
-            tn *= take(inv_box[0], pair_ray, axis=0)
-            tf = take(self._far[0], pair_node, axis=0)
-            tf -= take(o_box[0], pair_ray, axis=0)
-            tf *= take(inv_box[0], pair_ray, axis=0)
-            for a in (1, 2):
-                oa = take(o_box[a], pair_ray, axis=0)
-                ia = take(inv_box[a], pair_ray, axis=0)
-                x = take(self._near[a], pair_node, axis=0)
+            rr = pair_ray * _RAY_BOX_ROWS
+            tn = take(node_rows[0], pair_node)
+            tf = take(node_rows[3], pair_node)
+            for a in range(3):
+                oa = take(box_rows[a], rr)
+                ia = take(box_rows[3 + a], rr)
+                x = tn if a == 0 else take(node_rows[a], pair_node)
                 x -= oa
                 x *= ia
-                np.maximum(tn, x, out=tn)
-                x = take(self._far[a], pair_node, axis=0)
-                x -= oa
-                x *= ia
-                np.minimum(tf, x, out=tf)
-            np.maximum(tn, 0.0, out=tn)
-            np.minimum(tf, take(t_box, pair_ray, axis=0), out=tf)
+                y = tf if a == 0 else take(node_rows[3 + a], pair_node)
+                y -= oa
+                y *= ia
+                if a:
+                    np.maximum(tn, x, out=tn)
+                    np.minimum(tf, y, out=tf)
+            np.maximum(tn, np.float32(0.0), out=tn)
+            np.minimum(tf, take(box_rows[6], rr), out=tf)
             flat = np.flatnonzero(tn <= tf)
-            child = take(take(self._children, pair_node, axis=0), flat)
-            ray = take(pair_ray, flat >> 2)
+            child = np.take(take(self._nodes[6:], pair_node), flat)
+            ray = np.take(pair_ray, flat >> _WIDTH_BITS)
             is_leaf = child < 0
             inner = np.flatnonzero(~is_leaf)
-            pair_ray, pair_node = take(ray, inner), take(child, inner)
+            pair_ray, pair_node = np.take(ray, inner), np.take(child, inner).astype(np.intp)
             lf = np.flatnonzero(is_leaf)
             if not lf.size:
                 continue
-            leaf_ray, leaf = take(ray, lf), ~take(child, lf)
+            leaf_ray, leaf = np.take(ray, lf), ~np.take(child, lf).astype(np.intp)
             n_tri += width_leaf * leaf.size
-            ro = tuple(take(o_leaf[a], leaf_ray, axis=0) for a in range(3))
-            rf = ([take(x[a], leaf_ray, axis=0) for a in range(3)] for x in frame_leaf)
-            tv = ([take(x[a], leaf, axis=0) for a in range(3)] for x in (self._tri_v0, self._tri_v1, self._tri_v2))
-            hit, t, u, v = _watertight(ro, *rf, *tv, take(t_leaf, leaf_ray, axis=0))
-            tri = take(self._tri_prim, leaf, axis=0)
-            if ig_leaf is not None:
-                hit &= tri != take(ig_leaf, leaf_ray, axis=0)
+            rl = leaf_ray * _RAY_LEAF_ROWS
+            ray_cols = [take(leaf_rows[k], rl) for k in range(_RAY_LEAF_ROWS)]
+            tri_cols = [take(tri_rows[k], leaf) for k in range(9)]
+            hit, t, u, v = _watertight(ray_cols[0:3], ray_cols[3:6], ray_cols[6:9], ray_cols[9:12],
+                                       tri_cols[0:3], tri_cols[3:6], tri_cols[6:9], ray_cols[12])
+            tri = take(self._leaves[9:], leaf)
+            if ignore_rows is not None:
+                hit &= tri != take(ignore_rows, leaf_ray)
             f = np.flatnonzero(hit)
             if not f.size:
                 continue
-            r = take(leaf_ray, f // width_leaf)
+            r = np.take(leaf_ray, f // width_leaf)
             if any_hit:
                 occluded[r] = True
-                t_box[r] = -np.inf
-                if not same:
-                    t_leaf[r] = -np.inf
+                ray_box[r, 6] = -np.inf
+                ray_leaf[r, 12] = -np.inf
                 keep = np.flatnonzero(~occluded[pair_ray])
-                pair_ray, pair_node = take(pair_ray, keep), take(pair_node, keep)
+                pair_ray, pair_node = np.take(pair_ray, keep), np.take(pair_node, keep)
                 continue
-            t, u, v, tri = (take(x, f) for x in (t, u, v, tri))
-            if r.size > 1 and (r[1:] == r[:-1]).any():  # several hits of one ray: keep the nearest
-                s = np.lexsort((t, r))
-                first = s[np.r_[True, r[s[1:]] != r[s[:-1]]]]
-                r, t, u, v, tri = r[first], t[first], u[first], v[first], tri[first]
-            t_box[r] = t[:, None]
-            if not same:
-                t_leaf[r] = t[:, None]
+            t, u, v, tri = (np.take(x, f) for x in (t, u, v, tri))
+            if r.size > 1 and (r[1:] == r[:-1]).any():  # several hits of one ray: keep the nearest,
+                nearest = ray_box[:, 6, 0].copy()  # the first of equals in traversal order
+                np.minimum.at(nearest, r, t)
+                w = np.flatnonzero(t == nearest[r])
+                w = w[np.r_[True, r[w[1:]] != r[w[:-1]]]]
+                r, t, u, v, tri = r[w], t[w], u[w], v[w], tri[w]
+            ray_box[r, 6] = t[:, None]
+            ray_leaf[r, 12] = t[:, None]
             prim[r], bary_u[r], bary_v[r] = tri, u, v
         counts = (n_box, n_tri)
         if any_hit:
             return occluded, counts
-        t_hit = np.where(prim >= 0, t_box[:, 0], np.float32(np.inf)).astype(np.float32)
+        t_hit = np.where(prim >= 0, ray_box[:, 6, 0], np.float32(np.inf)).astype(np.float32)
         return t_hit, prim, bary_u, bary_v, counts

@@ -55,6 +55,7 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .errors import ConfigError
+from .sampling import sample_concentric_disk
 
 #: Newton's method for the inverse distortion stops when every step is
 #: smaller than this (normalized image units). Convergence is quadratic, so
@@ -64,35 +65,6 @@ _NEWTON_STEP_TOL = 1e-10
 _NEWTON_MAX_ITER = 50
 #: Rays generated per block: small enough for the temporaries to stay in cache.
 _RAY_BLOCK = 16384
-
-
-def _concentric_disk(u1: NDArray[np.float64], u2: NDArray[np.float64]) -> tuple[NDArray[np.float64],
-                                                                               NDArray[np.float64]]:
-    """Map uniform samples on [0, 1)² to uniform points on the unit disk (Shirley & Chiu 1997).
-
-    Private stand-in for ``tofcore.sampling.sample_concentric_disk``, which
-    should replace it once that module exists.
-
-    Notes
-    -----
-    With :math:`a = 2u_1 - 1, b = 2u_2 - 1`: if :math:`|a| > |b|`,
-    :math:`r = a, \\phi = \\frac{\\pi}{4}\\frac{b}{a}`; otherwise
-    :math:`r = b, \\phi = \\frac{\\pi}{2} - \\frac{\\pi}{4}\\frac{a}{b}`;
-    the point is :math:`(r\\cos\\phi, r\\sin\\phi)`. The map is area
-    preserving (pdf :math:`1/\\pi`) and keeps strata compact. Computed with
-    one sine: the angle :math:`\\frac{\\pi}{4}t`, :math:`|t| \\le 1`, has a
-    cosine :math:`\\ge 1/\\sqrt{2}`, and the second case swaps cosine and sine.
-    """
-    a = 2.0 * np.asarray(u1, dtype=np.float64) - 1.0
-    b = 2.0 * np.asarray(u2, dtype=np.float64) - 1.0
-    a_wider = np.abs(a) > np.abs(b)
-    r = np.where(a_wider, a, b)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(a_wider, b, a) / r
-    sin_t = np.sin((np.pi / 4) * np.where(r == 0.0, 0.0, t))  # a = b = 0 is the centre
-    cos_t = np.sqrt(1.0 - sin_t * sin_t)
-    r_cos, r_sin = r * cos_t, r * sin_t
-    return np.where(a_wider, r_cos, r_sin), np.where(a_wider, r_sin, r_cos)
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -507,7 +479,7 @@ class Camera:
         x, y = self._undistort_near(xd, yd, row, col) if self.has_distortion else (xd, yd)
         origins = np.zeros((pixel_index.size, 3))
         if self.aperture_radius_m > 0.0:
-            lens_x, lens_y = _concentric_disk(u_lens, v_lens)
+            lens_x, lens_y = sample_concentric_disk(u_lens, v_lens)
             origins[:, 0] = lens_x * self.aperture_radius_m
             origins[:, 1] = lens_y * self.aperture_radius_m
             x = x - origins[:, 0] / self.focus_distance_m  # aim at the focus-plane point (x F, y F, F);

@@ -41,11 +41,12 @@ from tofcore.sampling import (
 )
 
 # Materials of the checks: (metallic, ior, extinction). A dielectric with the
-# thesis's η = 1.52, a silver-like conductor and a k = 0 "conductor".
+# thesis's η = 1.52, a silver-like conductor, a k = 0 "conductor" and a 50 %
+# metallic blend (both parts share η).
 DIELECTRIC = (0.0, 1.52, 0.0)
 SILVER_LIKE = (1.0, 0.2, 3.0)
 CONDUCTOR_K0 = (1.0, 1.5, 0.0)
-HALF_METAL = (0.5, 0.2, 3.0)
+HALF_METAL = (0.5, 1.52, 3.0)
 MATERIALS = [DIELECTRIC, SILVER_LIKE, CONDUCTOR_K0, HALF_METAL]
 ROUGHNESSES = [0.0, 0.1, 0.5, 1.0]
 
@@ -149,15 +150,17 @@ def chi2_hemisphere(dirs, pdf, n_total, extra=(), theta_bins=10, phi_bins=20):
     if expected[-1] == 0.0:
         observed, expected = observed[:-1], expected[:-1]
     assert observed.sum() == n_total
-    # The pdf integrates to 1 over the grid to within the quadrature error.
-    assert expected.sum() == pytest.approx(n_total, rel=2e-3)
+    # The expected counts add up to n_total: measured within 7e-5 (the step
+    # integral of the below-horizon mass dominates), so 5e-4.
+    assert expected.sum() == pytest.approx(n_total, rel=5e-4)
     statistic = float(np.sum((observed - expected) ** 2 / expected))
     return chi2_p_value(statistic, len(expected) - 1)
 
 
-# Ten chi-square tests at 1 % each: with Šidák's correction the family-wise
-# false-failure rate is still ≈ 1 % for fixed seeds (and the seeds are fixed).
-CHI2_SIGNIFICANCE = 1.0 - (1.0 - 0.01) ** (1.0 / 10.0)
+# Eight chi-square tests (tests 10, 14, 15): Šidák's correction keeps the
+# family-wise false-failure rate at 1 %; with fixed seeds the outcome is fixed,
+# the threshold says how unlucky a seed would have to be.
+CHI2_SIGNIFICANCE = 1.0 - (1.0 - 0.01) ** (1.0 / 8.0)
 
 
 # 1. Fresnel ------------------------------------------------------------------
@@ -456,6 +459,8 @@ def test_17_no_nan_or_inf_at_the_edges():
         assert np.all(s.weight >= 0.0) and np.all(s.pdf >= 0.0)
         assert np.all(s.weight[s.wi[:, 2] <= 0.0] == 0.0)
         assert np.all(s.weight[wo[:, 2] <= 0.0] == 0.0) and not np.any(s.is_delta[wo[:, 2] <= 0.0])
+        # wo is float32 (unit to ~1e-7) and the mirror/microfacet reflection
+        # keeps its length, so 1e-6.
         np.testing.assert_allclose(np.linalg.norm(s.wi, axis=1), 1.0, atol=1e-6)
 
 

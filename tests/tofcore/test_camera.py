@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from tofcore.camera import _RAY_BLOCK, Camera, _concentric_disk
+from tofcore.camera import _RAY_BLOCK, Camera
 from tofcore.errors import ConfigError
 
 # Kinect-v2-sized intrinsics (512 × 424, fx ≈ 365) with strong distortion of both kinds.
@@ -177,19 +177,6 @@ def test_thin_lens_focused_at_infinity_keeps_pinhole_directions_and_pinhole_igno
     origins, at_infinity = Camera(**KINECT_LIKE, aperture_radius_m=0.01).generate_rays(
         pixel, *jitter, *rng.random((2, 1000)))
     assert np.array_equal(at_infinity, pinhole) and origins[:, :2].any()
-
-
-def test_lens_samples_cover_the_aperture_uniformly():
-    rng = np.random.default_rng(6)
-    x, y = _concentric_disk(*rng.random((2, 200_000)))
-    r2 = x * x + y * y
-    assert r2.max() <= 1.0
-    # Uniform by area: P(r² < t) = t, mean 0.
-    for t in (0.1, 0.5, 0.9):
-        assert abs((r2 < t).mean() - t) < 5 * math.sqrt(t * (1 - t) / r2.size)
-    assert abs(x.mean()) < 0.005 and abs(y.mean()) < 0.005
-    centre_x, centre_y = _concentric_disk(np.array([0.5]), np.array([0.5]))
-    assert centre_x[0] == 0.0 and centre_y[0] == 0.0
 
 
 # --- field of view ----------------------------------------------------------------------------------
