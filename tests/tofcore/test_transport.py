@@ -236,3 +236,64 @@ def test_bad_trace_arguments(kwargs, match):
 def test_trace_requires_leds():
     with pytest.raises(ConfigError, match="leds must be a non-empty sequence"):
         trace(lambert_plane(), small_camera(4, 4), [])
+
+
+def test_two_leds_add_linearly():
+    """Light from several LEDs adds: the trace with both equals the sum of the traces with each."""
+    scene, cam, kw = corner_setup(24, 18)
+    a, b = LED(position_m=(0.03, 0, 0)), LED(position_m=(-0.03, 0.01, 0), kind="lambertian", intensity_w_sr=2.0)
+    g = [lambda tau: np.cos(2 * np.pi * 30e6 * tau)]
+    both = trace(scene, cam, [a, b], correlations=g, spp=2, max_depth=3, seed=9, **kw)
+    ta = trace(scene, cam, [a], correlations=g, spp=2, max_depth=3, seed=9, **kw)
+    tb = trace(scene, cam, [b], correlations=g, spp=2, max_depth=3, seed=9, **kw)
+    np.testing.assert_allclose(both.signal_sum, ta.signal_sum + tb.signal_sum, rtol=1e-12)
+    np.testing.assert_allclose(both.correlation_sum, ta.correlation_sum + tb.correlation_sum, rtol=1e-9, atol=1e-18)
+
+
+def textured_plane(material: Material) -> Scene:
+    s = 4.0
+    v = np.array([[-s, -s, D], [s, -s, D], [s, s, D], [-s, s, D]], np.float32)
+    uv = np.array([[0, 1], [1, 1], [1, 0], [0, 0]], np.float32)  # sensor x → u, sensor y (down) → v decreasing
+    return Scene.from_arrays(v, [[0, 2, 1], [0, 3, 2]], materials=[material], uvs=uv)
+
+
+def test_reflectance_texture_scales_the_direct_signal():
+    """Left half of the texture ρ = 0.2, right half ρ = 0.8: the direct signal of the two halves differs 4×."""
+    tex = tofcore.Texture(np.repeat([[0.2] * 32 + [0.8] * 32], 4, axis=0), name="halves")  # texel 12.5 cm
+    cam = small_camera(20, 10, f=10.0)  # pixels 20 cm wide on the plane; columns 8 and 11 end 20 cm from x = 0
+    kw = dict(spp=1, max_depth=1)
+    plain = trace(lambert_plane(), cam, [LED()], **kw).signal()
+    textured = trace(textured_plane(Material(reflectance_texture=tex, roughness=0.0, ior=1.0)), cam, [LED()],
+                     **kw).signal()
+    ratio = textured / plain * RHO
+    np.testing.assert_allclose(ratio[:, :9], 0.2, rtol=1e-6)   # image left = texture left (u < 0.5)
+    np.testing.assert_allclose(ratio[:, 11:], 0.8, rtol=1e-6)
+
+
+def test_normal_map_tilts_the_shading_normal():
+    """A flat normal map (0.5, 0.5, 1) changes nothing; one tilted by 60° scales Lambertian light by ≈ cos 60°."""
+    cam = small_camera(8, 6, f=400.0)  # near the axis: the LED direction is the plane normal to < 1°
+    base = dict(roughness=0.0, ior=1.0, reflectance=RHO)
+    plain = trace(lambert_plane(), cam, [LED()], spp=1, max_depth=1).signal()
+    flat = tofcore.Texture(np.full((2, 2, 3), [0.5, 0.5, 1.0]), name="flat")
+    tilt = np.array([np.sin(np.pi / 3), 0.0, np.cos(np.pi / 3)])
+    tilted = tofcore.Texture(np.full((2, 2, 3), (tilt + 1) / 2), name="tilted")
+    s_flat = trace(textured_plane(Material(normal_texture=flat, **base)), cam, [LED()], spp=1, max_depth=1).signal()
+    s_tilt = trace(textured_plane(Material(normal_texture=tilted, **base)), cam, [LED()], spp=1, max_depth=1).signal()
+    np.testing.assert_allclose(s_flat, plain, rtol=1e-9)
+    np.testing.assert_allclose(s_tilt / plain, 0.5, rtol=0.02)
+
+
+def test_memory_is_bounded_by_chunk_size_not_spp():
+    """Peak traced memory of the path state does not grow with spp (chunks hold whole pixels × one pass)."""
+    import tracemalloc
+
+    scene, cam, kw = corner_setup(64, 48)  # 3072 pixels: every pass fills several chunks of 4096 rays
+    scene.bvh  # build outside the measurement
+    peaks = []
+    for spp in (8, 64):
+        tracemalloc.start()
+        trace(scene, cam, [LED()], spp=spp, max_depth=3, chunk_size=4096, **kw)
+        peaks.append(tracemalloc.get_traced_memory()[1])
+        tracemalloc.stop()
+    assert peaks[1] < 1.5 * peaks[0], f"peak memory grew with spp: {peaks}"
