@@ -15,7 +15,13 @@ name                unit    default       meaning
 ==================  ======  ============  =====================================================
 
 Visible colour is not near-infrared reflectance: ``reflectance`` is the IR
-value. Textures (:class:`Texture`) may replace ``reflectance``, ``roughness``
+value. It is the albedo of the body *under* the dielectric interface: the
+diffuse lobe is weighted by (1 − F(θ_i))(1 − F(θ_o)) (see :mod:`tofcore.bsdf`),
+so with η = 1.52 a surface of ``reflectance`` ρ returns about 0.87 ρ diffusely
+at normal incidence, plus the specular lobe. With η = 1 there is no Fresnel
+term: roughness 0 is then an exact Lambertian reflector ρ/π, but the
+Oren–Nayar approximation alone exceeds an albedo of 1 by up to ~5 % at
+grazing angles for ρ = 1 (measured in ``tests/tofcore/test_bsdf.py``). Textures (:class:`Texture`) may replace ``reflectance``, ``roughness``
 and ``metallic`` per point and perturb the shading normal (``normal_texture``,
 tangent-space RGB in [0, 1] as most normal maps are stored).
 

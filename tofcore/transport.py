@@ -28,8 +28,11 @@ Memory is bounded by the chunk size (rays in flight), not by spp.
 
 from __future__ import annotations
 
+import functools
+import os
 import time
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -82,13 +85,19 @@ class TraceStats:
     seconds: float = 0.0
     passes: int = 0
     skipped_shadow_rays: int = 0  # first-hit shadow rays known to be unoccluded (LED at a pinhole)
-    camera_seconds: float = 0.0   # time inside the BVH for each kind of ray
+    camera_seconds: float = 0.0   # thread-seconds inside the BVH for each kind of ray
     bounce_seconds: float = 0.0
     shadow_seconds: float = 0.0
 
     @property
     def rays(self) -> int:
         return self.camera_rays + self.bounce_rays + self.shadow_rays
+
+    def add(self, other: TraceStats) -> None:
+        """Add the ray counters and BVH times of a chunk (not ``seconds`` or ``passes``)."""
+        for key in ("camera_rays", "bounce_rays", "shadow_rays", "skipped_shadow_rays",
+                    "camera_seconds", "bounce_seconds", "shadow_seconds"):
+            setattr(self, key, getattr(self, key) + getattr(other, key))
 
     def as_dict(self) -> dict:
         return {"camera_rays": self.camera_rays, "bounce_rays": self.bounce_rays, "shadow_rays": self.shadow_rays,
@@ -228,7 +237,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       correlations: Sequence[Correlation] = (),
                       ambient: Ambient | None = None,
                       spp: int = 16, max_depth: int = 5, seed: int = 0,
-                      chunk_size: int = 1 << 16,
+                      chunk_size: int = 1 << 16, workers: int | None = None,
                       transient_bin_m: float | None = None, transient_max_m: float | None = None,
                       ) -> Iterator[Transport]:
     """Trace in progressive passes, yielding the accumulated :class:`Transport` after each.
@@ -241,7 +250,9 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     ambient : background radiance; ``None`` or black skips all ambient work.
     spp : samples per pixel in total; max_depth : surface vertices per path (1 = direct only).
     seed : non-negative int; the same seed gives the same frame for any ``chunk_size``.
-    chunk_size : rays in flight at once; bounds memory.
+    chunk_size : rays in flight per worker; bounds memory.
+    workers : threads tracing chunks at once (default: the CPU count). Chunks own disjoint
+        pixels, so the result does not depend on it.
     transient_bin_m, transient_max_m : optional histogram of w over path length (bin width, range), metres.
 
     The yielded object is the live accumulator: copy what you keep between passes.
@@ -252,6 +263,9 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         raise ConfigError(f"trace: spp must be an integer >= 1, got {spp!r}")
     if not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ConfigError(f"trace: chunk_size must be an integer >= 1, got {chunk_size!r}")
+    workers = (os.cpu_count() or 1) if workers is None else workers
+    if not isinstance(workers, (int, np.integer)) or workers < 1:
+        raise ConfigError(f"trace: workers must be an integer >= 1, got {workers!r}")
     start = time.perf_counter()
     n_pix = camera.width * camera.height
     n_corr = len(ctx.correlations)
@@ -265,16 +279,18 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         transient_sum=np.zeros((n_pix, ctx.transient_bins)) if ctx.transient_bins else None,
         transient_bin_m=ctx.transient_bin_m, stats=stats)
     first_sample = 0
-    for n_samples in pass_schedule(int(spp)):
-        pixels_per_chunk = max(1, chunk_size // n_samples)
-        for p0 in range(0, n_pix, pixels_per_chunk):
-            p1 = min(n_pix, p0 + pixels_per_chunk)
-            _trace_chunk(ctx, transport, p0, p1, first_sample, n_samples)
-        transport.sample_count += n_samples
-        first_sample += n_samples
-        stats.passes += 1
-        stats.seconds = time.perf_counter() - start
-        yield transport
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for n_samples in pass_schedule(int(spp)):
+            pixels_per_chunk = max(1, chunk_size // n_samples)
+            chunks = [(p0, min(n_pix, p0 + pixels_per_chunk)) for p0 in range(0, n_pix, pixels_per_chunk)]
+            run = functools.partial(_trace_chunk, ctx, transport, first_sample=first_sample, n_samples=n_samples)
+            for chunk_stats in pool.map(lambda chunk: run(*chunk), chunks):
+                stats.add(chunk_stats)
+            transport.sample_count += n_samples
+            first_sample += n_samples
+            stats.passes += 1
+            stats.seconds = time.perf_counter() - start
+            yield transport
 
 
 def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_depth, seed,
@@ -359,11 +375,16 @@ def _first_hit(ctx: _Context, stats: TraceStats) -> FirstHit:
                     object_id=obj.reshape(shape), direction=d.astype(np.float32).reshape(shape + (3,)))
 
 
-def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, first_sample: int, n_samples: int) -> None:
-    """Trace samples [first_sample, first_sample + n_samples) of pixels [p0, p1) and add them to ``out``."""
+def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sample: int, n_samples: int
+                 ) -> TraceStats:
+    """Trace samples [first_sample, first_sample + n_samples) of pixels [p0, p1) into ``out``.
+
+    Writes only the pixels [p0, p1) of ``out``, so chunks can run in parallel threads.
+    Returns the chunk's ray counters.
+    """
     n_pix = p1 - p0
     n_corr = len(ctx.correlations)
-    stats = out.stats
+    stats = TraceStats()
     # Path state, one entry per live path (compacted after every bounce):
     slot = np.arange(n_pix * n_samples)                         # index of the path within the chunk
     local_pixel = slot // n_samples                             # pixel within the chunk; paths ordered (pixel, sample)
@@ -387,7 +408,7 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, first_sample: 
     for depth in range(1, ctx.max_depth + 1):
         clock = time.perf_counter()
         hits = ctx.scene.bvh.intersect(origin.astype(np.float32), direction.astype(np.float32),
-                                       ignore_prim=prev_prim)
+                                       ignore_prim=prev_prim, workers=1)
         if depth == 1:
             stats.camera_rays += len(slot)
             stats.camera_seconds += time.perf_counter() - clock
@@ -454,6 +475,7 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, first_sample: 
     out.square_sum[:, p0:p1] += sq
     if ctx.ambient is not None:
         out.ambient_sum[p0:p1] += np.bincount(local, path_total[-1], minlength=n_pix)
+    return stats
 
 
 def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndarray, wo: np.ndarray,
@@ -476,7 +498,7 @@ def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndar
         clock = time.perf_counter()
         blocked = ctx.scene.bvh.occluded(spawn[test].astype(np.float32), wi_world[test].astype(np.float32),
                                          (dist[test] - ctx.offset_scale).astype(np.float32),
-                                         ignore_prim=prim[test])
+                                         ignore_prim=prim[test], workers=1)
         stats.shadow_rays += len(test)
         stats.shadow_seconds += time.perf_counter() - clock
         w[test[blocked]] = 0.0

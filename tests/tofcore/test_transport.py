@@ -113,12 +113,13 @@ def test_corner_has_multipath_and_partial_sums_match_shorter_traces():
     assert (corr[1, 0][both] / per_k[1][both] > corr[0, 0][both] / per_k[0][both]).all()
 
 
-def test_same_seed_same_result_whatever_the_chunk_size():
+def test_same_seed_same_result_whatever_the_chunk_size_and_worker_count():
     scene, cam, kw = corner_setup(24, 18)
     g = [lambda tau: np.cos(2 * np.pi * 16e6 * tau)]
     amb = Ambient(radiance_w_m2_sr=0.1)
     runs = [trace(scene, cam, [LED()], correlations=g, ambient=amb, spp=6, max_depth=3, seed=5, chunk_size=c, **kw)
-            for c in (7, 1000, 1 << 16)]
+            for c in (7, 1000, 1 << 16)] + [
+        trace(scene, cam, [LED()], correlations=g, ambient=amb, spp=6, max_depth=3, seed=5, chunk_size=500, workers=1, **kw)]
     for other in runs[1:]:
         for key in ("signal_sum", "correlation_sum", "ambient_sum", "square_sum", "sample_count"):
             np.testing.assert_array_equal(getattr(other, key), getattr(runs[0], key), err_msg=key)
