@@ -1,8 +1,8 @@
 """Benchmark of `tofcore.bvh`: build time, rays/s and tests per ray on room scenes.
 
-The scene is a room (floor, back and side walls) with a 1 m box and a UV
-sphere, every surface subdivided so the whole mesh has about the requested
-number of triangles.  Three ray sets, 512 x 424 rays each:
+The scene is a closed 6 x 6 x 3 m room (floor, ceiling, four walls) with a
+1 m box and a UV sphere, every surface subdivided so the whole mesh has about
+the requested number of triangles.  Three ray sets, 512 x 424 rays each:
 
 * ``primary``: from a pinhole at (0, 0.2, 1.2) m looking along +y, 70° wide;
 * ``secondary``: from random surface points (area-uniform), cosine-distributed
@@ -11,7 +11,9 @@ number of triangles.  Three ray sets, 512 x 424 rays each:
   beside the pinhole, ``t_max`` = distance to the light.
 
 Run ``python bench/bench_bvh.py`` (``--sizes 10000 500000 1000000``,
-``--repeat 3``, ``--workers 1 2``).  Times are the best of ``--repeat`` runs.
+``--repeat 3``, ``--workers 1 2``, ``--leaf-size`` = the `BVH.build`
+default).  Times are the best of ``--repeat`` runs; box tests count every
+child box of every visited node, triangle tests every (padded) leaf slot.
 """
 
 from __future__ import annotations
@@ -55,11 +57,13 @@ def uv_sphere(center, radius, n_lat, n_lon):
 
 
 def room_scene(n_triangles):
-    """Room with a box and a sphere, about ``n_triangles`` triangles (metres, z up)."""
-    n = max(2, int(round(np.sqrt(n_triangles / 12))))
+    """Closed room with a box and a sphere, about ``n_triangles`` triangles (metres, z up)."""
+    n = max(2, int(round(np.sqrt(n_triangles / 16))))
     h = max(1, n // 2)
     parts = [
         grid((-3, 0, 0), (6, 0, 0), (0, 6, 0), n, n),  # floor
+        grid((-3, 0, 3), (6, 0, 0), (0, 6, 0), n, n),  # ceiling
+        grid((-3, 0, 0), (6, 0, 0), (0, 0, 3), n, n),  # front wall (behind the camera)
         grid((-3, 6, 0), (6, 0, 0), (0, 0, 3), n, n),  # back wall
         grid((-3, 0, 0), (0, 6, 0), (0, 0, 3), n, n),  # left wall
         grid((3, 0, 0), (0, 6, 0), (0, 0, 3), n, n),  # right wall
@@ -125,14 +129,16 @@ def main(argv=None):
                     help="approximate triangle counts (default: 10000 500000 1000000)")
     ap.add_argument("--repeat", type=int, default=3, help="runs per timing, best kept (default: 3)")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="thread counts (default: 1 2)")
+    ap.add_argument("--leaf-size", type=int, default=None, help="BVH leaf size (default: BVH.build's)")
     args = ap.parse_args(argv)
+    leaf = {} if args.leaf_size is None else {"leaf_size": args.leaf_size}
     rng = np.random.default_rng(7)
     print(f"numpy {np.__version__}; {WIDTH_PX}x{HEIGHT_PX} = {WIDTH_PX * HEIGHT_PX} rays per set")
-    print("| triangles | build s | nodes | depth | rays | workers | Mrays/s | box tests/ray | tri tests/ray |")
-    print("|---|---|---|---|---|---|---|---|---|")
+    print("| triangles | build s | nodes | depth | MB | rays | workers | Mrays/s | box tests/ray | tri tests/ray |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for size in args.sizes:
         verts, tris = room_scene(size)
-        build_s, bvh = timed(lambda: BVH.build(verts, tris), 1)
+        build_s, bvh = timed(lambda: BVH.build(verts, tris, **leaf), 1)
         st = bvh.stats
         o, d = primary_rays(rng)
         first = bvh.intersect(o, d)
@@ -153,7 +159,8 @@ def main(argv=None):
             run(1, counts)
             for w in args.workers:
                 sec, _ = timed(lambda: run(w), args.repeat)
-                print(f"| {st['triangles']} | {build_s:.2f} | {st['nodes']} | {st['depth']} | {name} | {w} | "
+                print(f"| {st['triangles']} | {build_s:.2f} | {st['nodes']} | {st['depth']} | "
+                      f"{st['memory_bytes'] / 1e6:.1f} | {name} | {w} | "
                       f"{counts['rays'] / sec / 1e6:.2f} | {counts['box_tests'] / counts['rays']:.1f} | "
                       f"{counts['tri_tests'] / counts['rays']:.1f} |", flush=True)
 

@@ -340,9 +340,14 @@ def specular_fresnel(params: SurfaceParams, cos_theta: ArrayLike) -> FloatArray:
 
     ``cos_theta`` is ω_i·ω_h for the rough lobe and cos θ_o for the mirror.
     """
-    dielectric = fresnel_dielectric(cos_theta, params.ior)
+    metallic = params.metallic
+    # Leave out the Fresnel term a batch of points does not need (all dielectric or all metal).
+    if not metallic.any():
+        return fresnel_dielectric(cos_theta, params.ior)
     conductor = fresnel_conductor(cos_theta, params.ior, params.extinction)
-    return (1.0 - params.metallic) * dielectric + params.metallic * conductor
+    if (metallic == 1.0).all():
+        return conductor
+    return (1.0 - metallic) * fresnel_dielectric(cos_theta, params.ior) + metallic * conductor
 
 
 def specular_probability(params: SurfaceParams, cos_theta_o: ArrayLike) -> FloatArray:

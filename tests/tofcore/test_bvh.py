@@ -112,7 +112,8 @@ def test_axis_aligned_rays_on_axis_aligned_grid():
     d = np.tile(np.float32([0, 0, -1]), (len(o), 1))
     o_side = np.stack([np.full(x.size, -1.0, np.float32), y.ravel(), np.full(x.size, 0.25, np.float32)], -1)
     d_side = np.tile(np.float32([1, 0, 0]), (len(o), 1))  # in the plane of the mesh
-    o, d = np.concatenate([o, o_side]), np.concatenate([d, d_side])
+    d_neg_zero = np.tile(np.float32([-0.0, -0.0, -1]), (len(o), 1))  # signed zeros: octant of +0
+    o, d = np.concatenate([o, o_side, o]), np.concatenate([d, d_side, d_neg_zero])
     assert_same_hits(BVH.build(v, tri).intersect(o, d), intersect_brute(v, tri, o, d))
 
 
@@ -211,8 +212,9 @@ def test_threads_and_chunks_do_not_change_results():
     one, two = bvh.intersect(o, d, workers=1), bvh.intersect(o, d, workers=2)
     for a, b in zip((one.t, one.prim, one.u, one.v), (two.t, two.prim, two.u, two.v)):
         np.testing.assert_array_equal(a, b)
-    part = bvh.intersect(o[:777], d[:777])
+    part = bvh.intersect(o[:777], d[:777])  # other chunks and octant groups
     np.testing.assert_array_equal(part.prim, one.prim[:777])
+    np.testing.assert_array_equal(part.t, one.t[:777])
     t_max = np.full(n, 0.5, np.float32)
     np.testing.assert_array_equal(bvh.occluded(o, d, t_max, workers=1), bvh.occluded(o, d, t_max, workers=2))
 
