@@ -11,8 +11,9 @@ the requested number of triangles.  Three ray sets, 512 x 424 rays each:
   beside the pinhole, ``t_max`` = distance to the light.
 
 Run ``python bench/bench_bvh.py`` (``--sizes 10000 500000 1000000``,
-``--repeat 3``, ``--workers 1 2``, ``--leaf-size`` = the `BVH.build`
-default).  Times are the best of ``--repeat`` runs; box tests count every
+``--repeat 5``, ``--workers 1 2``, ``--leaf-size`` = the `BVH.build`
+default).  Times are the best of ``--repeat`` interleaved runs (the host's
+load varies); box tests count every
 child box of every visited node, triangle tests every (padded) leaf slot.
 """
 
@@ -113,21 +114,18 @@ def secondary_rays(verts, tris, rng, n_rays):
     return origin.astype(np.float32), d.astype(np.float32), prim.astype(np.int32)
 
 
-def timed(fn, repeat):
-    """Best wall time of ``repeat`` calls, and the last result."""
-    best, out = np.inf, None
-    for _ in range(repeat):
-        t0 = time.perf_counter()
-        out = fn()
-        best = min(best, time.perf_counter() - t0)
-    return best, out
+def timed(fn):
+    """Wall time of one call, and its result."""
+    t0 = time.perf_counter()
+    out = fn()
+    return time.perf_counter() - t0, out
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 500_000, 1_000_000],
                     help="approximate triangle counts (default: 10000 500000 1000000)")
-    ap.add_argument("--repeat", type=int, default=3, help="runs per timing, best kept (default: 3)")
+    ap.add_argument("--repeat", type=int, default=5, help="runs per timing, best kept (default: 5)")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="thread counts (default: 1 2)")
     ap.add_argument("--leaf-size", type=int, default=None, help="BVH leaf size (default: BVH.build's)")
     args = ap.parse_args(argv)
@@ -138,7 +136,7 @@ def main(argv=None):
     print("|---|---|---|---|---|---|---|---|---|---|")
     for size in args.sizes:
         verts, tris = room_scene(size)
-        build_s, bvh = timed(lambda: BVH.build(verts, tris, **leaf), 1)
+        build_s, bvh = timed(lambda: BVH.build(verts, tris, **leaf))
         st = bvh.stats
         o, d = primary_rays(rng)
         first = bvh.intersect(o, d)
@@ -157,8 +155,11 @@ def main(argv=None):
         for name, run in sets.items():
             counts = {}
             run(1, counts)
-            for w in args.workers:
-                sec, _ = timed(lambda: run(w), args.repeat)
+            best = dict.fromkeys(args.workers, np.inf)
+            for _ in range(args.repeat):  # interleaved, so a busy host slows every variant alike
+                for w in args.workers:
+                    best[w] = min(best[w], timed(lambda: run(w))[0])
+            for w, sec in best.items():
                 print(f"| {st['triangles']} | {build_s:.2f} | {st['nodes']} | {st['depth']} | "
                       f"{st['memory_bytes'] / 1e6:.1f} | {name} | {w} | "
                       f"{counts['rays'] / sec / 1e6:.2f} | {counts['box_tests'] / counts['rays']:.1f} | "

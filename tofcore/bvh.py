@@ -54,6 +54,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .errors import ConfigError, SceneError
+
 BOX_PAD = 2.0**-16
 """Relative padding of node boxes: times (largest |coordinate| + largest extent) of the box."""
 
@@ -167,7 +169,7 @@ def _as_rays(origins, directions, t_max, ignore_prim):
     d = np.ascontiguousarray(directions, dtype=np.float32).reshape(-1, 3)
     n = len(o)
     if len(d) != n:
-        raise ValueError(f"directions must have the shape of origins {o.shape}, got {d.shape}")
+        raise ValueError(f"BVH: directions must have the shape of origins {o.shape}, got {d.shape}")
     tm = np.full(n, np.inf, np.float32) if t_max is None else np.asarray(t_max, np.float32)
     tm = np.ascontiguousarray(np.broadcast_to(tm, (n,)))
     ig = np.full(n, -1, np.int64) if ignore_prim is None else np.asarray(ignore_prim, np.int64)
@@ -448,12 +450,12 @@ class BVH:
         two adjacent cache lines.
         """
         if leaf_size < 1:
-            raise ValueError(f"BVH.build: leaf_size must be >= 1, got {leaf_size!r}")
+            raise ConfigError(f"BVH.build: leaf_size must be >= 1, got {leaf_size!r}")
         t0 = time.perf_counter()
         v = np.asarray(vertices, np.float32)
         tri = np.asarray(triangles, np.int64)
         if v.ndim != 2 or v.shape[1] != 3 or tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0:
-            raise ValueError(f"BVH.build: need (N, 3) vertices and (M >= 1, 3) triangles, "
+            raise SceneError(f"BVH.build: vertices and triangles must be (N, 3) and (M >= 1, 3), "
                              f"got {v.shape} and {tri.shape}")
         corners = v[tri]  # (M, 3 vertices, 3 axes)
         lo = np.ascontiguousarray(corners.min(axis=1).T)
