@@ -51,7 +51,8 @@ def run_one(detail: int, spp: int, max_depth: int, width: int, height: int) -> d
         "camera_rays_per_s": s.camera_rays / max(s.camera_seconds, 1e-9),
         "bounce_rays_per_s": s.bounce_rays / max(s.bounce_seconds, 1e-9),
         "shadow_rays_per_s": s.shadow_rays / max(s.shadow_seconds, 1e-9),
-        "bvh_share": (s.camera_seconds + s.bounce_seconds + s.shadow_seconds) / s.seconds,
+        "workers": os.cpu_count(),
+        "bvh_share": (s.camera_seconds + s.bounce_seconds + s.shadow_seconds) / (s.seconds * (os.cpu_count() or 1)),
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
     }
 
@@ -85,8 +86,9 @@ def main() -> int:
               f"| {r['rays_per_s'] / 1e6:.2f} | {r['camera_rays_per_s'] / 1e6:.2f} "
               f"| {r['bounce_rays_per_s'] / 1e6:.2f} | {r['shadow_rays_per_s'] / 1e6:.2f} "
               f"| {r['bvh_share']:.0%} | {r['peak_rss_mib']:.0f} |")
-    print("\ncamera/bounce/shadow: rays per second spent inside the BVH for that kind of ray; "
-          "total: all rays over the whole frame time (BVH + shading + sampling).")
+    print("\ncamera/bounce/shadow: rays per thread-second spent inside the BVH for that kind of ray "
+          "(per core); total: all rays over the wall-clock frame time (BVH + shading + sampling, "
+          f"{rows[0]['workers']} worker threads); BVH share: BVH thread-time over workers × frame time.")
     return 0
 
 
