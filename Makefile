@@ -3,7 +3,11 @@ PYTHON ?= python3.11
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
 
-.PHONY: demo test bench venv clean
+# tofcore must also run on Python 3.13 with NumPy 2 (Blender 5.1+): a second venv checks that.
+PYTHON313 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.13*/bin/python3.13) $(shell command -v python3.13 2>/dev/null))
+VENV313   ?= .venv313
+
+.PHONY: demo test test-numpy2 bench venv clean
 
 $(VENV)/.installed: requirements-dev.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -20,8 +24,15 @@ demo: venv
 test: venv
 	$(PY) -m pytest -q -m "not slow"
 
+test-numpy2:
+	@if [ -z "$(PYTHON313)" ]; then echo "python3.13 not found: NumPy 2 check skipped"; else \
+	  [ -x $(VENV313)/bin/python ] || $(PYTHON313) -m venv $(VENV313); \
+	  $(VENV313)/bin/python -m pip install --quiet "numpy>=2" pytest opencv-python-headless && \
+	  $(VENV313)/bin/python -m pip install --quiet --no-deps -e . && \
+	  $(VENV313)/bin/python -m pytest -q -m "not slow" tests/tofcore; fi
+
 bench: venv
 	$(PY) bench/bench_transport.py
 
 clean:
-	rm -rf $(VENV) out
+	rm -rf $(VENV) $(VENV313) out
