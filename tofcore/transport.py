@@ -43,6 +43,7 @@ from .bsdf import eval_bsdf, sample_bsdf
 from .camera import Camera
 from .errors import ConfigError
 from .led import LED
+from .plan import leds_at_pinhole
 from .scene import Scene
 from .surface import MaterialTable, Surface, surface_at
 
@@ -324,13 +325,12 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
         bins = int(np.ceil(transient_max_m / transient_bin_m))
     positions = np.array([x.position_m for x in leds])
     led_world = positions @ rot.T + pose[:3, 3]
-    pinhole = camera.aperture_radius_m == 0
     lo, hi = scene.bounds
     extent = float(np.max(np.abs(np.concatenate([lo, hi, pose[:3, 3]]))))
     return _Context(
         scene=scene, table=MaterialTable(scene), camera=camera, world_from_sensor=pose, lens_center=pose[:3, 3],
         led_positions=led_world, led_axis=rot[:, 2], leds=leds,
-        skip_first_shadow=np.all(positions == 0.0, axis=1) & pinhole,
+        skip_first_shadow=leds_at_pinhole(camera, leds),
         correlations=correlations, ambient=None if ambient is None or ambient.is_black else ambient,
         max_depth=int(max_depth), key=rng.seed_key(seed),
         offset_scale=_OFFSET_RELATIVE * max(extent, 1e-3),

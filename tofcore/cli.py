@@ -1,0 +1,153 @@
+"""Command line: ``python -m tofcore render …`` and ``python -m tofcore presets``.
+
+Examples::
+
+    python -m tofcore render --scene room --preset kinect_v2 --spp 64 --out out/room
+    python -m tofcore render --scene my_scene.npz --preset presets/o3d303.toml --target-error 0.002 --verbose
+    python -m tofcore presets
+"""
+
+from __future__ import annotations
+
+import argparse
+import signal
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from .errors import TofError
+
+
+def _scene(name: str):
+    from .demo import NAMES, demo_scene
+    from .scene import Scene
+
+    if name in NAMES:
+        return demo_scene(name)
+    path = Path(name)
+    if path.suffix != ".npz":
+        raise TofError(f"--scene: must be a demo scene {list(NAMES)} or a .npz file, got {name!r}")
+    if not path.is_file():
+        raise TofError(f"--scene: file not found: {path}")
+    return Scene.load(path)
+
+
+def _progress_bar(quiet: bool):
+    start = time.perf_counter()
+
+    def show(row: dict) -> None:
+        if quiet:
+            return
+        done = row["spp"] / row["spp_max"]
+        bar = "#" * int(30 * done) + "-" * (30 - int(30 * done))
+        err = row["est_depth_error_m"]
+        err_txt = f"{err * 1000:7.2f} mm" if err is not None else "      – mm"
+        eta = (time.perf_counter() - start) / done * (1 - done) if done > 0 else 0.0
+        sys.stderr.write(f"\r[{bar}] {row['spp']:4d}/{row['spp_max']} spp  est. error {err_txt}  "
+                         f"{row['seconds']:6.1f} s  ETA {eta:5.0f} s ")
+        sys.stderr.flush()
+
+    return show
+
+
+def _convergence_table(log: list[dict]) -> str:
+    has_ref = any("rms_error_m" in r for r in log)
+    head = "| pass | spp | seconds | est. depth error mm |" + (" RMS error vs reference mm |" if has_ref else "")
+    rule = "|---|---|---|---|" + ("---|" if has_ref else "")
+    lines = [head, rule]
+    for r in log:
+        est = f"{r['est_depth_error_m'] * 1000:.2f}" if r["est_depth_error_m"] is not None else "–"
+        line = f"| {r['pass']} | {r['spp']} | {r['seconds']:.1f} | {est} |"
+        if has_ref:
+            ref = r.get("rms_error_m")
+            line += f" {ref * 1000:.2f} |" if ref is not None else " – |"
+        lines.append(line)
+    return "\n".join(lines)
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from .presets import load_preset
+    from .render import render
+    from .writers import write_frame
+    from .ambient import Ambient
+
+    formats = tuple(f for f in args.formats.split(",") if f)
+    scene = _scene(args.scene)
+    sensor = load_preset(args.preset)
+    ambient = Ambient(radiance_w_m2_sr=args.ambient) if args.ambient else None
+    if args.verbose:
+        from .plan import make_plan
+
+        print(f"scene {scene.name!r}: {scene.triangle_count:,} triangles, {len(scene.materials)} materials")
+        print(f"sensor {sensor.name!r}: {sensor.camera.width}x{sensor.camera.height}, {sensor.modulation.kind}, "
+              f"raw images {', '.join(sensor.modulation.raw_labels())}")
+        print(make_plan(scene, sensor, max_depth=args.max_depth, ambient=ambient).describe())
+    frame = render(scene, sensor, spp=args.spp, max_depth=args.max_depth, seed=args.seed,
+                   time_budget_s=args.time_budget, target_error_m=args.target_error, ambient=ambient,
+                   progress=_progress_bar(args.quiet))
+    if not args.quiet:
+        sys.stderr.write("\n")
+    files = write_frame(frame, args.out, formats=formats)
+    stats = frame.stats
+    if not args.quiet:
+        print(_convergence_table(stats["convergence"]))
+        valid = frame.valid.mean() * 100
+        err = frame.depth - frame.gt_depth
+        rms = float(np.sqrt(np.nanmean(err[frame.valid] ** 2))) * 1000 if frame.valid.any() else float("nan")
+        print(f"{stats['spp']} spp in {stats['seconds']:.1f} s ({stats['transport']['rays_per_second'] / 1e6:.2f} "
+              f"M rays/s); valid {valid:.1f} %; RMS depth error vs ground truth {rms:.1f} mm")
+        print(f"wrote {len(files)} files to {args.out}/: {', '.join(sorted(p.name for p in files.values()))}")
+    return 0
+
+
+def cmd_presets(args: argparse.Namespace) -> int:
+    from .presets import list_presets, load_preset
+
+    for name in list_presets():
+        s = load_preset(name)
+        mod = s.modulation
+        freqs = ", ".join(f"{f / 1e6:g}" for f in mod.frequencies_hz) + " MHz" if mod.frequencies_hz else \
+            f"t0 {mod.pulse_width_s * 1e9:g} ns"
+        print(f"{name:<12} {s.camera.width}x{s.camera.height}  {mod.kind:<9} {freqs:<22} "
+              f"range {s.range_m[0]:g}-{s.range_m[1]:g} m  {len(s.leds)} LED(s)  {s.description}")
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m tofcore", description="Time-of-Flight camera simulator.")
+    sub = parser.add_subparsers(dest="command", required=True)
+    r = sub.add_parser("render", help="render one frame of a scene with a sensor preset",
+                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    r.add_argument("--scene", required=True, help="demo scene (plane, corner, box_on_wall, room) or a .npz file")
+    r.add_argument("--preset", default="kinect_v2", help="preset name (see `presets`) or a .toml file")
+    r.add_argument("--out", type=Path, required=True, help="output folder")
+    r.add_argument("--spp", type=int, default=64, help="most samples per pixel")
+    r.add_argument("--max-depth", type=int, default=5, help="surface vertices per path (1 = direct only)")
+    r.add_argument("--seed", type=int, default=0, help="random seed (same seed, same frame)")
+    r.add_argument("--time-budget", type=float, default=None, metavar="S", help="stop tracing after about S seconds")
+    r.add_argument("--target-error", type=float, default=None, metavar="M",
+                   help="stop once the estimated RMS depth error (Monte Carlo) is at most M metres")
+    r.add_argument("--ambient", type=float, default=0.0, metavar="W_M2_SR",
+                   help="constant ambient radiance, W m^-2 sr^-1")
+    r.add_argument("--formats", default="exr,png,ply,json", help="comma list of exr, png, ply, json")
+    r.add_argument("--verbose", action="store_true", help="print the scene, sensor and render plan")
+    r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
+    r.set_defaults(func=cmd_render)
+    p = sub.add_parser("presets", help="list the sensor presets")
+    p.set_defaults(func=cmd_presets)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    try:
+        return args.func(args)
+    except (TofError, OSError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        print("\ninterrupted (files are written atomically: none is left half-written)", file=sys.stderr)
+        return 130

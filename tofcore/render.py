@@ -1,0 +1,273 @@
+"""From light transport to what the camera delivers: :func:`render` → :class:`~tofcore.frame.Frame`.
+
+The stages (DESIGN.md, "The flow"):
+
+1. **plan** what the scene and sensor need (:mod:`tofcore.plan`);
+2. **trace** progressive passes, each contribution correlated with the
+   sensor's g_j (:mod:`tofcore.modulation`), bucketed by bounce count;
+   after each pass estimate the depth standard error from the per-pixel
+   variances, and stop at ``target_error_m`` or ``time_budget_s``;
+3. **raw images** per frequency and phase step: charge in electrons =
+   responsivity × exposure × (LED signal correlation + ambient × gate duty),
+   :func:`raw_images`;
+4. **post-process** the raw images before decoding: lens scattering
+   (:mod:`tofcore.optics`), shot and read noise (:mod:`tofcore.noise`),
+   full-well saturation;
+5. **decode** phase, amplitude, offset, distance, unwrapping, invalid pixels
+   (:mod:`tofcore.decode`); radial distance → z-depth.
+
+Besides the camera's output the frame carries noise-free ground truth: the
+first-hit distance, the direct-only (k = 1) decoded distance and the decoded
+distance for every max path length k = 1..K — all from the one render.
+
+Error against run time: the tracer keeps, per pixel, the variance of the mean
+of every correlation channel. Three extra channels per render — the phasor
+components I and Q of the sensor's highest frequency (or, for a pulsed sensor,
+Q2 and Q1 + Q2) and their sum — give the full 2 × 2 covariance
+(Cov(a, b) = (Var(a + b) − Var a − Var b)/2), and the delta method turns it
+into the standard error of each pixel's distance. The convergence log holds,
+per pass: elapsed seconds, spp, the RMS of that standard error over the
+pixels that see a surface, and the RMS error against a reference distance
+image when one is given.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from . import decode as decoding
+from . import noise as noise_models
+from . import optics
+from .ambient import Ambient
+from .errors import ConfigError
+from .frame import Frame
+from .plan import Plan, make_plan
+from .scene import Scene
+from .transport import SPEED_OF_LIGHT_M_S, Transport, trace_progressive
+
+C = SPEED_OF_LIGHT_M_S
+
+
+@dataclass(frozen=True)
+class _ErrorChannels:
+    """Linear combinations of the raw correlation channels whose covariance gives the depth error."""
+
+    weights_a: np.ndarray  # (J,)
+    weights_b: np.ndarray  # (J,)
+    kind: str              # "phasor" (distance ∝ atan2(b, a)) or "ratio" (distance ∝ a / b)
+    scale_m: float         # metres per radian (phasor) or per unit ratio
+
+
+def _error_channels(modulation) -> _ErrorChannels:
+    """Phasor of the highest frequency (CW) or (Q2, Q1 + Q2) (pulsed) as weights over the raw channels."""
+    n_raw = len(modulation.raw_labels())
+    if modulation.kind == "pulsed":
+        a = np.zeros(n_raw)
+        a[1] = 1.0
+        return _ErrorChannels(a, np.ones(n_raw), "ratio", C * modulation.pulse_width_s / 2)
+    steps = modulation.phase_steps
+    first = int(np.argmax(modulation.frequencies_hz))
+    start = int(sum(steps[:first]))
+    n = steps[first]
+    a, b = np.zeros(n_raw), np.zeros(n_raw)
+    angles = 2 * np.pi * np.arange(n) / n
+    a[start:start + n] = np.cos(angles)
+    b[start:start + n] = np.sin(angles)
+    return _ErrorChannels(a, b, "phasor", C / (4 * np.pi * modulation.frequencies_hz[first]))
+
+
+def _combine(correlations, weights: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
+    used = [(w, g) for w, g in zip(weights, correlations) if w != 0]
+    return lambda tau: sum(w * g(tau) for w, g in used)
+
+
+def depth_standard_error(transport: Transport, channels: _ErrorChannels, n_raw: int) -> np.ndarray:
+    """(H, W) Monte Carlo standard error (m) of each pixel's distance by the delta method.
+
+    Notes
+    -----
+    With a, b the means and Var/Cov from the tracer's per-sample squares:
+    phasor: :math:`\\sigma_\\phi^2 = (b^2 \\mathrm{Var}\\,a + a^2 \\mathrm{Var}\\,b - 2ab\\,\\mathrm{Cov})/(a^2+b^2)^2`;
+    ratio r = a/b: :math:`\\sigma_r^2 = (\\mathrm{Var}\\,a - 2r\\,\\mathrm{Cov} + r^2 \\mathrm{Var}\\,b)/b^2`.
+    NaN where a pixel has no signal or fewer than two samples.
+    """
+    corr = transport.correlation()
+    var = transport.variance_of_mean()  # rows: signal, correlations..., ambient
+    a, b = corr[n_raw], corr[n_raw + 1]
+    var_a, var_b, var_sum = var[1 + n_raw], var[2 + n_raw], var[3 + n_raw]
+    cov = 0.5 * (var_sum - var_a - var_b)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        if channels.kind == "phasor":
+            norm2 = a * a + b * b
+            var_x = (b * b * var_a + a * a * var_b - 2 * a * b * cov) / (norm2 * norm2)
+        else:
+            r = a / b
+            var_x = (var_a - 2 * r * cov + r * r * var_b) / (b * b)
+    return np.sqrt(np.maximum(var_x, 0.0)) * channels.scale_m
+
+
+def raw_images(correlation_means: np.ndarray, ambient_mean: np.ndarray, sensor) -> np.ndarray:
+    """Noise-free raw images (R, H, W) in electrons, before scattering and saturation.
+
+    Notes
+    -----
+    .. math:: Q_j = R \\, T_j \\, (\\bar{c}_j + L_{amb} \\, \\delta_j)
+
+    R the responsivity (e⁻ s⁻¹ per W m⁻² sr⁻¹), T_j the raw image's exposure,
+    :math:`\\bar c_j` the pixel's mean Σ w g_j (radiance-weighted correlation),
+    :math:`L_{amb}` the ambient radiance and δ_j the gate duty: unmodulated
+    light adds to every bucket the charge its gate lets through (SPEC §3).
+    """
+    mod = sensor.modulation
+    exposure = mod.raw_exposure_s()[:, None, None]
+    duty = mod.gate_duty()[:, None, None]
+    return sensor.readout.responsivity * exposure * (correlation_means + ambient_mean[None] * duty)
+
+
+def render(scene: Scene, sensor, pose: np.ndarray | None = None, *, spp: int = 64, max_depth: int = 5,
+           seed: int = 0, time_budget_s: float | None = None, target_error_m: float | None = None,
+           ambient: Ambient | None = None, reference_distance: np.ndarray | None = None,
+           progress: Callable[[dict], None] | None = None, workers: int | None = None,
+           chunk_size: int = 1 << 16) -> Frame:
+    """Render one ToF frame.
+
+    Parameters
+    ----------
+    scene : the geometry (:class:`~tofcore.scene.Scene`).
+    sensor : a :class:`~tofcore.sensor.Sensor` (e.g. ``tofcore.load_preset("kinect_v2")``).
+    pose : 4×4 ``world_from_sensor`` (OpenCV sensor frame); default: the scene's suggested pose, else identity.
+    spp : most samples per pixel; fewer when a target error or time budget stops the render first.
+    max_depth : surface vertices per path (1 = direct light only).
+    seed : non-negative int; the same seed gives the same frame (tracing, then sensor noise).
+    time_budget_s : stop before a pass that would end after this many seconds of tracing.
+    target_error_m : stop once the RMS estimated depth standard error (Monte Carlo) is at most this.
+    ambient : unmodulated background light.
+    reference_distance : (H, W) converged radial distance to log the RMS error against, per pass.
+    progress : called after every pass with the convergence-log row (dict).
+    workers, chunk_size : passed to the tracer.
+    """
+    _check_settings(spp, time_budget_s, target_error_m)
+    if sensor.noise.model == "li" and sensor.modulation.kind == "pulsed":
+        raise ConfigError(f"render: sensor {sensor.name!r}: noise model 'li' (eq. 2.43) needs a continuous-wave "
+                          f"sensor, got modulation kind 'pulsed'; use noise model 'raw'")
+    if pose is None:
+        pose = np.asarray(scene.metadata.get("world_from_sensor", np.eye(4)), dtype=np.float64)
+    mod = sensor.modulation
+    plan = make_plan(scene, sensor, max_depth=max_depth, ambient=ambient)
+    correlations = list(mod.correlations())
+    n_raw = len(correlations)
+    channels = _error_channels(mod)
+    extra = [_combine(correlations, channels.weights_a), _combine(correlations, channels.weights_b),
+             _combine(correlations, channels.weights_a + channels.weights_b)]
+    if reference_distance is not None:
+        reference_distance = np.asarray(reference_distance, dtype=np.float64)
+        if reference_distance.shape != (sensor.camera.height, sensor.camera.width):
+            raise ConfigError(f"render: reference_distance must have shape {(sensor.camera.height, sensor.camera.width)}, "
+                              f"got {reference_distance.shape}")
+
+    log: list[dict] = []
+    start = time.perf_counter()
+    transport = None
+    for transport in trace_progressive(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
+                                       correlations=correlations + extra, ambient=ambient if plan.ambient else None,
+                                       spp=spp, max_depth=max_depth, seed=seed, workers=workers,
+                                       chunk_size=chunk_size):
+        elapsed = time.perf_counter() - start
+        samples = int(transport.sample_count[0])
+        sigma = depth_standard_error(transport, channels, n_raw)
+        seen = np.isfinite(transport.first_hit.distance_m) & np.isfinite(sigma)
+        row = {"pass": transport.stats.passes, "seconds": elapsed, "spp": samples,
+               "est_depth_error_m": _rms(sigma[seen]), "rays": transport.stats.rays}
+        if reference_distance is not None:
+            current = _decode_clean(transport, sensor, transport.max_depth, n_raw).distance
+            both = np.isfinite(current) & np.isfinite(reference_distance)
+            row["rms_error_m"] = _rms(current[both] - reference_distance[both])
+        log.append(row)
+        if progress is not None:
+            progress(dict(row, spp_max=spp))
+        if target_error_m is not None and row["est_depth_error_m"] is not None \
+                and row["est_depth_error_m"] <= target_error_m:
+            break
+        if time_budget_s is not None and samples < spp:
+            next_samples = min(samples, 16, spp - samples)  # the pass schedule doubles up to 16
+            if elapsed + elapsed / samples * next_samples > time_budget_s:
+                break
+    trace_seconds = time.perf_counter() - start
+    frame = _frame(transport, sensor, pose, plan, seed, n_raw)
+    frame.stats.update({
+        "trace_seconds": trace_seconds, "seconds": time.perf_counter() - start, "spp": int(transport.sample_count[0]),
+        "spp_max": spp, "max_depth": max_depth, "seed": seed, "time_budget_s": time_budget_s,
+        "target_error_m": target_error_m, "plan": plan.as_dict(), "convergence": log,
+        "transport": transport.stats.as_dict(),
+    })
+    return frame
+
+
+def _check_settings(spp, time_budget_s, target_error_m) -> None:
+    if not isinstance(spp, (int, np.integer)) or spp < 1:
+        raise ConfigError(f"render: spp must be an integer >= 1, got {spp!r}")
+    for name, value in (("time_budget_s", time_budget_s), ("target_error_m", target_error_m)):
+        if value is not None and (not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0):
+            raise ConfigError(f"render: {name} must be a number > 0, got {value!r}")
+
+
+def _rms(values: np.ndarray) -> float | None:
+    return float(np.sqrt(np.mean(np.square(values)))) if values.size else None
+
+
+def _decode_clean(transport: Transport, sensor, max_k: int, n_raw: int):
+    """Decode the noise-free, scatter-free raw images of bounces ≤ max_k (ground-truth decompositions)."""
+    raw = raw_images(transport.correlation(max_k)[:n_raw], transport.ambient(), sensor)
+    return decoding.decode(raw, sensor.modulation, min_amplitude_e=0.0, saturation_e=None,
+                           range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+
+
+def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int, n_raw: int) -> Frame:
+    mod = sensor.modulation
+    cam = sensor.camera
+    raw = raw_images(transport.correlation()[:n_raw], transport.ambient(), sensor)
+    if plan.scattering:
+        s = sensor.scattering
+        kernel = optics.psf_kernel(s.model, strength=s.strength, radius_px=s.radius_px,
+                                   negative_lobe=s.negative_lobe, sigmas_px=s.sigmas_px, weights=s.weights)
+        raw = optics.apply_scattering(raw, kernel)
+    noise_rng = np.random.default_rng(np.random.SeedSequence([seed, 0x70F]))  # apart from the tracer's stream
+    if plan.raw_noise:
+        raw = noise_models.add_raw_noise(raw, read_noise_e=sensor.noise.read_noise_e, rng=noise_rng)
+    full_well = sensor.readout.full_well_e
+    raw = np.minimum(raw, full_well)
+    decoded = decoding.decode(raw, mod, min_amplitude_e=sensor.invalid.min_amplitude_e,
+                              saturation_e=full_well if sensor.invalid.invalidate_saturated else None,
+                              range_m=tuple(sensor.range_m), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+    distance = np.asarray(decoded.distance, dtype=np.float64)
+    valid = np.asarray(decoded.valid, dtype=bool)
+    if plan.distance_noise:
+        sigma = noise_models.li_sigma_m(decoded.amplitude, decoded.offset, max(mod.frequencies_hz),
+                                        sensor.noise.modulation_contrast)
+        distance = np.where(valid, noise_models.add_distance_noise(distance, sigma, noise_rng), np.nan)
+
+    directions = cam.pixel_center_directions()
+    per_k = np.stack([_decode_clean(transport, sensor, k, n_raw).distance
+                      for k in range(1, transport.max_depth + 1)]).astype(np.float32)
+    gt = transport.first_hit.distance_m
+    as_depth = (lambda d: decoding.radial_to_z(d, directions)) if sensor.depth_output == "z" else (lambda d: d)
+    return Frame(
+        depth=np.asarray(as_depth(distance), np.float32), distance=distance.astype(np.float32),
+        amplitude=np.asarray(decoded.amplitude, np.float32), offset=np.asarray(decoded.offset, np.float32),
+        intensity=np.asarray(decoded.intensity, np.float32), valid=valid,
+        reason=np.asarray(decoded.reason, dtype=np.uint8),
+        confidence=np.asarray(decoded.confidence, np.float32), raw=raw.astype(np.float32),
+        raw_labels=tuple(mod.raw_labels()), gt_distance=gt.astype(np.float32),
+        gt_depth=np.asarray(as_depth(gt), np.float32), direct_distance=per_k[0], distance_per_k=per_k,
+        ray_directions=directions, object_id=transport.first_hit.object_id, depth_output=sensor.depth_output,
+        world_from_sensor=np.asarray(pose, dtype=np.float64),
+        metadata={"sensor": sensor.to_dict(), "world_from_sensor": np.asarray(pose).tolist(),
+                  "intrinsics": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy,
+                                 "cx": cam.cx, "cy": cam.cy, "k1": cam.k1, "k2": cam.k2, "p1": cam.p1,
+                                 "p2": cam.p2, "k3": cam.k3},
+                  "units": {"distance": "m", "depth": "m", "amplitude": "electrons", "raw": "electrons"}},
+        stats={})
