@@ -27,7 +27,7 @@ test: venv
 test-numpy2:
 	@if [ -z "$(PYTHON313)" ]; then echo "python3.13 not found: NumPy 2 check skipped"; else \
 	  [ -x $(VENV313)/bin/python ] || $(PYTHON313) -m venv $(VENV313); \
-	  $(VENV313)/bin/python -m pip install --quiet "numpy>=2" pytest opencv-python-headless && \
+	  $(VENV313)/bin/python -m pip install --quiet "numpy>=2" pytest opencv-python-headless "OpenEXR>=3.3" && \
 	  $(VENV313)/bin/python -m pip install --quiet --no-deps -e . && \
 	  $(VENV313)/bin/python -m pytest -q -m "not slow" tests/tofcore; fi
 

@@ -1,0 +1,214 @@
+"""Writers: EXR round trip, PNG depth and previews, PLY, JSON checksums, atomic writes."""
+
+import hashlib
+import json
+import re
+import zlib
+
+import numpy as np
+import pytest
+
+from tofcore import writers
+from tofcore.frame import Frame, Reason
+
+H, W, K = 6, 8, 3
+LABELS = ("f80MHz_s0", "f80MHz_s1", "f80MHz_s2", "f80MHz_s3")
+
+
+def make_frame() -> Frame:
+    """A 6×8 frame with a few invalid pixels, 4 raw images, K = 3, a 4×4 pose and NumPy metadata."""
+    rng = np.random.default_rng(7)
+    f32 = np.float32
+    v, u = np.mgrid[0:H, 0:W]
+    rays = np.stack([(u - 3.5) / 10, (v - 2.5) / 10, np.ones((H, W))], axis=-1)
+    rays /= np.linalg.norm(rays, axis=-1, keepdims=True)
+    gt_distance = (1.0 + 0.25 * rng.random((H, W))).astype(f32)
+    distance = (gt_distance + 0.01 * rng.standard_normal((H, W))).astype(f32)
+    reason = np.zeros((H, W), np.uint8)
+    reason[0, 0], reason[2, 5], reason[5, 7] = Reason.NO_RETURN, Reason.LOW_AMPLITUDE, Reason.SATURATED
+    valid = reason == 0
+    distance[~valid] = np.nan
+    gt_distance[0, 0] = np.nan
+    amplitude = (100 + 900 * rng.random((H, W))).astype(f32)
+    amplitude[0, 0] = 0
+    pose = np.array([[0, -1, 0, 0.5], [0, 0, -1, 1.25], [1, 0, 0, 1.5], [0, 0, 0, 1]], dtype=np.float64)
+    return Frame(
+        depth=distance.copy(), distance=distance, amplitude=amplitude, offset=(amplitude * 2).astype(f32),
+        intensity=(amplitude * 2.5).astype(f32), valid=valid, reason=reason,
+        confidence=np.where(valid, 0.9, 0).astype(f32), raw=(1000 * rng.random((4, H, W))).astype(f32),
+        raw_labels=LABELS, gt_distance=gt_distance, gt_depth=gt_distance.copy(),
+        direct_distance=(gt_distance + 0.001).astype(f32),
+        distance_per_k=np.stack([gt_distance + 0.002 * k for k in range(1, K + 1)]).astype(f32),
+        ray_directions=rays.astype(f32), object_id=np.where(valid, v % 3, -1).astype(np.int32),
+        world_from_sensor=pose,
+        stats={"time_s": np.float64(1.5), "rays": np.int64(48), "nan": np.nan, "log": np.array([1.0, np.nan])},
+        metadata={"sensor": {"name": "test"}, "intrinsics": {"fx": 10.0, "fy": 10.0, "cx": 3.5, "cy": 2.5},
+                  "world_from_sensor": pose, "settings": {"spp": 4}},
+    )
+
+
+@pytest.fixture(scope="module")
+def frame() -> Frame:
+    return make_frame()
+
+
+@pytest.fixture
+def written(frame, tmp_path):
+    formats = writers.FORMATS if writers.OpenEXR is not None else ("png", "ply", "json")
+    return writers.write_frame(frame, tmp_path / "out", formats, prefix="f0_")
+
+
+def test_exr_round_trip_is_bit_exact(frame, tmp_path):
+    openexr = pytest.importorskip("OpenEXR")
+    path = writers.write_frame(frame, tmp_path, "exr")["exr"]
+    channels = writers.read_exr(path)
+    expected = {name: getattr(frame, name) for name in writers._EXR_IMAGES}
+    expected |= {f"raw.{label}": raw for label, raw in zip(LABELS, frame.raw)}
+    expected |= {f"distance_k{k}": d for k, d in enumerate(frame.distance_per_k, 1)}
+    assert set(channels) == set(expected)
+    for name, image in expected.items():
+        assert channels[name].dtype == np.float32 and channels[name].shape == (H, W), name
+        assert channels[name].tobytes() == np.asarray(image, np.float32).tobytes(), name
+    header = openexr.File(str(path)).header()
+    np.testing.assert_array_equal(header["world_from_sensor"], frame.world_from_sensor)
+    document = json.loads(header["tofcore"])
+    assert document["metadata"]["intrinsics"]["fx"] == 10.0 and document["raw_labels"] == list(LABELS)
+
+
+def test_exr_without_openexr_names_the_package(frame, tmp_path, monkeypatch):
+    monkeypatch.setattr(writers, "OpenEXR", None)
+    with pytest.raises(ImportError, match="pip install OpenEXR"):
+        writers.write_frame(frame, tmp_path / "out")
+    assert not (tmp_path / "out").exists()
+
+
+def test_depth_mm_png_is_millimetres_with_zero_invalid(frame, written):
+    cv2 = pytest.importorskip("cv2")
+    depth_mm = cv2.imread(str(written["depth_mm"]), cv2.IMREAD_UNCHANGED)
+    assert depth_mm.dtype == np.uint16 and depth_mm.shape == (H, W)
+    expected = np.where(frame.valid, np.rint(np.nan_to_num(frame.depth.astype(np.float64)) * 1000), 0)
+    np.testing.assert_array_equal(depth_mm, expected)
+    assert depth_mm[0, 0] == 0
+
+
+def test_depth_mm_clips_far_depth():
+    far = make_frame()
+    far.depth[1, 1] = 70.0
+    assert writers._depth_mm(far)[1, 1] == 65535
+
+
+def test_previews_are_rgb8(written):
+    cv2 = pytest.importorskip("cv2")
+    for kind in ("depth", "intensity", "error", "reason"):
+        image = cv2.imread(str(written[kind]), cv2.IMREAD_UNCHANGED)
+        assert image.dtype == np.uint8 and image.shape == (H, W, 3), kind
+    depth_bgr = cv2.imread(str(written["depth"]), cv2.IMREAD_UNCHANGED)
+    assert (depth_bgr[0, 0] == 0).all() and depth_bgr[1, 1].any()
+
+
+@pytest.mark.parametrize("image", [np.arange(H * W, dtype=np.uint16).reshape(H, W) * 1361,
+                                   np.arange(H * W * 3, dtype=np.uint8).reshape(H, W, 3)])
+def test_numpy_png_encoder_matches_opencv(image):
+    cv2 = pytest.importorskip("cv2")
+    decoded = cv2.imdecode(np.frombuffer(writers._encode_png_numpy(image), np.uint8), cv2.IMREAD_UNCHANGED)
+    np.testing.assert_array_equal(decoded[..., ::-1] if image.ndim == 3 else decoded, image)
+
+
+def test_png_without_opencv(frame, tmp_path, monkeypatch):
+    monkeypatch.setattr(writers, "cv2", None)
+    path = writers.write_frame(frame, tmp_path, "png")["depth_mm"]
+    data = path.read_bytes()
+    assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR"
+    width, height, bit_depth, colour_type = np.frombuffer(data[16:26], ">u4", 2).tolist() + list(data[24:26])
+    assert (width, height, bit_depth, colour_type) == (W, H, 16, 0)
+    idat_len = int.from_bytes(data[33:37], "big")
+    rows = np.frombuffer(zlib.decompress(data[41:41 + idat_len]), np.uint8).reshape(H, 1 + 2 * W)
+    np.testing.assert_array_equal(rows[:, 1:].copy().view(">u2"), writers._depth_mm(frame))
+
+
+def test_colour_maps():
+    assert writers._TURBO.shape == writers._DIVERGING.shape == (256, 3)
+    blue, red = writers._DIVERGING[0], writers._DIVERGING[255]
+    assert blue[2] > blue[0] and red[0] > red[2]
+    assert writers._DIVERGING[127:129].min() >= 250  # white in the middle
+    assert set(writers._REASON_RGB) == set(Reason)
+    assert len({tuple(c) for c in writers._REASON_RGB.values()}) == len(Reason)
+
+
+def test_reason_out_of_range_raises(frame):
+    bad = make_frame()
+    bad.reason[0, 1] = 17
+    with pytest.raises(ValueError, match=r"got \[17\]"):
+        writers._reason_preview(bad)
+
+
+def test_ply_parses_back_to_valid_points(frame, written):
+    data = written["ply"].read_bytes()
+    header, body = data.split(b"end_header\n", 1)
+    lines = header.decode("ascii").splitlines()
+    assert lines[:2] == ["ply", "format binary_little_endian 1.0"]
+    count = int(next(line for line in lines if line.startswith("element vertex")).split()[-1])
+    assert count == frame.valid.sum() == H * W - 3
+    vertices = np.frombuffer(body, writers._PLY_VERTEX)
+    assert len(vertices) == count
+    xyz = np.stack([vertices["x"], vertices["y"], vertices["z"]], axis=1)
+    np.testing.assert_array_equal(xyz, frame.points("sensor"))
+    np.testing.assert_array_equal(vertices["amplitude"], frame.amplitude[frame.valid])
+
+
+def test_json_checksums_units_and_no_nan(frame, written):
+    text = written["json"].read_text("utf-8")
+    assert not re.search(r"\bNaN\b|\bInfinity\b", text)
+    document = json.loads(text)
+    files = {record["kind"]: record for record in document["files"]}
+    assert set(files) == set(written) - {"json"}
+    for kind, record in files.items():
+        data = written[kind].read_bytes()
+        assert record["name"] == written[kind].name and record["name"].startswith("f0_")
+        assert record["bytes"] == len(data) and record["sha256"] == hashlib.sha256(data).hexdigest()
+    assert document["stats"] == {"time_s": 1.5, "rays": 48, "nan": None, "log": [1.0, None]}
+    assert document["metadata"]["world_from_sensor"] == frame.world_from_sensor.tolist()
+    assert document["units"]["depth"] == "m" and document["reason_codes"]["SATURATED"] == 3
+    assert document["previews"]["error"]["limit_mm"] >= 1.0
+    assert document["previews"]["depth"]["min_m"] == pytest.approx(np.nanmin(frame.depth[frame.valid]))
+
+
+def test_unknown_format_raises_before_writing(frame, tmp_path):
+    valid = r"\('exr', 'png', 'ply', 'json'\)"
+    with pytest.raises(ValueError, match=rf"formats must be among {valid}, got unknown \['tiff'\]"):
+        writers.write_frame(frame, tmp_path / "out", ("png", "tiff"))
+    assert not (tmp_path / "out").exists()
+
+
+def test_failure_mid_write_leaves_no_partial_file(frame, tmp_path, monkeypatch):
+    def explode(_frame):
+        assert [p.name[:len(".points.ply.tmp-")] for p in tmp_path.iterdir()] == [".points.ply.tmp-"]
+        raise RuntimeError("encoder failed")
+
+    monkeypatch.setattr(writers, "_ply_vertices", explode)  # after the header is in the temp file
+    with pytest.raises(RuntimeError, match="encoder failed"):
+        writers.write_frame(frame, tmp_path, ("ply", "json"))
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_failure_keeps_previous_file_and_drops_done_record(frame, tmp_path, monkeypatch):
+    first = writers.write_frame(frame, tmp_path, ("ply", "json"))
+    before = first["ply"].read_bytes()
+    monkeypatch.setattr(writers, "_ply_vertices", lambda _frame: 1 / 0)
+    with pytest.raises(ZeroDivisionError):
+        writers.write_frame(frame, tmp_path, ("ply", "json"))
+    assert first["ply"].read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["points.ply"]
+
+
+def test_unconvertible_stats_raise_before_writing(tmp_path):
+    bad = make_frame()
+    bad.stats["plan"] = {"skip": object()}
+    with pytest.raises(TypeError, match=r"frame\['stats'\]\['plan'\]\['skip'\]: .* got object"):
+        writers.write_frame(bad, tmp_path / "out", ("png", "json"))
+    assert not (tmp_path / "out").exists()
+
+
+def test_prefix_with_separator_raises(frame, tmp_path):
+    with pytest.raises(ValueError, match="prefix"):
+        writers.write_frame(frame, tmp_path, "json", prefix="a/b")
