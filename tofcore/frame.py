@@ -1,8 +1,10 @@
 """What a simulated ToF camera delivers for one frame: :class:`Frame`.
 
-Images are (H, W), row 0 at the top, float32 unless noted; invalid pixels are
-NaN in every float output and ``valid`` is False there, with the cause in
-``reason`` (:class:`Reason`).
+Images are (H, W), row 0 at the top, float32 unless noted. Where a pixel has
+no valid depth, ``depth`` and ``distance`` are NaN, ``valid`` is False and
+``reason`` (:class:`Reason`) says why; the IR measurements (``amplitude``,
+``offset``, ``intensity``, ``raw``) stay defined everywhere — a saturated or
+out-of-range pixel still has an IR value.
 
 =====================  ==============  ==========================================================
 field                  unit            meaning

@@ -246,8 +246,11 @@ def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int
     distance = np.asarray(decoded.distance, dtype=np.float64)
     valid = np.asarray(decoded.valid, dtype=bool)
     if plan.distance_noise:
-        sigma = noise_models.li_sigma_m(decoded.amplitude, decoded.offset, max(mod.frequencies_hz),
-                                        sensor.noise.modulation_contrast)
+        # Eq. 2.43 takes the signal A and the non-signal charge B; the decoded offset (eq. 2.41) is A + B
+        # for the ideal raw images simulated here (tests/tofcore/test_noise.py derives the mapping).
+        amplitude = np.asarray(decoded.amplitude, dtype=np.float64)
+        sigma = noise_models.li_sigma_m(amplitude, np.asarray(decoded.offset, np.float64) - amplitude,
+                                        max(mod.frequencies_hz), sensor.noise.modulation_contrast)
         distance = np.where(valid, noise_models.add_distance_noise(distance, sigma, noise_rng), np.nan)
 
     directions = cam.pixel_center_directions()
