@@ -15,9 +15,10 @@ name                        unit  default    meaning
 ``unwrap_tolerance_m``      m     d_min/16   UNWRAPPING_FAILED above this weighted RMS disagreement
 ==========================  ====  =========  ==================================================================
 
-Reason precedence (the first that applies wins): NO_RETURN, SATURATED, LOW_AMPLITUDE, UNWRAPPING_FAILED,
-OUT_OF_RANGE (parameters of :func:`decode`) — from "no data", through "data corrupt or too weak to trust", to "a trusted distance that the
-sensor does not report".
+Reason precedence (the first that applies wins): SATURATED, NO_RETURN, LOW_AMPLITUDE, UNWRAPPING_FAILED,
+OUT_OF_RANGE (parameters of :func:`decode`) — from "data clipped" (saturation flattens every bucket to full
+well, which would otherwise read as no modulation, i.e. no return), through "no data" and "too weak to
+trust", to "a trusted distance that the sensor does not report".
 """
 
 from __future__ import annotations
@@ -268,8 +269,8 @@ def decode(raw: np.ndarray, modulation: Modulation, *, min_amplitude_e: float = 
                  else np.zeros(amplitude.shape, dtype=bool))
     with np.errstate(invalid="ignore"):  # NaN distances of no-return pixels compare False
         out_of_range = ~((distance >= range_min) & (distance <= range_max))
-    reason = np.select([no_return, saturated, amplitude < min_amplitude_e, unwrap_failed, out_of_range],
-                       [Reason.NO_RETURN, Reason.SATURATED, Reason.LOW_AMPLITUDE, Reason.UNWRAPPING_FAILED,
+    reason = np.select([saturated, no_return, amplitude < min_amplitude_e, unwrap_failed, out_of_range],
+                       [Reason.SATURATED, Reason.NO_RETURN, Reason.LOW_AMPLITUDE, Reason.UNWRAPPING_FAILED,
                         Reason.OUT_OF_RANGE], Reason.VALID).astype(np.uint8)
     valid = reason == Reason.VALID
     return Decoded(distance=np.where(valid, distance, np.nan).astype(np.float32),

@@ -10,7 +10,8 @@ name                unit    default       meaning
 ``roughness``       rad     0.5           σ, slope deviation of the microfacets (Oren–Nayar σ,
                                           Beckmann α = √2 σ); 0 = smooth (mirror specular lobe)
 ``metallic``        1       0.0           blend between dielectric (0) and conductor (1)
-``ior``             1       1.52          η: dielectric index of refraction, conductor real part
+``ior``             1       1.52          η: dielectric index of refraction (≥ 1), conductor real part
+                                          (metals may have η < 1, e.g. silver ≈ 0.15 in the near IR)
 ``extinction``      1       0.0           k: conductor absorption coefficient (metals only)
 ==================  ======  ============  =====================================================
 
@@ -100,7 +101,7 @@ _RANGES = {
     "reflectance": (0.0, 1.0),
     "roughness": (0.0, np.pi / 2),
     "metallic": (0.0, 1.0),
-    "ior": (1.0, 10.0),
+    "ior": (0.05, 10.0),
     "extinction": (0.0, 100.0),
 }
 
@@ -133,6 +134,10 @@ class Material:
                     or not lo <= float(value) <= hi:
                 raise ConfigError(f"Material {self.name!r}: {key} must be a number in [{lo:g}, {hi:g}], got {value!r}")
             object.__setattr__(self, key, float(value))
+        if self.ior < 1.0 and self.metallic < 1.0:
+            raise ConfigError(f"Material {self.name!r}: ior must be >= 1 unless metallic = 1 (a dielectric "
+                              f"with η < 1 would reflect everything), got ior {self.ior!r} with metallic "
+                              f"{self.metallic!r}")
         for key in ("reflectance_texture", "roughness_texture", "metallic_texture"):
             tex = getattr(self, key)
             if tex is not None and (not isinstance(tex, Texture) or tex.channels != 1):
