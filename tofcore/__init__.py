@@ -9,6 +9,10 @@ The public API, re-exported from one module per concept:
 * :class:`Ambient` — unmodulated background light (``ambient``)
 * :func:`trace`, :func:`trace_progressive`, :class:`Transport` — the path tracer (``transport``)
 * :func:`look_at` — sensor poses (``pose``)
+* :class:`Sensor`, :func:`load_preset`, :func:`list_presets` — sensor models and presets (``sensor``, ``presets``)
+* :class:`Modulation` — pulsed / square / sine correlation functions (``modulation``)
+* :func:`render` → :class:`Frame` — the camera's output with ground truth (``render``, ``frame``)
+* :func:`write_frame`, :func:`read_exr` — EXR, PNG, PLY and JSON outputs (``writers``)
 """
 
 from .ambient import Ambient
@@ -20,10 +24,17 @@ from .material import Material, Texture
 from .pose import from_blender_matrix_world, look_at
 from .scene import Scene
 from .transport import SPEED_OF_LIGHT_M_S, FirstHit, Transport, trace, trace_progressive
+from .frame import Frame, Reason
+from .modulation import Modulation
+from .sensor import Sensor
+from .presets import list_presets, load_preset
+from .render import render
+from .writers import read_exr, write_frame
 
 __all__ = [
-    "Ambient", "Camera", "ConfigError", "FirstHit", "LED", "Material", "SPEED_OF_LIGHT_M_S", "Scene",
-    "SceneError", "Texture", "TofError", "Transport", "demo_scene", "from_blender_matrix_world", "look_at",
-    "suggested_pose", "trace", "trace_progressive",
+    "Ambient", "Camera", "ConfigError", "FirstHit", "Frame", "LED", "Material", "Modulation", "Reason",
+    "SPEED_OF_LIGHT_M_S", "Scene", "SceneError", "Sensor", "Texture", "TofError", "Transport", "demo_scene",
+    "from_blender_matrix_world", "list_presets", "load_preset", "look_at", "read_exr", "render",
+    "suggested_pose", "trace", "trace_progressive", "write_frame",
 ]
 __version__ = "0.1.0"
