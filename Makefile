@@ -19,7 +19,7 @@ $(VENV)/.installed: requirements-dev.txt pyproject.toml
 venv: $(VENV)/.installed
 
 demo: venv
-	$(PY) examples/demo.py --out out/demo
+	$(PY) -m tofcore render --scene room --preset kinect_v2 --spp 32 --out out/demo --verbose
 
 test: venv
 	$(PY) -m pytest -q -m "not slow"
