@@ -29,7 +29,7 @@ test-numpy2:
 	  [ -x $(VENV313)/bin/python ] || $(PYTHON313) -m venv $(VENV313); \
 	  $(VENV313)/bin/python -m pip install --quiet "numpy>=2" pytest opencv-python-headless "OpenEXR>=3.3" && \
 	  $(VENV313)/bin/python -m pip install --quiet --no-deps -e . && \
-	  $(VENV313)/bin/python -m pytest -q -m "not slow" tests/tofcore; fi
+	  $(VENV313)/bin/python -m pytest -q -m "not slow" tests; fi
 
 bench: venv
 	$(PY) bench/bench_transport.py
