@@ -29,8 +29,16 @@ from pathlib import Path
 from .errors import ConfigError
 from .sensor import Sensor
 
-PRESETS_DIR = Path(__file__).resolve().parent.parent / "presets"
-"""Where the shipped presets live: ``<repository>/presets``."""
+def _presets_dir() -> Path:
+    """``<repository>/presets`` in a checkout; ``tofcore/_presets`` in an installed wheel (copied at build)."""
+    package = Path(__file__).resolve().parent
+    bundled = package / "_presets"
+    return bundled if bundled.is_dir() else package.parent / "presets"
+
+
+PRESETS_DIR = _presets_dir()
+"""Where the shipped presets live: ``<repository>/presets`` (the single source; ``setup.py`` copies it
+into wheels as ``tofcore/_presets``)."""
 
 
 def list_presets() -> list[str]:
