@@ -18,7 +18,7 @@ The public API, re-exported from one module per concept:
 from .ambient import Ambient
 from .camera import Camera
 from .demo import demo_scene, suggested_pose
-from .errors import ConfigError, SceneError, TofError
+from .errors import Cancelled, ConfigError, SceneError, TofError
 from .led import LED
 from .material import Material, Texture
 from .pose import from_blender_matrix_world, look_at
@@ -28,13 +28,13 @@ from .frame import Frame, Reason
 from .modulation import Modulation
 from .sensor import Sensor
 from .presets import list_presets, load_preset
-from .render import render
+from .render import render, render_progressive
 from .writers import read_exr, write_frame
 
 __all__ = [
-    "Ambient", "Camera", "ConfigError", "FirstHit", "Frame", "LED", "Material", "Modulation", "Reason",
+    "Ambient", "Camera", "Cancelled", "ConfigError", "FirstHit", "Frame", "LED", "Material", "Modulation", "Reason",
     "SPEED_OF_LIGHT_M_S", "Scene", "SceneError", "Sensor", "Texture", "TofError", "Transport", "demo_scene",
-    "from_blender_matrix_world", "list_presets", "load_preset", "look_at", "read_exr", "render",
+    "from_blender_matrix_world", "list_presets", "load_preset", "look_at", "read_exr", "render", "render_progressive",
     "suggested_pose", "trace", "trace_progressive", "write_frame",
 ]
 __version__ = "0.1.0"

@@ -15,3 +15,7 @@ class SceneError(TofError, ValueError):
 
 class ConfigError(TofError, ValueError):
     """A configuration value (camera, LED, material, preset, settings) is invalid."""
+
+
+class Cancelled(TofError):
+    """A render was cancelled by its caller (``cancel`` callback); nothing was written."""

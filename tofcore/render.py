@@ -34,7 +34,7 @@ image when one is given.
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import numpy as np
@@ -128,12 +128,23 @@ def raw_images(correlation_means: np.ndarray, ambient_mean: np.ndarray, sensor) 
     return sensor.readout.responsivity * exposure * (correlation_means + ambient_mean[None] * duty)
 
 
-def render(scene: Scene, sensor, pose: np.ndarray | None = None, *, spp: int = 64, max_depth: int = 5,
-           seed: int = 0, time_budget_s: float | None = None, target_error_m: float | None = None,
-           ambient: Ambient | None = None, reference_distance: np.ndarray | None = None,
-           progress: Callable[[dict], None] | None = None, workers: int | None = None,
-           chunk_size: int = 1 << 16) -> Frame:
-    """Render one ToF frame.
+def render(scene: Scene, sensor, pose: np.ndarray | None = None, **settings) -> Frame:
+    """Render one ToF frame; the parameters are those of :func:`render_progressive`."""
+    frame = None
+    for frame in render_progressive(scene, sensor, pose, **settings):
+        pass
+    return frame
+
+
+def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, spp: int = 64,
+                       max_depth: int = 5, seed: int = 0, time_budget_s: float | None = None,
+                       target_error_m: float | None = None, ambient: Ambient | None = None,
+                       reference_distance: np.ndarray | None = None,
+                       progress: Callable[[dict], None] | None = None, cancel: Callable[[], bool] | None = None,
+                       workers: int | None = None, chunk_size: int = 1 << 16) -> Iterator[Frame]:
+    """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
+
+    The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
 
     Parameters
     ----------
@@ -148,6 +159,8 @@ def render(scene: Scene, sensor, pose: np.ndarray | None = None, *, spp: int = 6
     ambient : unmodulated background light.
     reference_distance : (H, W) converged radial distance to log the RMS error against, per pass.
     progress : called after every pass with the convergence-log row (dict).
+    cancel : polled between chunks of rays; when it returns True the render raises
+        :class:`~tofcore.errors.Cancelled` within about a second.
     workers, chunk_size : passed to the tracer.
     """
     _check_settings(spp, time_budget_s, target_error_m)
@@ -171,11 +184,11 @@ def render(scene: Scene, sensor, pose: np.ndarray | None = None, *, spp: int = 6
 
     log: list[dict] = []
     start = time.perf_counter()
-    transport = None
-    for transport in trace_progressive(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
-                                       correlations=correlations + extra, ambient=ambient if plan.ambient else None,
-                                       spp=spp, max_depth=max_depth, seed=seed, workers=workers,
-                                       chunk_size=chunk_size):
+    passes = trace_progressive(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
+                               correlations=correlations + extra, ambient=ambient if plan.ambient else None,
+                               spp=spp, max_depth=max_depth, seed=seed, workers=workers, chunk_size=chunk_size,
+                               cancel=cancel)
+    for transport in passes:
         elapsed = time.perf_counter() - start
         samples = int(transport.sample_count[0])
         sigma = depth_standard_error(transport, channels, n_raw)
@@ -189,22 +202,24 @@ def render(scene: Scene, sensor, pose: np.ndarray | None = None, *, spp: int = 6
         log.append(row)
         if progress is not None:
             progress(dict(row, spp_max=spp))
+        done = samples >= spp
         if target_error_m is not None and row["est_depth_error_m"] is not None \
                 and row["est_depth_error_m"] <= target_error_m:
-            break
-        if time_budget_s is not None and samples < spp:
+            done = True
+        if time_budget_s is not None and not done:
             next_samples = min(samples, 16, spp - samples)  # the pass schedule doubles up to 16
-            if elapsed + elapsed / samples * next_samples > time_budget_s:
-                break
-    trace_seconds = time.perf_counter() - start
-    frame = _frame(transport, sensor, pose, plan, seed, n_raw)
-    frame.stats.update({
-        "trace_seconds": trace_seconds, "seconds": time.perf_counter() - start, "spp": int(transport.sample_count[0]),
-        "spp_max": spp, "max_depth": max_depth, "seed": seed, "time_budget_s": time_budget_s,
-        "target_error_m": target_error_m, "plan": plan.as_dict(), "convergence": log,
-        "transport": transport.stats.as_dict(),
-    })
-    return frame
+            done = elapsed + elapsed / samples * next_samples > time_budget_s
+        frame = _frame(transport, sensor, pose, plan, seed, n_raw)
+        frame.stats.update({
+            "final": done, "trace_seconds": elapsed, "seconds": time.perf_counter() - start, "spp": samples,
+            "spp_max": spp, "max_depth": max_depth, "seed": seed, "time_budget_s": time_budget_s,
+            "target_error_m": target_error_m, "plan": plan.as_dict(), "convergence": list(log),
+            "transport": transport.stats.as_dict(),
+        })
+        yield frame
+        if done:
+            passes.close()
+            return
 
 
 def _check_settings(spp, time_budget_s, target_error_m) -> None:

@@ -41,7 +41,7 @@ from . import rng
 from .ambient import Ambient
 from .bsdf import eval_bsdf, sample_bsdf
 from .camera import Camera
-from .errors import ConfigError
+from .errors import Cancelled, ConfigError
 from .led import LED
 from .plan import leds_at_pinhole
 from .scene import Scene
@@ -240,7 +240,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       spp: int = 16, max_depth: int = 5, seed: int = 0,
                       chunk_size: int = 1 << 16, workers: int | None = None,
                       transient_bin_m: float | None = None, transient_max_m: float | None = None,
-                      ) -> Iterator[Transport]:
+                      cancel: Callable[[], bool] | None = None) -> Iterator[Transport]:
     """Trace in progressive passes, yielding the accumulated :class:`Transport` after each.
 
     Parameters
@@ -255,6 +255,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     workers : threads tracing chunks at once (default: the CPU count). Chunks own disjoint
         pixels, so the result does not depend on it.
     transient_bin_m, transient_max_m : optional histogram of w over path length (bin width, range), metres.
+    cancel : polled before every chunk; when it returns True, :class:`~tofcore.errors.Cancelled` is raised.
 
     The yielded object is the live accumulator: copy what you keep between passes.
     """
@@ -285,7 +286,13 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
             pixels_per_chunk = max(1, chunk_size // n_samples)
             chunks = [(p0, min(n_pix, p0 + pixels_per_chunk)) for p0 in range(0, n_pix, pixels_per_chunk)]
             run = functools.partial(_trace_chunk, ctx, transport, first_sample=first_sample, n_samples=n_samples)
-            for chunk_stats in pool.map(lambda chunk: run(*chunk), chunks):
+
+            def job(chunk: tuple[int, int]) -> TraceStats | None:
+                return None if cancel is not None and cancel() else run(*chunk)
+
+            for chunk_stats in pool.map(job, chunks):
+                if chunk_stats is None:
+                    raise Cancelled("trace: cancelled")
                 stats.add(chunk_stats)
             transport.sample_count += n_samples
             first_sample += n_samples

@@ -185,3 +185,16 @@ def test_bad_render_settings():
         render(scene, sensor, time_budget_s=-1)
     with pytest.raises(ConfigError, match="target_error_m must be a number > 0"):
         render(scene, sensor, target_error_m=float("nan"))
+
+
+def test_progressive_frames_and_cancel():
+    sensor = small(load_preset("kinect_v2"))
+    scene = tofcore.demo_scene("corner")
+    frames = list(tofcore.render_progressive(scene, sensor, spp=4, max_depth=2, seed=0))
+    assert [f.stats["spp"] for f in frames] == [1, 2, 4]
+    assert [f.stats["final"] for f in frames] == [False, False, True]
+    assert not np.array_equal(frames[0].raw, frames[-1].raw)
+    np.testing.assert_array_equal(frames[-1].depth, render(scene, sensor, spp=4, max_depth=2, seed=0).depth)
+    calls = []
+    with pytest.raises(tofcore.Cancelled):
+        render(scene, sensor, spp=64, max_depth=2, cancel=lambda: calls.append(1) or len(calls) > 3)
