@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 PYTHON313 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.13*/bin/python3.13) $(shell command -v python3.13 2>/dev/null))
 VENV313   ?= .venv313
 
-.PHONY: demo test test-numpy2 bench venv clean
+.PHONY: demo test test-numpy2 bench venv clean addon
 
 $(VENV)/.installed: requirements-dev.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
@@ -33,6 +33,10 @@ test-numpy2:
 
 bench: venv
 	$(PY) bench/bench_transport.py
+
+# The Blender extension: one validated zip per platform in dist/ (tofcore + OpenEXR wheels, no NumPy).
+addon: venv
+	$(PY) addon/build.py --out dist/
 
 clean:
 	rm -rf $(VENV) $(VENV313) out
