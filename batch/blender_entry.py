@@ -1,0 +1,133 @@
+"""Render the open .blend file's ToF cameras into a dataset, the Blender way.
+
+Usage::
+
+    blender -b scene.blend --python batch/blender_entry.py -- --preset kinect_v2 --out DATASET/ \\
+        [--frames 1-10] [--cameras Cam1,Cam2] [--spp 64] [--max-depth 5] [--seed 0] \\
+        [--time-budget S] [--target-error M] [--ambient W_M2_SR] [--resolution-scale F] \\
+        [--formats exr,png,ply,json] [--retry-failed] [--verify sha256|size] [--quiet]
+
+Blender passes everything after ``--`` to the script untouched. Cameras: the
+ones named, else the cameras whose ToF settings are enabled (``camera.tof``,
+when the add-on is available), else every camera. Frames: the range given,
+else the current frame. ``--preset`` takes a comma-separated list to render
+every view with several sensors.
+
+This process has imported bpy, so it starts no worker process: the views are
+rendered here one after another (tofcore's tracer still uses threads). The
+dataset layout, index, resume rules and job ids are those of ``python -m
+batch run``: the same file, camera, frame, preset, quality and seed give the
+same job id and the same frame either way.
+
+Blender's own Python needs ``tofcore`` importable (this repository is put on
+``sys.path``; NumPy ships with Blender) and, for ``exr`` output, the OpenEXR
+package (else pass ``--formats png,ply,json``).
+
+Exit code (``sys.exit``): 0 all frames ok, 1 some failed, 2 bad arguments, 130/143 interrupted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+_REPO_ROOT = Path(__file__).resolve().parents[1]
+if str(_REPO_ROOT) not in sys.path:
+    sys.path.insert(0, str(_REPO_ROOT))
+
+
+def script_args(argv: list[str]) -> list[str]:
+    """The arguments Blender leaves to the script: everything after the first ``--``."""
+    return argv[argv.index("--") + 1:] if "--" in argv else []
+
+
+def build_parser() -> argparse.ArgumentParser:
+    from batch.cli import _Formatter, _non_negative_int, _positive_float, _positive_int
+
+    parser = argparse.ArgumentParser(
+        prog="blender -b FILE.blend --python batch/blender_entry.py --",
+        description="Render the open file's ToF cameras and frames into a dataset folder.",
+        formatter_class=_Formatter)
+    parser.add_argument("--preset", default="kinect_v2",
+                        help="preset name(s) or .toml file(s), comma-separated: every view is rendered with each")
+    parser.add_argument("--out", type=Path, required=True, metavar="DATASET", help="dataset folder")
+    parser.add_argument("--frames", default=None, help='frames, e.g. "1-10" or "1,5,9-12" (default: current)')
+    parser.add_argument("--cameras", default=None,
+                        help="camera objects, comma-separated (default: ToF cameras, else all cameras)")
+    parser.add_argument("--spp", type=_positive_int, default=64, metavar="N", help="most samples per pixel")
+    parser.add_argument("--max-depth", type=_positive_int, default=5, metavar="N", help="surface vertices per path")
+    parser.add_argument("--seed", type=_non_negative_int, default=0, metavar="N",
+                        help="set seed (per-frame seeds derive from it)")
+    parser.add_argument("--time-budget", type=_positive_float, default=None, metavar="S",
+                        help="stop each render after about S seconds of tracing")
+    parser.add_argument("--target-error", type=_positive_float, default=None, metavar="M",
+                        help="stop each render at this estimated RMS depth error (metres)")
+    parser.add_argument("--ambient", type=float, default=None, metavar="W_M2_SR",
+                        help="constant ambient radiance (default: the exporter's, from the world)")
+    parser.add_argument("--resolution-scale", type=_positive_float, default=1.0, metavar="F",
+                        help="image size factor (intrinsics scaled)")
+    parser.add_argument("--formats", default="exr,png,ply,json", help="comma list of exr, png, ply, json")
+    parser.add_argument("--retry-failed", action="store_true", help="render only the frames recorded as failed")
+    parser.add_argument("--verify", choices=["sha256", "size"], default="sha256",
+                        help="how finished frames are checked before being skipped")
+    parser.add_argument("--quiet", action="store_true", help="log lines instead of a progress bar")
+    return parser
+
+
+def set_data(args: argparse.Namespace, blend_path: str) -> dict:
+    """The arguments as a set-file dict (one blend scene), checked by :func:`batch.setfile.parse_set`."""
+    quality = {"spp": args.spp, "max_depth": args.max_depth}
+    if args.time_budget is not None:
+        quality["time_budget_s"] = args.time_budget
+    if args.target_error is not None:
+        quality["target_error_m"] = args.target_error
+    scene: dict = {"blend": blend_path}
+    if args.cameras:
+        scene["cameras"] = [c.strip() for c in args.cameras.split(",") if c.strip()]
+    if args.frames:
+        scene["frames"] = args.frames
+    if args.ambient is not None:
+        scene["ambient_w_m2_sr"] = args.ambient
+    return {"seed": args.seed, "presets": [p.strip() for p in args.preset.split(",") if p.strip()],
+            "resolution_scale": args.resolution_scale, "quality": quality,
+            "output": {"formats": [f.strip() for f in args.formats.split(",") if f.strip()]},
+            "scenes": [scene]}
+
+
+def main(argv: list[str] | None = None) -> int:
+    import bpy
+
+    from batch import blend
+    from batch.jobs import BlendInfo, expand
+    from batch.run import Interrupted, install_signal_handlers, run_jobs, summary
+    from batch.setfile import parse_set
+    from tofcore.errors import TofError
+
+    args = build_parser().parse_args(script_args(sys.argv if argv is None else argv))
+    path = bpy.data.filepath
+    if not path:
+        print("error: the open file has never been saved: save it as a .blend first (the dataset's job ids "
+              "hash the file)", file=sys.stderr)
+        return 2
+    try:
+        install_signal_handlers()
+        spec = parse_set(set_data(args, path), path=None)
+        expansion = expand(spec, inspect_blend=lambda p: BlendInfo(**{k: (tuple(v) if isinstance(v, list) else v)
+                                                                       for k, v in blend.inspect(p).items()}))
+        for note in expansion.notes:
+            print(f"note: {note}", file=sys.stderr)
+        result = run_jobs(expansion.jobs, args.out, inline=True, retry_failed=args.retry_failed,
+                          verify=args.verify, quiet=args.quiet, set_file=f"{path} (blender_entry.py)")
+    except Interrupted as exc:
+        print(f"\ninterrupted ({exc}): finished frames are kept; rerun to continue", file=sys.stderr)
+        return exc.exit_code
+    except (TofError, OSError, RuntimeError) as exc:
+        print(f"error: {str(exc).replace('set: ', 'arguments: ', 1)}", file=sys.stderr)
+        return 2
+    print(summary(result, args.out), file=sys.stderr)
+    return result.exit_code
+
+
+if __name__ == "__main__":
+    sys.exit(main())

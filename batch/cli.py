@@ -1,0 +1,230 @@
+"""Command line: ``python -m batch run | validate | compare``.
+
+Examples::
+
+    python -m batch validate batch/examples/demo_set.toml
+    python -m batch run batch/examples/demo_set.toml --out datasets/demo --workers 2
+    python -m batch run batch/examples/demo_set.toml --out datasets/demo --dask local --workers 2
+    python -m batch run batch/examples/demo_set.toml --out datasets/demo --scheduler tcp://10.0.0.5:8786
+    python -m batch run batch/examples/demo_set.toml --out datasets/demo --retry-failed
+    python -m batch compare --scene room --presets kinect_v2,o3d303,xtion2 --out report/
+
+Exit codes: 0 every frame ok; 1 some frames failed (they are in the index with
+their error); 2 bad arguments or set file (nothing rendered); 130 / 143
+interrupted by Ctrl-C / SIGTERM (finished frames are kept; rerun to continue).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+
+from tofcore.errors import TofError
+
+EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+
+
+def _positive_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
+    return value
+
+
+def _positive_float(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}") from None
+    if not value > 0 or value == float("inf"):
+        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
+    return value
+
+
+def _non_negative_int(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
+    return value
+
+
+def _vector3(text: str) -> tuple[float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3:
+        raise argparse.ArgumentTypeError(f"must be three comma-separated numbers x,y,z (metres), got {text!r}")
+    return values
+
+
+def _default_workers() -> int:
+    return 1
+
+
+# --------------------------------------------------------------------------- commands
+
+def cmd_validate(args: argparse.Namespace) -> int:
+    from .dataset import Dataset
+    from .jobs import expand, group_by_view
+    from .setfile import load_set
+
+    spec = load_set(args.set_file)
+    expansion = expand(spec)
+    jobs = expansion.jobs
+    tasks = group_by_view(jobs)
+    print(f"{spec.path}: ok — {len(spec.scenes)} scene(s), {len(tasks)} view(s), {len(jobs)} frame(s)")
+    for scene in spec.scenes:
+        n = sum(job.scene == scene.name for job in jobs)
+        presets = ", ".join(f"{p.label} ({p.sensor.camera.width}x{p.sensor.camera.height})" for p in scene.presets)
+        q = scene.quality
+        stop = "".join([f", time budget {q.time_budget_s} s" if q.time_budget_s else "",
+                        f", target error {q.target_error_m} m" if q.target_error_m else ""])
+        print(f"  {scene.name} ({scene.kind}): {n} frame(s); presets {presets}; spp {q.spp}, max depth "
+              f"{q.max_depth}{stop}")
+    for note in expansion.notes:
+        print(f"  note: {note}")
+    if args.out is not None and (Path(args.out) / "index.jsonl").exists():
+        data = Dataset(args.out)
+        records, _ = data.read_index()
+        done = sum(1 for job in jobs if job.job_id in records and records[job.job_id].get("status") == "ok"
+                   and data.verify(records[job.job_id], "size") is None)
+        failed = sum(1 for job in jobs if records.get(job.job_id, {}).get("status") == "failed")
+        print(f"  {args.out}: {done} done, {failed} failed, {len(jobs) - done - failed} to render")
+    if args.list:
+        for job in jobs:
+            print(f"{job.job_id}  {job.label}  seed {job.seed}")
+    return EXIT_OK
+
+
+def cmd_run(args: argparse.Namespace) -> int:
+    from .jobs import expand
+    from .run import install_signal_handlers, run_jobs, summary
+    from .setfile import load_set
+
+    install_signal_handlers()
+    spec = load_set(args.set_file)
+    expansion = expand(spec)
+    for note in expansion.notes:
+        print(f"note: {note}", file=sys.stderr)
+    result = run_jobs(expansion.jobs, args.out, workers=args.workers, threads_per_worker=args.threads_per_worker,
+                      scheduler=args.scheduler, dask_local=args.dask == "local", retry_failed=args.retry_failed,
+                      verify=args.verify, quiet=args.quiet, set_file=str(spec.path), description=spec.description)
+    print(summary(result, args.out), file=sys.stderr)
+    return result.exit_code
+
+
+def cmd_compare(args: argparse.Namespace) -> int:
+    from .compare import compare
+    from .run import install_signal_handlers
+
+    install_signal_handlers()
+    return compare(args)
+
+
+# --------------------------------------------------------------------------- parser
+
+class _Formatter(argparse.RawDescriptionHelpFormatter):
+    """Descriptions as written; every option's default in its help unless it is None or False."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if action.option_strings and all(action.default is not v for v in (None, False, argparse.SUPPRESS)) \
+                and "%(default)" not in text:
+            text += " (default: %(default)s)"
+        return text
+
+
+def _executor_options(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--workers", type=_positive_int, default=_default_workers(), metavar="N",
+                        help="worker processes (local pool, or LocalCluster workers with --dask local); "
+                             "each render also uses tracer threads")
+    parser.add_argument("--threads-per-worker", type=_positive_int, default=None, metavar="N",
+                        help="tracer threads per render (default: CPU count / workers; on a --scheduler "
+                             "cluster each machine's CPU count); frames do not depend on it")
+    where = parser.add_mutually_exclusive_group()
+    where.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+                       help="run on an existing Dask distributed cluster (needs dask[distributed]; workers "
+                            "must see the dataset and scene files at the same paths)")
+    where.add_argument("--dask", choices=["local"], default=None,
+                       help="start a Dask LocalCluster of --workers processes")
+    parser.add_argument("--quiet", action="store_true", help="log one line per frame instead of a progress bar")
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(prog="python -m batch", description=__doc__, formatter_class=_Formatter)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,validate,compare}")
+
+    run = sub.add_parser("run", help="render a scene set into a dataset folder (resumable)",
+                         description="Render every frame of a scene-set file into DATASET/ (frames/<job_id>/, "
+                                     "index.jsonl, README.md). Rerunning skips frames whose files verify.",
+                         formatter_class=_Formatter)
+    run.add_argument("set_file", type=Path, metavar="SET.toml", help="scene-set file (schema: batch/setfile.py)")
+    run.add_argument("--out", type=Path, required=True, metavar="DATASET", help="dataset folder")
+    _executor_options(run)
+    run.add_argument("--retry-failed", action="store_true",
+                     help="render only the frames recorded as failed (after fixing the cause)")
+    run.add_argument("--verify", choices=["sha256", "size"], default="sha256",
+                     help="how finished frames are checked before being skipped")
+    run.set_defaults(func=cmd_run)
+
+    val = sub.add_parser("validate", help="check a scene-set file without rendering",
+                         description="Read and check a set file (keys, types, files, presets, poses, .blend "
+                                     "cameras) and list what it would render.",
+                         formatter_class=_Formatter)
+    val.add_argument("set_file", type=Path, metavar="SET.toml", help="scene-set file")
+    val.add_argument("--out", type=Path, default=None, metavar="DATASET",
+                     help="also say how many frames an existing dataset already has")
+    val.add_argument("--list", action="store_true", help="list every frame: job id, scene/view/preset, seed")
+    val.set_defaults(func=cmd_validate)
+
+    cmp = sub.add_parser("compare", help="render one view with several presets; side-by-side PNG and tables",
+                         description="Render one view with each preset and write compare.png (rows: presets; "
+                                     "columns: depth, error against ground truth, invalid pixels), compare.md "
+                                     "and compare.json (RMS/median error, multipath error, invalid %, time).",
+                         formatter_class=_Formatter)
+    cmp.add_argument("--scene", required=True,
+                     help="demo scene (plane, corner, box_on_wall, room), a .npz scene or a .blend file")
+    cmp.add_argument("--presets", default="kinect_v2,o3d303,xtion2",
+                     help="comma-separated preset names or .toml files")
+    cmp.add_argument("--out", type=Path, required=True, metavar="REPORT", help="report folder")
+    cmp.add_argument("--eye", type=_vector3, default=None, metavar="X,Y,Z",
+                     help="sensor position (world, metres); with --target; default: the scene's suggested pose")
+    cmp.add_argument("--target", type=_vector3, default=None, metavar="X,Y,Z", help="point looked at")
+    cmp.add_argument("--camera", default=None, help=".blend: camera object (default: the first ToF camera)")
+    cmp.add_argument("--frame", type=int, default=None, metavar="N", help=".blend: animation frame (default: current)")
+    cmp.add_argument("--spp", type=_positive_int, default=64, metavar="N", help="most samples per pixel")
+    cmp.add_argument("--max-depth", type=_positive_int, default=5, metavar="N", help="surface vertices per path")
+    cmp.add_argument("--seed", type=_non_negative_int, default=0, metavar="N", help="set seed")
+    cmp.add_argument("--time-budget", type=_positive_float, default=None, metavar="S",
+                     help="stop each render after about S seconds of tracing")
+    cmp.add_argument("--target-error", type=_positive_float, default=None, metavar="M",
+                     help="stop each render at this estimated RMS depth error (metres)")
+    cmp.add_argument("--ambient", type=float, default=None, metavar="W_M2_SR",
+                     help="constant ambient radiance (default: none; a .blend's world)")
+    cmp.add_argument("--resolution-scale", type=_positive_float, default=1.0, metavar="F",
+                     help="image size factor for every preset (intrinsics scaled)")
+    _executor_options(cmp)
+    cmp.set_defaults(func=cmd_compare)
+    return parser
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from .run import Interrupted
+
+    try:
+        return args.func(args)
+    except Interrupted as exc:
+        print(f"\ninterrupted ({exc}): finished frames are kept; rerun to continue", file=sys.stderr)
+        return exc.exit_code
+    except (TofError, OSError, RuntimeError) as exc:
+        print(f"error: {exc}", file=sys.stderr)
+        return EXIT_USAGE

@@ -1,0 +1,500 @@
+"""Running jobs: executors, resume logic, the index, progress and the summary.
+
+Executors
+---------
+===================  ===========================================================================
+``LocalExecutor``    a ``ProcessPoolExecutor`` with the "spawn" context (the default);
+                     ``--workers N`` processes, at most N view tasks in flight
+``DaskExecutor``     ``distributed.Client(address)`` for an existing cluster (``--scheduler``),
+                     or a ``LocalCluster`` of worker processes (``--dask local``)
+``InlineExecutor``   this process, one view after another (inside Blender, where bpy is
+                     imported and no worker may be started)
+===================  ===========================================================================
+
+The process that runs :func:`run_jobs` with a pool must not have imported
+``bpy``: a process that did hangs when it forks, and its spawned children
+cannot import ``_bpy``. The workers import it themselves when a task needs it.
+
+Every executor calls :func:`batch.worker.run_view` on :class:`~batch.jobs.ViewTask`
+objects and yields their records; the parent appends each record to the index
+as it arrives (flush + fsync). On Ctrl-C or SIGTERM the parent stops the
+workers (they cancel their render between ray chunks and remove their
+half-written folder), rewrites the index, updates the card and exits.
+"""
+
+from __future__ import annotations
+
+import concurrent.futures as cf
+import math
+import multiprocessing
+import os
+import signal
+import sys
+import threading
+import time
+from collections import deque
+from collections.abc import Iterator
+from contextlib import contextmanager
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+from typing import TextIO
+
+from .card import dataset_card
+from .dataset import Dataset
+from .jobs import Job, ViewTask, group_by_view
+from .worker import failed_record, init_worker, run_view
+
+
+class Interrupted(BaseException):
+    """Ctrl-C or SIGTERM: stop cleanly (not an Exception, so nothing catches it by accident)."""
+
+    def __init__(self, signum: int):
+        super().__init__(signal.Signals(signum).name)
+        self.signum = signum
+
+    @property
+    def exit_code(self) -> int:
+        return 128 + self.signum
+
+
+def install_signal_handlers() -> None:
+    """SIGINT and SIGTERM raise :class:`Interrupted` in the main thread."""
+    def handler(signum, _frame):
+        raise Interrupted(signum)
+
+    signal.signal(signal.SIGINT, handler)
+    signal.signal(signal.SIGTERM, handler)
+
+
+@contextmanager
+def signals_deferred():
+    """Hold SIGINT/SIGTERM back for the duration; yields the list of the signals that came meanwhile.
+
+    Used around what must not be cut in half: bookkeeping of a finished frame (index line and
+    in-memory record) and the final index rewrite. The caller acts on the caught signals after.
+    """
+    caught: list[int] = []
+    if threading.current_thread() is not threading.main_thread():
+        yield caught
+        return
+    previous = {sig: signal.signal(sig, lambda signum, _frame: caught.append(signum))
+                for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield caught
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
+
+
+# --------------------------------------------------------------------------- executors
+
+Result = tuple[ViewTask, "list[dict] | BaseException"] | None
+
+
+class InlineExecutor:
+    """Run views in this process, one after another."""
+
+    name = "in-process executor (no worker processes)"
+
+    def results(self, tasks: list[ViewTask]) -> Iterator[Result]:
+        for task in tasks:
+            yield task, run_view(task)
+
+    def close(self, kill: bool = False) -> None:
+        pass
+
+
+class LocalExecutor:
+    """A spawn-context process pool with at most ``workers`` view tasks in flight."""
+
+    def __init__(self, workers: int):
+        if "bpy" in sys.modules:
+            raise RuntimeError("this process has imported bpy: it must not start worker processes (they could "
+                               "not import bpy); run `python -m batch run` in a plain Python process")
+        self.workers = workers
+        self.name = f"local pool, {workers} worker process{'es' if workers != 1 else ''}"
+        self.pool: cf.ProcessPoolExecutor | None = None
+
+    def _new_pool(self) -> cf.ProcessPoolExecutor:
+        return cf.ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
+                                      initializer=init_worker, initargs=(os.getpid(),))
+
+    def results(self, tasks: list[ViewTask]) -> Iterator[Result]:
+        pending = deque(tasks)
+        running: dict[cf.Future, ViewTask] = {}
+        self.pool = self._new_pool()
+        while pending or running:
+            while pending and len(running) < self.workers:
+                task = pending.popleft()
+                running[self.pool.submit(run_view, task)] = task
+            done, _ = cf.wait(running, timeout=0.5, return_when=cf.FIRST_COMPLETED)
+            if not done:
+                yield None
+                continue
+            broken: BaseException | None = None
+            for future in done:
+                task = running.pop(future)
+                try:
+                    yield task, future.result()
+                except BrokenProcessPool as exc:
+                    broken = exc
+                    yield task, exc
+                except Exception as exc:
+                    yield task, exc
+            if broken is not None:  # a worker died (killed, out of memory): the views in flight fail
+                for future, task in list(running.items()):
+                    yield task, broken
+                running.clear()
+                self.close(kill=True)
+                self.pool = self._new_pool()
+
+    def close(self, kill: bool = False) -> None:
+        pool, self.pool = self.pool, None
+        if pool is None:
+            return
+        processes = list((getattr(pool, "_processes", None) or {}).values())
+        if kill:
+            for process in processes:
+                if process.is_alive():
+                    process.terminate()  # the worker cancels its render and removes its partial folder
+        pool.shutdown(wait=False, cancel_futures=True)
+        deadline = time.monotonic() + 10.0
+        for process in processes:
+            process.join(timeout=max(0.0, deadline - time.monotonic()))
+            if process.is_alive():
+                process.kill()
+                process.join(timeout=5.0)
+
+
+class DaskExecutor:
+    """A Dask distributed cluster: an existing scheduler, or a LocalCluster of worker processes.
+
+    Every worker needs this repository's ``batch`` and ``tofcore`` importable and
+    the dataset folder and scene files at the same paths (a shared file system).
+    """
+
+    def __init__(self, address: str | None = None, workers: int = 1):
+        try:
+            from distributed import Client, LocalCluster
+        except ImportError:
+            raise RuntimeError("the Dask executor needs the distributed package: "
+                               "pip install 'dask[distributed]'") from None
+        import logging
+
+        self.cluster = None
+        if address is None:
+            self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+                                        dashboard_address=None, silence_logs=logging.ERROR)
+            self.client = Client(self.cluster)
+            self.name = f"Dask LocalCluster, {workers} worker process{'es' if workers != 1 else ''}"
+        else:
+            self.client = Client(address, timeout="30s")
+            n = len(self.client.scheduler_info().get("workers", {}))
+            self.name = f"Dask cluster at {address} ({n} workers now)"
+        self.futures: dict = {}
+
+    def results(self, tasks: list[ViewTask]) -> Iterator[Result]:
+        from distributed import wait
+
+        # pure=False: a rerun must execute; the key names the view for the Dask dashboard.
+        self.futures = {self.client.submit(run_view, task, pure=False, key=f"tofbatch-{task.view_id}-{i}"): task
+                        for i, task in enumerate(tasks)}
+        pending = set(self.futures)
+        while pending:
+            try:
+                done, pending = wait(pending, timeout=0.5, return_when="FIRST_COMPLETED")
+            except TimeoutError:
+                yield None
+                continue
+            for future in done:
+                task = self.futures[future]
+                try:
+                    yield task, future.result()
+                except Exception as exc:  # KilledWorker, a worker that lost its connection, …
+                    yield task, exc
+
+    def close(self, kill: bool = False) -> None:
+        try:
+            if kill and self.futures:
+                self.client.cancel(list(self.futures), force=True)
+            self.client.close(timeout=10)
+        finally:
+            if self.cluster is not None:
+                self.cluster.close(timeout=10)
+
+
+def make_executor(*, workers: int = 1, scheduler: str | None = None, dask_local: bool = False,
+                  inline: bool = False):
+    if inline:
+        return InlineExecutor()
+    if scheduler is not None or dask_local:
+        return DaskExecutor(scheduler, workers=workers)
+    return LocalExecutor(workers)
+
+
+# --------------------------------------------------------------------------- progress
+
+def _duration(seconds: float) -> str:
+    if not math.isfinite(seconds):
+        return "?"
+    seconds = int(round(seconds))
+    if seconds < 60:
+        return f"{seconds}s"
+    if seconds < 3600:
+        return f"{seconds // 60}m{seconds % 60:02d}s"
+    return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m"
+
+
+class Progress:
+    """Frames done, failures, rate and ETA on stderr: a redrawn bar on a terminal, else one line per frame."""
+
+    def __init__(self, total: int, *, quiet: bool = False, stream: TextIO | None = None):
+        self.total = total
+        self.done = 0
+        self.failed = 0
+        self.stream = stream or sys.stderr
+        self.bar = not quiet and self.stream.isatty()
+        self.start = time.monotonic()
+        self._last_draw = 0.0
+
+    def _status(self) -> str:
+        elapsed = time.monotonic() - self.start
+        rate = self.done / elapsed * 60 if self.done and elapsed > 0 else 0.0
+        eta = (self.total - self.done) / (rate / 60) if rate > 0 else math.inf
+        return (f"{self.done}/{self.total} frames  {self.failed} failed  {rate:.2f} frames/min  "
+                f"elapsed {_duration(elapsed)}  ETA {_duration(eta) if self.done < self.total else '0s'}")
+
+    def record(self, record: dict) -> None:
+        self.done += 1
+        if record["status"] != "ok":
+            self.failed += 1
+        if self.bar:
+            if record["status"] != "ok":
+                self._clear()
+                self.stream.write(f"FAILED {record['job_id']} {record['scene']}/{record['view']['label']}/"
+                                  f"{record['preset']}: {record['error']}\n")
+            self.draw(force=True)
+            return
+        label = f"{record['scene']}/{record['view']['label']}/{record['preset']}"
+        if record["status"] == "ok":
+            rms = record.get("rms_depth_error_m")
+            detail = (f"{record.get('render_seconds', 0):.1f} s, {record.get('spp')} spp, RMS error "
+                      f"{'–' if rms is None else f'{rms * 1000:.1f}'} mm")
+            self.stream.write(f"[{self.done}/{self.total}] ok      {record['job_id']} {label} ({detail})\n")
+        else:
+            self.stream.write(f"[{self.done}/{self.total}] FAILED  {record['job_id']} {label}: {record['error']}\n")
+        self.stream.flush()
+
+    def _clear(self) -> None:
+        self.stream.write("\r\033[K")
+
+    def draw(self, force: bool = False) -> None:
+        if not self.bar:
+            return
+        now = time.monotonic()
+        if not force and now - self._last_draw < 0.5:
+            return
+        self._last_draw = now
+        width = 30
+        filled = int(width * self.done / self.total) if self.total else width
+        self._clear()
+        self.stream.write(f"[{'#' * filled}{'-' * (width - filled)}] {self._status()}")
+        self.stream.flush()
+
+    def close(self) -> None:
+        if self.bar:
+            self.draw(force=True)
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+# --------------------------------------------------------------------------- the run
+
+@dataclass
+class RunResult:
+    """What a run did; ``exit_code`` 0 when every frame of the set is ok, 1 when some failed."""
+
+    jobs: int = 0
+    done_before: int = 0
+    rendered: int = 0
+    failed: int = 0                   # frames of the set whose record is failed at the end
+    skipped_failed: int = 0           # failed earlier and not retried (no --retry-failed)
+    redone: int = 0                   # recorded ok but their files did not verify
+    recovered: int = 0                # index line lost, taken from the frame's record.json
+    pending: int = 0                  # not rendered (interrupted)
+    seconds: float = 0.0
+    interrupted: Interrupted | None = None
+    failures: list[dict] = field(default_factory=list)
+    executor: str = ""
+
+    @property
+    def exit_code(self) -> int:
+        if self.interrupted is not None:
+            return self.interrupted.exit_code
+        return 1 if self.failed or self.pending else 0
+
+
+def _log(message: str, stream: TextIO | None = None) -> None:
+    stream = stream or sys.stderr
+    stream.write(message + "\n")
+    stream.flush()
+
+
+def plan(jobs: list[Job], data: Dataset, records: dict[str, dict], *, retry_failed: bool, verify: str,
+         result: RunResult, log) -> list[Job]:
+    """Jobs to render now; ``records`` is updated (recovered records added, records of frames to redo removed)."""
+    todo: list[Job] = []
+    for job in jobs:
+        record = records.get(job.job_id)
+        if record is None or record.get("status") != "ok":
+            folder = data.folder_record(job.job_id)
+            if folder is not None and folder.get("status") == "ok":
+                records[job.job_id] = record = folder
+                result.recovered += 1
+        if record is None:
+            todo.append(job)
+        elif record.get("status") == "failed":
+            if retry_failed:
+                todo.append(job)
+            else:
+                result.skipped_failed += 1
+        else:
+            problem = data.verify(record, verify)
+            if problem is None:
+                result.done_before += 1
+            else:
+                log(f"redo {job.job_id} ({job.label}): {problem}")
+                del records[job.job_id]
+                result.redone += 1
+                todo.append(job)
+    if retry_failed:
+        todo = [job for job in todo if job.job_id in records and records[job.job_id].get("status") == "failed"]
+    return todo
+
+
+def _ordered(records: dict[str, dict], jobs: list[Job]) -> list[dict]:
+    """The set's records in set order, then records of jobs not in this set (kept) in their old order."""
+    ids = [job.job_id for job in jobs]
+    in_set = set(ids)
+    return [records[i] for i in ids if i in records] + [r for i, r in records.items() if i not in in_set]
+
+
+def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, workers: int = 1,
+             threads_per_worker: int | None = None, scheduler: str | None = None, dask_local: bool = False,
+             inline: bool = False, retry_failed: bool = False, verify: str = "sha256", quiet: bool = False,
+             set_file: str | None = None, description: str = "", stream: TextIO | None = None) -> RunResult:
+    """Render the jobs not yet done into ``dataset``; see the module docstring.
+
+    Parameters
+    ----------
+    jobs : from :func:`batch.jobs.expand`, in set order.
+    dataset : the dataset folder (created if needed).
+    workers : local worker processes, or LocalCluster workers with ``dask_local``.
+    threads_per_worker : tracer threads per render (default: CPU count / workers, at least 1; on a
+        remote cluster: each worker machine's CPU count).
+    scheduler, dask_local, inline : the executor (default: the local pool).
+    retry_failed : render only the frames recorded as failed.
+    verify : ``"sha256"`` (default) or ``"size"``: how finished frames are checked before they are skipped.
+    quiet : plain log lines instead of the progress bar.
+    """
+    stream = stream or sys.stderr
+    log = (lambda message: _log(message, stream))
+    result = RunResult(jobs=len(jobs))
+    started = time.monotonic()
+    data = Dataset(dataset)
+    with data.locked():
+        records, info = data.read_index()
+        if info["bad_lines"] or info["duplicates"]:
+            log(f"index: dropped {info['bad_lines']} unreadable line(s) and {info['duplicates']} superseded "
+                f"record(s)")
+        removed = data.clean_partials()
+        if removed:
+            log(f"removed {removed} half-written frame folder(s) left by an interrupted run")
+        todo = plan(jobs, data, records, retry_failed=retry_failed, verify=verify, result=result, log=log)
+        data.rewrite_index(_ordered(records, jobs))
+        if threads_per_worker is None and scheduler is None:
+            threads_per_worker = max(1, (os.cpu_count() or 1) // max(1, workers if not inline else 1))
+        tasks = group_by_view(todo, dataset=str(data.root), render_threads=threads_per_worker)
+        if result.recovered:
+            log(f"{result.recovered} finished frame(s) taken from their record.json (index line missing)")
+        progress = Progress(len(todo), quiet=quiet, stream=stream)
+        if todo:
+            executor = executor or make_executor(workers=workers, scheduler=scheduler, dask_local=dask_local,
+                                                 inline=inline)
+            result.executor = executor.name
+            skipped = f", {result.skipped_failed} failed earlier (--retry-failed retries them)" \
+                if result.skipped_failed else ""
+            log(f"{len(jobs)} frames in the set: {result.done_before} done{skipped}; rendering {len(todo)} "
+                f"({len(tasks)} view{'s' if len(tasks) != 1 else ''}) with the {executor.name}, "
+                f"{threads_per_worker or 'default'} tracer thread(s) each")
+        else:
+            log(f"{len(jobs)} frames in the set: nothing to render"
+                + (f" ({result.skipped_failed} failed earlier; --retry-failed retries them)"
+                   if result.skipped_failed else ""))
+        try:
+            if todo:
+                try:
+                    for item in executor.results(tasks):
+                        if item is None:
+                            progress.draw()
+                            continue
+                        task, outcome = item
+                        if isinstance(outcome, BaseException):
+                            outcome = [failed_record(job, task, outcome) for job in task.jobs]
+                        with signals_deferred() as caught:  # a record is kept whole: index and memory
+                            for record in outcome:
+                                records[record["job_id"]] = record
+                                data.append(record)
+                                result.rendered += record["status"] == "ok"
+                                progress.record(record)
+                        if caught:
+                            raise Interrupted(caught[0])
+                    executor.close()
+                except Interrupted as exc:
+                    result.interrupted = exc
+                    progress.close()
+                    log(f"{exc}: stopping the workers …")
+                    executor.close(kill=True)
+                except BaseException:
+                    executor.close(kill=True)
+                    raise
+                else:
+                    progress.close()
+        finally:
+            with signals_deferred() as caught:
+                ordered = _ordered(records, jobs)
+                data.rewrite_index(ordered)
+                set_ids = {job.job_id for job in jobs}
+                set_records = [r for r in ordered if r["job_id"] in set_ids]
+                result.failures = [r for r in set_records if r.get("status") == "failed"]
+                result.failed = len(result.failures)
+                result.pending = len(jobs) - len(set_records)
+                data.write_card(dataset_card(ordered, set_file=set_file, description=description,
+                                             jobs_in_set=len(jobs)))
+                result.seconds = time.monotonic() - started
+            if caught and result.interrupted is None:
+                result.interrupted = Interrupted(caught[0])
+    return result
+
+
+def summary(result: RunResult, dataset: str | os.PathLike) -> str:
+    """The lines printed at the end of a run."""
+    rate = result.rendered / result.seconds * 60 if result.seconds > 0 and result.rendered else 0.0
+    ok = result.jobs - result.failed - result.pending
+    lines = [f"{result.jobs} frames: {ok} ok ({result.rendered} rendered now in {_duration(result.seconds)}"
+             f"{f', {rate:.2f} frames/min' if result.rendered else ''}; {result.done_before} already done"
+             f"{f', {result.recovered} recovered' if result.recovered else ''}"
+             f"{f', {result.redone} redone after failed verification' if result.redone else ''}), "
+             f"{result.failed} failed, {result.pending} not rendered"]
+    for record in result.failures[:10]:
+        lines.append(f"  failed {record['job_id']} {record['scene']}/{record['view']['label']}/{record['preset']}: "
+                     f"{record.get('error')}")
+    if len(result.failures) > 10:
+        lines.append(f"  … and {len(result.failures) - 10} more (see index.jsonl)")
+    if result.failures:
+        lines.append("  retry them with --retry-failed once the cause is fixed")
+    if result.interrupted is not None:
+        lines.append(f"interrupted ({result.interrupted}): finished frames are kept; rerun the same command to "
+                     f"continue")
+    lines.append(f"dataset: {os.fspath(dataset)} (index.jsonl, README.md, frames/)")
+    return "\n".join(lines)

@@ -1,0 +1,284 @@
+"""What a worker does with a view task: load or export the scene once, render every preset, write the frames.
+
+:func:`run_view` is the function executors call (local process pool, Dask, or
+in-process inside Blender). It never raises for a frame's failure: every job
+gives a record (:mod:`batch.dataset`), ``status`` ``"ok"`` or ``"failed"``
+with the error text.
+
+Frame folders are written all or nothing: the frame is rendered into
+``frames/.<job_id>.partial-XXXXXXXX/`` (``tofcore.write_frame``, every file
+atomic, ``frame.json`` last), then ``record.json`` is written there, then the
+folder is renamed to ``frames/<job_id>/``. A folder named after a job is
+therefore complete; a killed worker leaves only a ``.partial-`` folder, which
+the next run removes.
+
+Fault injection for tests: ``TOF_BATCH_FAIL`` holds comma-separated
+:mod:`fnmatch` patterns; a job whose id or label (``scene/view/preset``)
+matches one raises before rendering.
+"""
+
+from __future__ import annotations
+
+import fnmatch
+import os
+import secrets
+import shutil
+import signal
+import socket
+import sys
+import threading
+import time
+import traceback
+from datetime import datetime, timezone
+from pathlib import Path
+
+import numpy as np
+
+from . import dataset as ds
+from .jobs import Job, ViewTask, file_sha256
+
+FAIL_ENV = "TOF_BATCH_FAIL"
+
+# The last scene loaded in this process: views of the same demo/npz scene reuse it (and its BVH).
+_SCENE_CACHE: dict = {}
+# Set by SIGTERM in a pool worker that is rendering: the render is cancelled between ray chunks, the
+# half-written folder removed, and the process exits (nothing is recorded). An idle worker exits at once.
+_STOP = threading.Event()
+_BUSY = threading.Event()
+_EXIT_STOPPED = 143
+
+
+def _on_sigterm(signum, frame) -> None:
+    if not _BUSY.is_set():
+        os._exit(_EXIT_STOPPED)
+    _STOP.set()
+
+
+class JobError(RuntimeError):
+    """A job cannot be rendered for a reason the user can fix (changed file, missing camera …)."""
+
+
+# --------------------------------------------------------------------------- worker process set-up
+
+def init_worker(parent_pid: int | None = None) -> None:
+    """Process-pool initializer: leave Ctrl-C to the parent, and exit if the parent dies.
+
+    The terminal sends SIGINT to the whole process group; the parent stops the
+    workers itself. A parent killed with SIGKILL cannot: a watchdog thread
+    ends the worker within a second of the parent's death, so no orphan keeps
+    writing into the dataset.
+    """
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _on_sigterm)
+    if parent_pid is None:
+        return
+
+    def watch() -> None:
+        while True:
+            if os.getppid() != parent_pid:
+                os._exit(3)
+            time.sleep(0.5)
+
+    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
+
+
+# --------------------------------------------------------------------------- scenes
+
+def _load_scene(task: ViewTask):
+    """(scene, world_from_sensor, ambient, warnings) of a view; demo and npz scenes are cached per process."""
+    import tofcore
+
+    source = task.source
+    ambient = tofcore.Ambient(radiance_w_m2_sr=task.ambient_w_m2_sr) if task.ambient_w_m2_sr else None
+    pose = None if task.world_from_sensor is None else np.asarray(task.world_from_sensor, dtype=np.float64)
+    if source["kind"] == "blend":
+        _check_unchanged(source)
+        scene, camera_pose, file_ambient, warnings = _export_blend(
+            source["path"], camera=task.view.get("camera"), frame=task.view.get("frame"))
+        if pose is None:
+            if camera_pose is None:
+                raise JobError(f"{source['path']}: the exporter gave no camera pose for {task.view['label']}")
+            pose = np.asarray(camera_pose, dtype=np.float64)
+        if task.ambient_w_m2_sr is None:
+            ambient = file_ambient
+        return scene, pose, ambient, warnings
+    key = (source["kind"], source.get("name"), source.get("sha256"))
+    if key not in _SCENE_CACHE:
+        _SCENE_CACHE.clear()
+        if source["kind"] == "demo":
+            _SCENE_CACHE[key] = tofcore.demo_scene(source["name"])
+        else:
+            _check_unchanged(source)
+            _SCENE_CACHE[key] = tofcore.Scene.load(source["path"])
+    return _SCENE_CACHE[key], pose, ambient, []
+
+
+def _export_blend(path: str, *, camera: str | None, frame: int | None):
+    """The add-on's export of one view: in this process when bpy may be used here, else in a child process.
+
+    bpy works only from a process's main thread (elsewhere it crashes the
+    process): a local pool worker exports in-process and keeps the file open
+    for the next view; a Dask worker, whose tasks run on other threads,
+    starts ``python -m batch.blend export`` and reads back the pickled result.
+    """
+    if threading.current_thread() is threading.main_thread():
+        from . import blend
+
+        return blend.export_view(path, camera=camera, frame=frame)
+    import pickle
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory(prefix="tofbatch-export-") as tmp:
+        out = Path(tmp) / "export.pickle"
+        cmd = [sys.executable, "-m", "batch.blend", "export", path, "--out", str(out)]
+        if camera is not None:
+            cmd += ["--camera", camera]
+        if frame is not None:
+            cmd += ["--frame", str(frame)]
+        env = dict(os.environ)
+        root = str(Path(__file__).resolve().parents[1])
+        env["PYTHONPATH"] = os.pathsep.join([root] + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))
+        proc = subprocess.run(cmd, capture_output=True, text=True, env=env)
+        if proc.returncode != 0 or not out.is_file():
+            tail = "\n".join(proc.stderr.strip().splitlines()[-5:]) or f"exit code {proc.returncode}"
+            raise JobError(f"{path}: exporting {camera or 'the view'} at frame {frame} failed:\n{tail}")
+        return pickle.loads(out.read_bytes())
+
+
+def _check_unchanged(source: dict) -> None:
+    path = source["path"]
+    if not os.path.isfile(path):
+        raise JobError(f"{path}: scene file not found (is the dataset's file system shared with this worker?)")
+    if file_sha256(path) != source["sha256"]:
+        raise JobError(f"{path}: the file changed after the set was read (SHA-256 differs); rerun to "
+                       f"render the new version as new jobs")
+
+
+# --------------------------------------------------------------------------- one job
+
+def _maybe_fail(job: Job) -> None:
+    patterns = [p.strip() for p in os.environ.get(FAIL_ENV, "").split(",") if p.strip()]
+    for pattern in patterns:
+        if fnmatch.fnmatchcase(job.job_id, pattern) or fnmatch.fnmatchcase(job.label, pattern):
+            raise RuntimeError(f"fault injected by {FAIL_ENV}={pattern!r}")
+
+
+def _rms(values: np.ndarray) -> float | None:
+    return float(np.sqrt(np.mean(np.square(values, dtype=np.float64)))) if values.size else None
+
+
+def frame_metrics(frame) -> dict:
+    """Error figures of a frame against its ground truth (metres; None where nothing is valid).
+
+    ``rms_depth_error_m`` and ``median_abs_depth_error_m``: depth − gt_depth over
+    the valid pixels with a ground truth; ``multipath_rms_m``: RMS of
+    distance − direct_distance (what multipath adds, noise included) over the
+    valid pixels; ``valid_fraction``: share of valid pixels.
+    """
+    valid = np.asarray(frame.valid, dtype=bool)
+    depth = np.asarray(frame.depth, dtype=np.float64)
+    error = depth - np.asarray(frame.gt_depth, dtype=np.float64)
+    with_gt = valid & np.isfinite(error)
+    multipath = np.asarray(frame.distance, np.float64) - np.asarray(frame.direct_distance, np.float64)
+    with_direct = valid & np.isfinite(multipath)
+    return {
+        "valid_fraction": float(valid.mean()),
+        "rms_depth_error_m": _rms(error[with_gt]),
+        "median_abs_depth_error_m": float(np.median(np.abs(error[with_gt]))) if with_gt.any() else None,
+        "multipath_rms_m": _rms(multipath[with_direct]),
+    }
+
+
+def _base_record(job: Job, task: ViewTask) -> dict:
+    return {
+        "job_id": job.job_id, "status": None, "scene": job.scene, "source": job.source, "view": job.view,
+        "preset": job.preset, "sensor_name": job.sensor.get("name"), "seed": job.seed, "set_seed": job.set_seed,
+        "settings": {**job.quality, "resolution_scale": job.resolution_scale,
+                     "ambient_w_m2_sr": job.ambient_w_m2_sr, "formats": list(job.formats),
+                     "width": job.sensor["camera"]["width"], "height": job.sensor["camera"]["height"]},
+        "world_from_sensor": job.world_from_sensor, "host": socket.gethostname(), "pid": os.getpid(),
+    }
+
+
+def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warnings: list[str]) -> dict:
+    """Render and write one job; return its record (never raises for the job's own failure)."""
+    import tofcore
+
+    record = _base_record(job, task)
+    frames_dir = Path(task.dataset) / ds.FRAMES
+    partial = frames_dir / f".{job.job_id}.partial-{secrets.token_hex(4)}"
+    started = time.perf_counter()
+    try:
+        _maybe_fail(job)
+        sensor = tofcore.Sensor.from_dict(job.sensor, where=f"preset {job.preset!r}")
+        q = job.quality
+        frame = tofcore.render(scene, sensor, pose, spp=q["spp"], max_depth=q["max_depth"], seed=job.seed,
+                               time_budget_s=q["time_budget_s"], target_error_m=q["target_error_m"],
+                               ambient=ambient, workers=task.render_threads, cancel=_STOP.is_set)
+        frame.metadata["batch"] = {"job_id": job.job_id, "scene": job.scene, "view": job.view,
+                                   "preset": job.preset, "seed": job.seed, "set_seed": job.set_seed,
+                                   "source": job.source, "export_warnings": warnings}
+        partial.mkdir(parents=True)
+        written = tofcore.write_frame(frame, partial, formats=job.formats)
+        stats = frame.stats
+        convergence = stats.get("convergence", [])
+        record.update({
+            "status": "ok", "error": None,
+            "dir": f"{ds.FRAMES}/{job.job_id}",
+            "files": [ds.file_entry(kind, path) for kind, path in written.items()],
+            "world_from_sensor": np.asarray(frame.world_from_sensor).tolist(),
+            "render_seconds": stats.get("seconds"), "trace_seconds": stats.get("trace_seconds"),
+            "spp": stats.get("spp"), "passes": len(convergence),
+            "est_depth_error_m": convergence[-1]["est_depth_error_m"] if convergence else None,
+            "convergence": [{k: row.get(k) for k in ("pass", "seconds", "spp", "est_depth_error_m")}
+                            for row in convergence],
+            "rays_per_second": stats.get("transport", {}).get("rays_per_second"),
+            **frame_metrics(frame),
+            "export_warnings": warnings,
+            "seconds": time.perf_counter() - started,
+            "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        })
+        ds.write_json_atomic(partial / ds.RECORD, record)
+        ds.publish(partial, frames_dir / job.job_id)
+        return record
+    except BaseException as exc:
+        shutil.rmtree(partial, ignore_errors=True)
+        if _STOP.is_set():  # stopped by the parent: not the frame's fault, nothing recorded
+            os._exit(_EXIT_STOPPED)
+        if not isinstance(exc, Exception):  # KeyboardInterrupt, SystemExit: stop, do not record
+            raise
+        return failed_record(job, task, exc, time.perf_counter() - started, record)
+
+
+def failed_record(job: Job, task: ViewTask, exc: BaseException, seconds: float = 0.0,
+                  record: dict | None = None) -> dict:
+    """The record of a job that raised ``exc`` (the message, and the traceback's last lines)."""
+    record = dict(record or _base_record(job, task))
+    tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
+    record.update({"status": "failed", "error": f"{type(exc).__name__}: {exc}",
+                   "traceback": tb[-4000:], "dir": None, "files": [], "seconds": seconds,
+                   "finished": datetime.now(timezone.utc).isoformat(timespec="seconds")})
+    return record
+
+
+# --------------------------------------------------------------------------- one view
+
+def run_view(task: ViewTask) -> list[dict]:
+    """Load or export the view's scene once, then render each of its jobs; one record per job."""
+    started = time.perf_counter()
+    _BUSY.set()
+    try:
+        try:
+            scene, pose, ambient, warnings = _load_scene(task)
+        except Exception as exc:
+            return [failed_record(job, task, exc, time.perf_counter() - started) for job in task.jobs]
+        records = []
+        for job in task.jobs:
+            records.append(render_job(job, task, scene, pose, ambient, warnings))
+            if _STOP.is_set():  # finished frames are published (their record.json is read back next run)
+                os._exit(_EXIT_STOPPED)
+        sys.stdout.flush()
+        return records
+    finally:
+        _BUSY.clear()
