@@ -85,21 +85,30 @@ def _combine(correlations, weights: np.ndarray) -> Callable[[np.ndarray], np.nda
     return lambda tau: sum(w * g(tau) for w, g in used)
 
 
-def depth_standard_error(transport: Transport, channels: _ErrorChannels, n_raw: int) -> np.ndarray:
-    """(H, W) Monte Carlo standard error (m) of each pixel's distance by the delta method.
+def depth_standard_error(transport: Transport, channels: _ErrorChannels, n_raw: int,
+                         gate_duty: np.ndarray) -> np.ndarray:
+    r"""(H, W) Monte Carlo standard error (m) of each pixel's distance by the delta method.
 
     Notes
     -----
-    With a, b the means and Var/Cov from the tracer's per-sample squares:
-    phasor: :math:`\\sigma_\\phi^2 = (b^2 \\mathrm{Var}\\,a + a^2 \\mathrm{Var}\\,b - 2ab\\,\\mathrm{Cov})/(a^2+b^2)^2`;
-    ratio r = a/b: :math:`\\sigma_r^2 = (\\mathrm{Var}\\,a - 2r\\,\\mathrm{Cov} + r^2 \\mathrm{Var}\\,b)/b^2`.
+    a, b are the error channels plus the ambient charge their raw images collect
+    (:math:`a' = a + \alpha A`, α = Σ_j w_{a,j} δ_j with δ_j the gate duty; likewise b): ambient light
+    cancels in a CW phasor (α = β = 0) but not in the pulsed ratio. Var/Cov come from the tracer's
+    per-sample squares; the covariance of the ambient estimate with the LED channels is neglected.
+    phasor: :math:`\sigma_\phi^2 = (b^2 \mathrm{Var}\,a + a^2 \mathrm{Var}\,b - 2ab\,\mathrm{Cov})/(a^2+b^2)^2`;
+    ratio r = a/b: :math:`\sigma_r^2 = (\mathrm{Var}\,a - 2r\,\mathrm{Cov} + r^2 \mathrm{Var}\,b)/b^2`.
     NaN where a pixel has no signal or fewer than two samples.
     """
     corr = transport.correlation()
     var = transport.variance_of_mean()  # rows: signal, correlations..., ambient
-    a, b = corr[n_raw], corr[n_raw + 1]
+    alpha = float(channels.weights_a @ gate_duty)
+    beta = float(channels.weights_b @ gate_duty)
+    ambient, var_ambient = transport.ambient(), var[-1]
+    a, b = corr[n_raw] + alpha * ambient, corr[n_raw + 1] + beta * ambient
     var_a, var_b, var_sum = var[1 + n_raw], var[2 + n_raw], var[3 + n_raw]
-    cov = 0.5 * (var_sum - var_a - var_b)
+    cov = 0.5 * (var_sum - var_a - var_b) + alpha * beta * var_ambient
+    var_a = var_a + alpha**2 * var_ambient
+    var_b = var_b + beta**2 * var_ambient
     with np.errstate(invalid="ignore", divide="ignore"):
         if channels.kind == "phasor":
             norm2 = a * a + b * b
@@ -191,7 +200,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     for transport in passes:
         elapsed = time.perf_counter() - start
         samples = int(transport.sample_count[0])
-        sigma = depth_standard_error(transport, channels, n_raw)
+        sigma = depth_standard_error(transport, channels, n_raw, mod.gate_duty())
         seen = np.isfinite(transport.first_hit.distance_m) & np.isfinite(sigma)
         row = {"pass": transport.stats.passes, "seconds": elapsed, "spp": samples,
                "est_depth_error_m": _rms(sigma[seen]), "rays": transport.stats.rays}

@@ -198,3 +198,16 @@ def test_progressive_frames_and_cancel():
     calls = []
     with pytest.raises(tofcore.Cancelled):
         render(scene, sensor, spp=64, max_depth=2, cancel=lambda: calls.append(1) or len(calls) > 3)
+
+
+def test_estimated_error_includes_ambient_noise_for_pulsed_sensors():
+    """Ambient light does not cancel in the 2-bucket ratio: its Monte Carlo noise must enter the estimate."""
+    sensor = small(clean(load_preset("xtion2")), hfov=40.0)
+    scene = tofcore.demo_scene("box_on_wall")
+    env = np.ones((8, 16), np.float32) * np.linspace(0.2, 3.0, 8)[:, None].astype(np.float32)
+    amb = Ambient(environment=env)
+    frames = [render(scene, sensor, spp=16, max_depth=2, seed=s, ambient=amb) for s in range(6)]
+    spread = np.nanstd(np.stack([f.distance for f in frames]), axis=0, ddof=1)
+    estimate = frames[0].stats["convergence"][-1]["est_depth_error_m"]
+    actual = float(np.sqrt(np.nanmean(spread**2)))
+    assert 0.5 < estimate / actual < 2.0, (estimate, actual)
