@@ -38,5 +38,35 @@ bench: venv
 addon: venv
 	$(PY) addon/build.py --out dist/
 
+# The six thesis experiments (docs/validation.md): PNG plots + JSON numbers in out/studies/, ~10 min on 2 cores.
+STUDIES := corner_path_length corner_roughness systematic_error box_wall_error_map flying_pixels led_shadow
+.PHONY: studies
+
+$(VENV)/.studies: $(VENV)/.installed pyproject.toml
+	$(PY) -m pip install --quiet -e ".[studies]" "numpy>=1.26,<2"
+	touch $@
+
+studies: $(VENV)/.studies
+	@for s in $(STUDIES); do echo "== studies/$$s.py"; $(PY) studies/$$s.py --out out/studies || exit 1; done
+
 clean:
 	rm -rf $(VENV) $(VENV313) out
+
+# Peers (Mitsuba 3, mitransient, Blender Cycles) in a separate venv: studies/crosscheck/README.md.
+VENV_BENCH ?= .venv-bench
+LIBLLVM19  ?= $(firstword $(wildcard /usr/lib/x86_64-linux-gnu/libLLVM.so.19*))
+.PHONY: bench-peers crosscheck
+
+$(VENV_BENCH)/.installed: pyproject.toml
+	@[ -n "$(LIBLLVM19)" ] || { echo "libLLVM 19 not found: apt-get update && apt-get install -y libllvm19"; exit 1; }
+	$(PYTHON) -m venv $(VENV_BENCH)
+	$(VENV_BENCH)/bin/python -m pip install --quiet --upgrade pip
+	$(VENV_BENCH)/bin/python -m pip install --quiet -e ".[bench]"
+	touch $@
+
+bench-peers: venv $(VENV_BENCH)/.installed
+	DRJIT_LIBLLVM_PATH=$(LIBLLVM19) $(VENV_BENCH)/bin/python bench/bench_peers.py --json out/bench_peers.json
+
+crosscheck: $(VENV_BENCH)/.installed
+	DRJIT_LIBLLVM_PATH=$(LIBLLVM19) $(VENV_BENCH)/bin/python studies/crosscheck/crosscheck.py
+	DRJIT_LIBLLVM_PATH=$(LIBLLVM19) $(VENV_BENCH)/bin/python studies/crosscheck/error_vs_time.py
