@@ -52,6 +52,14 @@ def jackknife(samples: np.ndarray, stat) -> tuple[np.ndarray, np.ndarray]:
     return full, se
 
 
+DEFAULT_OUT = Path(__file__).resolve().parent / "results"
+
+
+def arrays_dir(out: Path) -> Path:
+    """Per-pixel arrays: out/crosscheck/ for the committed results, else beside the JSON."""
+    return cc.WORK if out.resolve() == DEFAULT_OUT else out
+
+
 def run_scene(name: str, spp: int, seeds: int, max_depth: int, out: Path, log) -> dict:
     s = cc.make_setup(name)
     res: dict = {"scene": name, "albedo": s.albedo, "spp_per_seed": spp, "seeds": seeds, "max_depth": max_depth}
@@ -149,8 +157,8 @@ def run_scene(name: str, spp: int, seeds: int, max_depth: int, out: Path, log) -
         }
     res["frequencies"] = per_f
     arrays = {"t_mp": t_mp, "m_mp": m_mp, "t_se": t_se, "m_se": m_se, "seen": seen}
-    cc.WORK.mkdir(parents=True, exist_ok=True)
-    np.savez_compressed(cc.WORK / f"crosscheck_{name}.npz", **arrays)
+    arrays_dir(out).mkdir(parents=True, exist_ok=True)
+    np.savez_compressed(arrays_dir(out) / f"crosscheck_{name}.npz", **arrays)
     return res, arrays
 
 
@@ -220,7 +228,7 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=16, help="independent renders per renderer and scene")
     ap.add_argument("--max-depth", type=int, default=5, help="surface vertices per path (tofcore's max_depth)")
     ap.add_argument("--scenes", default=",".join(SCENES))
-    ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
+    ap.add_argument("--out", default=str(DEFAULT_OUT))
     ap.add_argument("--replot", action="store_true", help="redraw the figures from the saved JSON and arrays")
     args = ap.parse_args()
     out = Path(args.out)
@@ -229,7 +237,7 @@ def main() -> int:
     if args.replot:
         with open(out / "crosscheck.json") as fh:
             results = json.load(fh)["scenes"]
-        arrays = {n: dict(np.load(cc.WORK / f"crosscheck_{n}.npz")) for n in SCENES}
+        arrays = {n: dict(np.load(arrays_dir(out) / f"crosscheck_{n}.npz")) for n in SCENES}
         plot(results, arrays, out)
         return 0
 
