@@ -50,6 +50,16 @@ def draw_result(layout, camera_name: str | None = None) -> None:
                   icon='IMAGE_DATA')
 
 
+def _settings_layout(panel, context):
+    """The camera's ToF settings and the panel's layout, split, greyed out while ToF is off."""
+    settings = context.camera.tof
+    layout = panel.layout
+    layout.use_property_split = True
+    layout.use_property_decorate = False
+    layout.active = settings.enabled
+    return settings, layout
+
+
 class _CameraPanel:
     bl_space_type = 'PROPERTIES'
     bl_region_type = 'WINDOW'
@@ -70,11 +80,7 @@ class TOF_PT_camera(_CameraPanel, Panel):
         self.layout.prop(context.camera.tof, "enabled", text="")
 
     def draw(self, context):
-        settings = context.camera.tof
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        layout.active = settings.enabled
+        settings, layout = _settings_layout(self, context)
         layout.prop(settings, "preset")
         if settings.preset == properties.CUSTOM:
             layout.prop(settings, "preset_path")
@@ -94,11 +100,7 @@ class TOF_PT_camera_overrides(_CameraPanel, Panel):
     bl_options = {'DEFAULT_CLOSED'}
 
     def draw(self, context):
-        settings = context.camera.tof
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        layout.active = settings.enabled
+        settings, layout = _settings_layout(self, context)
         for toggle, fields in (("use_resolution", ("width", "height")),
                                ("use_led_override", ("led_offset_m", "led_spread")),
                                ("use_range_m", ("range_m",))):
@@ -120,11 +122,7 @@ class TOF_PT_camera_quality(_CameraPanel, Panel):
     bl_parent_id = TOF_PT_camera.bl_idname
 
     def draw(self, context):
-        settings = context.camera.tof
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        layout.active = settings.enabled
+        settings, layout = _settings_layout(self, context)
         col = layout.column(align=True)
         col.prop(settings, "spp")
         col.prop(settings, "time_budget_s")
@@ -140,11 +138,7 @@ class TOF_PT_camera_output(_CameraPanel, Panel):
     bl_parent_id = TOF_PT_camera.bl_idname
 
     def draw(self, context):
-        settings = context.camera.tof
-        layout = self.layout
-        layout.use_property_split = True
-        layout.use_property_decorate = False
-        layout.active = settings.enabled
+        settings, layout = _settings_layout(self, context)
         layout.prop(settings, "output_dir")
         row = layout.row(heading="Formats", align=True)
         row.prop(settings, "formats")
