@@ -43,7 +43,7 @@ def script_args(argv: list[str]) -> list[str]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from batch.cli import _Formatter, _non_negative_int, _positive_float, _positive_int
+    from batch.cli import _Formatter, add_quality_options
 
     parser = argparse.ArgumentParser(
         prog="blender -b FILE.blend --python batch/blender_entry.py --",
@@ -55,18 +55,9 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--frames", default=None, help='frames, e.g. "1-10" or "1,5,9-12" (default: current)')
     parser.add_argument("--cameras", default=None,
                         help="camera objects, comma-separated (default: ToF cameras, else all cameras)")
-    parser.add_argument("--spp", type=_positive_int, default=64, metavar="N", help="most samples per pixel")
-    parser.add_argument("--max-depth", type=_positive_int, default=5, metavar="N", help="surface vertices per path")
-    parser.add_argument("--seed", type=_non_negative_int, default=0, metavar="N",
-                        help="set seed (per-frame seeds derive from it)")
-    parser.add_argument("--time-budget", type=_positive_float, default=None, metavar="S",
-                        help="stop each render after about S seconds of tracing")
-    parser.add_argument("--target-error", type=_positive_float, default=None, metavar="M",
-                        help="stop each render at this estimated RMS depth error (metres)")
-    parser.add_argument("--ambient", type=float, default=None, metavar="W_M2_SR",
-                        help="constant ambient radiance (default: the exporter's, from the world)")
-    parser.add_argument("--resolution-scale", type=_positive_float, default=1.0, metavar="F",
-                        help="image size factor (intrinsics scaled)")
+    add_quality_options(parser, seed_help="set seed (per-frame seeds derive from it)",
+                        ambient_help="constant ambient radiance (default: the exporter's, from the world)",
+                        scale_help="image size factor (intrinsics scaled)")
     parser.add_argument("--formats", default="exr,png,ply,json", help="comma list of exr, png, ply, json")
     parser.add_argument("--retry-failed", action="store_true", help="render only the frames recorded as failed")
     parser.add_argument("--verify", choices=["sha256", "size"], default="sha256",

@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import sys
+from collections.abc import Callable
 from pathlib import Path
 
 from tofcore.errors import TofError
@@ -25,34 +26,37 @@ from tofcore.errors import TofError
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
 
-def _positive_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 1, got {text!r}")
-    return value
+def _number(kind: type, rule: str, ok: Callable[[float], bool]) -> Callable[[str], float]:
+    """An argparse type: ``kind(text)`` that must satisfy ``ok``; errors say ``rule`` and the text."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"must be {rule}, got {text!r}") from None
+        if not ok(value):
+            raise argparse.ArgumentTypeError(f"must be {rule}, got {text!r}")
+        return value
+    parse.__name__ = kind.__name__  # argparse names the type in its messages
+    return parse
 
 
-def _positive_float(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a number > 0, got {text!r}") from None
-    if not value > 0 or value == float("inf"):
-        raise argparse.ArgumentTypeError(f"must be a finite number > 0, got {text!r}")
-    return value
+_positive_int = _number(int, "an integer >= 1", lambda v: v >= 1)
+_non_negative_int = _number(int, "an integer >= 0", lambda v: v >= 0)
+_positive_float = _number(float, "a finite number > 0", lambda v: 0 < v < float("inf"))
 
 
-def _non_negative_int(text: str) -> int:
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}") from None
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"must be an integer >= 0, got {text!r}")
-    return value
+def add_quality_options(parser: argparse.ArgumentParser, *, seed_help: str, ambient_help: str,
+                        scale_help: str) -> None:
+    """The render-quality flags shared by ``compare`` and the Blender entry script."""
+    parser.add_argument("--spp", type=_positive_int, default=64, metavar="N", help="most samples per pixel")
+    parser.add_argument("--max-depth", type=_positive_int, default=5, metavar="N", help="surface vertices per path")
+    parser.add_argument("--seed", type=_non_negative_int, default=0, metavar="N", help=seed_help)
+    parser.add_argument("--time-budget", type=_positive_float, default=None, metavar="S",
+                        help="stop each render after about S seconds of tracing")
+    parser.add_argument("--target-error", type=_positive_float, default=None, metavar="M",
+                        help="stop each render at this estimated RMS depth error (metres)")
+    parser.add_argument("--ambient", type=float, default=None, metavar="W_M2_SR", help=ambient_help)
+    parser.add_argument("--resolution-scale", type=_positive_float, default=1.0, metavar="F", help=scale_help)
 
 
 def _vector3(text: str) -> tuple[float, float, float]:
@@ -200,17 +204,9 @@ def build_parser() -> argparse.ArgumentParser:
     cmp.add_argument("--target", type=_vector3, default=None, metavar="X,Y,Z", help="point looked at")
     cmp.add_argument("--camera", default=None, help=".blend: camera object (default: the first ToF camera)")
     cmp.add_argument("--frame", type=int, default=None, metavar="N", help=".blend: animation frame (default: current)")
-    cmp.add_argument("--spp", type=_positive_int, default=64, metavar="N", help="most samples per pixel")
-    cmp.add_argument("--max-depth", type=_positive_int, default=5, metavar="N", help="surface vertices per path")
-    cmp.add_argument("--seed", type=_non_negative_int, default=0, metavar="N", help="set seed")
-    cmp.add_argument("--time-budget", type=_positive_float, default=None, metavar="S",
-                     help="stop each render after about S seconds of tracing")
-    cmp.add_argument("--target-error", type=_positive_float, default=None, metavar="M",
-                     help="stop each render at this estimated RMS depth error (metres)")
-    cmp.add_argument("--ambient", type=float, default=None, metavar="W_M2_SR",
-                     help="constant ambient radiance (default: none; a .blend's world)")
-    cmp.add_argument("--resolution-scale", type=_positive_float, default=1.0, metavar="F",
-                     help="image size factor for every preset (intrinsics scaled)")
+    add_quality_options(cmp, seed_help="set seed",
+                        ambient_help="constant ambient radiance (default: none; a .blend's world)",
+                        scale_help="image size factor for every preset (intrinsics scaled)")
     _executor_options(cmp)
     cmp.set_defaults(func=cmd_compare)
     return parser
