@@ -140,7 +140,7 @@ def raw_images(correlation_means: np.ndarray, ambient_mean: np.ndarray, sensor) 
 def render(scene: Scene, sensor, pose: np.ndarray | None = None, **settings) -> Frame:
     """Render one ToF frame; the parameters are those of :func:`render_progressive`."""
     frame = None
-    for frame in render_progressive(scene, sensor, pose, **settings):
+    for frame in render_progressive(scene, sensor, pose, every_pass=False, **settings):
         pass
     return frame
 
@@ -150,7 +150,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                        target_error_m: float | None = None, ambient: Ambient | None = None,
                        reference_distance: np.ndarray | None = None,
                        progress: Callable[[dict], None] | None = None, cancel: Callable[[], bool] | None = None,
-                       workers: int | None = None, chunk_size: int = 1 << 16) -> Iterator[Frame]:
+                       workers: int | None = None, chunk_size: int = 1 << 16,
+                       every_pass: bool = True) -> Iterator[Frame]:
     """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
 
     The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
@@ -171,6 +172,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     cancel : polled between chunks of rays; when it returns True the render raises
         :class:`~tofcore.errors.Cancelled` within about a second.
     workers, chunk_size : passed to the tracer.
+    every_pass : build and yield a frame after every pass (False: only the final one, which saves
+        decoding the intermediate passes).
     """
     _check_settings(spp, time_budget_s, target_error_m)
     if sensor.noise.model == "li" and sensor.modulation.kind == "pulsed":
@@ -218,6 +221,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
         if time_budget_s is not None and not done:
             next_samples = min(samples, 16, spp - samples)  # the pass schedule doubles up to 16
             done = elapsed + elapsed / samples * next_samples > time_budget_s
+        if not (done or every_pass):
+            continue
         frame = _frame(transport, sensor, pose, plan, seed, n_raw)
         frame.stats.update({
             "final": done, "trace_seconds": elapsed, "seconds": time.perf_counter() - start, "spp": samples,
