@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .backend import namespace
 from .errors import ConfigError
 from .material import Texture
 
@@ -60,7 +61,7 @@ class Ambient:
 
     def radiance(self, directions: np.ndarray) -> np.ndarray:
         """Radiance (W m⁻² sr⁻¹) arriving from world directions (N, 3), i.e. seen looking along them."""
-        out = np.full(len(directions), float(self.radiance_w_m2_sr))
+        out = namespace(directions).full(len(directions), float(self.radiance_w_m2_sr))
         if self.environment is not None and self.environment_strength > 0:
             d = directions.astype(np.float64)
             u = np.arctan2(d[:, 1], -d[:, 0]) / (2 * np.pi) + 0.5

@@ -104,6 +104,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from tofcore.errors import SceneError
 from tofcore.fresnel import fresnel_conductor, fresnel_dielectric
+from tofcore.backend import asarray, namespace
 from tofcore.sampling import (
     beckmann_distribution,
     pdf_cosine_hemisphere,
@@ -147,7 +148,7 @@ class SurfaceParams:
     def __post_init__(self) -> None:
         names = [field.name for field in fields(self)]
         arrays = np.broadcast_arrays(
-            *(np.atleast_1d(np.asarray(getattr(self, name), dtype=np.float64)) for name in names)
+            *(np.atleast_1d(asarray(getattr(self, name), dtype=np.float64)) for name in names)
         )
         for name, array in zip(names, arrays):
             if array.ndim != 1:
@@ -158,7 +159,7 @@ class SurfaceParams:
                 raise SceneError(
                     f"SurfaceParams: {name} must be {rule}, got {float(array[bad][0])!r}"
                 )
-            object.__setattr__(self, name, np.ascontiguousarray(array))
+            object.__setattr__(self, name, namespace(array).ascontiguousarray(array))
 
 
 @dataclass(frozen=True)
@@ -173,7 +174,7 @@ class BsdfSample:
 
 def beckmann_alpha(roughness_rad: ArrayLike) -> FloatArray:
     """Beckmann roughness α = √2 σ (eq. 2.26); σ in radians, α unitless."""
-    return np.sqrt(2.0) * np.asarray(roughness_rad, dtype=np.float64)
+    return np.sqrt(2.0) * asarray(roughness_rad, dtype=np.float64)
 
 
 def cos_azimuth_difference(wo: ArrayLike, wi: ArrayLike) -> FloatArray:
@@ -182,8 +183,8 @@ def cos_azimuth_difference(wo: ArrayLike, wi: ArrayLike) -> FloatArray:
     Returns 0 where either direction lies on the normal, where the azimuth is
     undefined (every term that multiplies it vanishes there, since β = 0).
     """
-    wo = np.asarray(wo, dtype=np.float64)
-    wi = np.asarray(wi, dtype=np.float64)
+    wo = asarray(wo, dtype=np.float64)
+    wi = asarray(wi, dtype=np.float64)
     planar_dot = wo[..., 0] * wi[..., 0] + wo[..., 1] * wi[..., 1]
     planar_norms = np.hypot(wo[..., 0], wo[..., 1]) * np.hypot(wi[..., 0], wi[..., 1])
     cos_phi = planar_dot / np.where(planar_norms > 0.0, planar_norms, 1.0)
@@ -241,11 +242,11 @@ def oren_nayar(
     reaches ≈ 1.05 (σ ≈ 0.3, θ_o → 90°); the (1 − F) factors of `eval_bsdf`
     remove that excess.
     """
-    rho = np.asarray(reflectance, dtype=np.float64)
-    s = np.square(np.asarray(roughness_rad, dtype=np.float64))
-    cos_phi = np.asarray(cos_phi_diff, dtype=np.float64)
-    theta_i = np.arccos(np.clip(np.asarray(cos_theta_i, dtype=np.float64), 0.0, 1.0))
-    theta_o = np.arccos(np.clip(np.asarray(cos_theta_o, dtype=np.float64), 0.0, 1.0))
+    rho = asarray(reflectance, dtype=np.float64)
+    s = np.square(asarray(roughness_rad, dtype=np.float64))
+    cos_phi = asarray(cos_phi_diff, dtype=np.float64)
+    theta_i = np.arccos(np.clip(asarray(cos_theta_i, dtype=np.float64), 0.0, 1.0))
+    theta_o = np.arccos(np.clip(asarray(cos_theta_o, dtype=np.float64), 0.0, 1.0))
     theta_max = np.maximum(theta_i, theta_o)
     theta_min = np.minimum(theta_i, theta_o)
     scaled_min = 2.0 * theta_min / np.pi
@@ -288,10 +289,10 @@ def vcavity_geometry(
                      \frac{2(n\cdot\omega_h)(n\cdot\omega_i)}{\omega_o\cdot\omega_h}\Big]
         \quad (2.27)
     """
-    cos_h = np.maximum(np.asarray(cos_theta_h, dtype=np.float64), 0.0)
-    cos_o = np.maximum(np.asarray(cos_theta_o, dtype=np.float64), 0.0)
-    cos_i = np.maximum(np.asarray(cos_theta_i, dtype=np.float64), 0.0)
-    cos_oh = np.asarray(cos_theta_oh, dtype=np.float64)
+    cos_h = np.maximum(asarray(cos_theta_h, dtype=np.float64), 0.0)
+    cos_o = np.maximum(asarray(cos_theta_o, dtype=np.float64), 0.0)
+    cos_i = np.maximum(asarray(cos_theta_i, dtype=np.float64), 0.0)
+    cos_oh = asarray(cos_theta_oh, dtype=np.float64)
     valid = cos_oh > 0.0
     scale = 2.0 * cos_h / np.where(valid, cos_oh, 1.0)
     return np.where(valid, np.minimum(1.0, scale * np.minimum(cos_o, cos_i)), 0.0)
@@ -331,7 +332,7 @@ def torrance_sparrow(
     """
     denominator = 4.0 * np.multiply(cos_theta_i, cos_theta_o, dtype=np.float64)
     valid = denominator > 0.0
-    numerator = np.asarray(fresnel) * np.asarray(distribution) * np.asarray(geometry)
+    numerator = asarray(fresnel) * asarray(distribution) * asarray(geometry)
     return np.where(valid, numerator / np.where(valid, denominator, 1.0), 0.0)
 
 
@@ -374,7 +375,14 @@ def _half_vector(wo: FloatArray, wi: FloatArray) -> FloatArray:
     """Normalised ω_o + ω_i (eq. 2.25); the normal where the sum vanishes."""
     total = wo + wi
     length = np.linalg.norm(total, axis=-1, keepdims=True)
-    return np.where(length > 0.0, total / np.where(length > 0.0, length, 1.0), [0.0, 0.0, 1.0])
+    return np.where(length > 0.0, total / np.where(length > 0.0, length, 1.0), _normal_like(total))
+
+
+def _normal_like(w: FloatArray) -> FloatArray:
+    """The local normal (0, 0, 1) in the shape and array module of directions ``w``."""
+    normal = namespace(w).zeros_like(w)
+    normal[..., 2] = 1.0
+    return normal
 
 
 def _rough_alpha(params: SurfaceParams) -> FloatArray:
@@ -397,8 +405,8 @@ def eval_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> FloatArray
     numpy.ndarray
         (N,) f_r ≥ 0; 0 where cos θ_o ≤ 0 or cos θ_i ≤ 0; mirror lobes excluded.
     """
-    wo = np.asarray(wo, dtype=np.float64)
-    wi = np.asarray(wi, dtype=np.float64)
+    wo = asarray(wo, dtype=np.float64)
+    wi = asarray(wi, dtype=np.float64)
     cos_o = wo[..., 2]
     cos_i = wi[..., 2]
     valid = (cos_o > 0.0) & (cos_i > 0.0)
@@ -449,8 +457,8 @@ def pdf_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> FloatArray:
     Jacobian of the reflection ω_i = 2(ω_o·ω_h)ω_h − ω_o. A mirror lobe
     contributes no density.
     """
-    wo = np.asarray(wo, dtype=np.float64)
-    wi = np.asarray(wi, dtype=np.float64)
+    wo = asarray(wo, dtype=np.float64)
+    wi = asarray(wi, dtype=np.float64)
     cos_o = wo[..., 2]
     cos_i = wi[..., 2]
     valid = (cos_o > 0.0) & (cos_i > 0.0)
@@ -491,8 +499,8 @@ def sample_bsdf(
     cosine-weighted direction. ``u_lobe``, rescaled to [0, 1) within the chosen
     lobe's interval, decides the V-cavity facet swap, so three uniforms suffice.
     """
-    wo = np.asarray(wo, dtype=np.float64)
-    u_lobe = np.asarray(u_lobe, dtype=np.float64)
+    wo = asarray(wo, dtype=np.float64)
+    u_lobe = asarray(u_lobe, dtype=np.float64)
     cos_o = wo[..., 2]
     probability = specular_probability(params, cos_o)
     pick_specular = u_lobe < probability
@@ -504,7 +512,7 @@ def sample_bsdf(
     u_swap = np.clip(u_swap, 0.0, np.nextafter(1.0, 0.0))
     alpha = _rough_alpha(params)
     m = sample_vcavity_visible_normal(wo, alpha, u1, u2, u_swap)
-    m = np.where((alpha > 0.0)[..., None], m, [0.0, 0.0, 1.0])
+    m = np.where((alpha > 0.0)[..., None], m, _normal_like(m))
     wi_specular = 2.0 * np.sum(wo * m, axis=-1, keepdims=True) * m - wo
     wi = np.where(pick_specular[..., None], wi_specular, sample_cosine_hemisphere(u1, u2))
 

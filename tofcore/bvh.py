@@ -54,6 +54,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .backend import is_device_array
 from .errors import ConfigError, SceneError
 
 BOX_PAD = 2.0**-16
@@ -522,7 +523,13 @@ class BVH:
         ignore_prim : (R,) int32 triangle never reported per ray (-1 none), or None.
         workers : threads over ray chunks; the result does not depend on it.
         counters : if given, ``box_tests``, ``tri_tests`` and ``rays`` are added to it.
+
+        CuPy rays are traced on the GPU (:mod:`tofcore.gpu.traversal`, same answers; ``workers``
+        and ``counters`` do not apply there) and give CuPy hits.
         """
+        if is_device_array(origins):
+            from .gpu import traversal
+            return traversal.intersect(self, origins, directions, t_max, ignore_prim)
         return self._run(origins, directions, t_max, ignore_prim, False, workers, counters)
 
     def occluded(self, origins, directions, t_max, ignore_prim=None, *,
@@ -531,6 +538,9 @@ class BVH:
 
         Same parameters as `intersect`; a ray stops traversing at its first hit.
         """
+        if is_device_array(origins):
+            from .gpu import traversal
+            return traversal.occluded(self, origins, directions, t_max, ignore_prim)
         return self._run(origins, directions, t_max, ignore_prim, True, workers, counters)
 
     def _run(self, origins, directions, t_max, ignore_prim, any_hit, workers, counters):

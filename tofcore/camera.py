@@ -56,6 +56,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .errors import ConfigError
 from .sampling import sample_concentric_disk
+from .backend import asarray, device_copy, namespace
 
 #: Newton's method for the inverse distortion stops when every step is
 #: smaller than this (normalized image units). Convergence is quadratic, so
@@ -193,8 +194,8 @@ class Camera:
 
         and pixel coordinates :math:`u = f_x x_d + c_x, v = f_y y_d + c_y`.
         """
-        xd, yd, *_ = self._distort_with_jacobian(np.asarray(x, dtype=np.float64),
-                                                 np.asarray(y, dtype=np.float64))
+        xd, yd, *_ = self._distort_with_jacobian(asarray(x, dtype=np.float64),
+                                                 asarray(y, dtype=np.float64))
         return xd, yd
 
     def _distort_with_jacobian(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> tuple[
@@ -267,7 +268,7 @@ class Camera:
         border, the Jacobian determinant is positive there, and the
         undistorted centres keep the pixel order along every row and column.
         """
-        xd, yd = np.broadcast_arrays(np.asarray(xd, dtype=np.float64), np.asarray(yd, dtype=np.float64))
+        xd, yd = np.broadcast_arrays(asarray(xd, dtype=np.float64), asarray(yd, dtype=np.float64))
         if not self.has_distortion:
             return xd.copy(), yd.copy()
         col = np.clip(np.rint(xd * self.fx + self.cx), 0, self.width - 1).astype(np.int64)
@@ -281,7 +282,7 @@ class Camera:
         Newton's method starts from the first-order prediction around the
         pixel centre: undistorted centre + inverse Jacobian × offset.
         """
-        x_c, y_c, inv_xx, inv_xy, inv_yy = self._centre_table
+        x_c, y_c, inv_xx, inv_xy, inv_yy = (device_copy(namespace(xd), t) for t in self._centre_table)
         i = row * self.width + col
         dxd = xd - (col - self.cx) / self.fx
         dyd = yd - (row - self.cy) / self.fy
@@ -375,7 +376,7 @@ class Camera:
             ``cv2.projectPoints`` with zero rotation and translation. NaN for
             points with Z <= 0 (behind the lens or in its plane).
         """
-        p = np.asarray(points_sensor, dtype=np.float64)
+        p = asarray(points_sensor, dtype=np.float64)
         if p.shape[-1:] != (3,):
             raise ValueError(f"Camera.project: points_sensor must have shape (..., 3), got {p.shape}")
         z = np.where(p[..., 2] > 0, p[..., 2], np.nan)
@@ -396,8 +397,8 @@ class Camera:
             :math:`(x, y, 1) / \\sqrt{x^2 + y^2 + 1}` with (x, y) =
             :meth:`undistort` ((u - c_x)/f_x, (v - c_y)/f_y) (thesis eq. 4.3).
         """
-        xd = (np.asarray(u, dtype=np.float64) - self.cx) / self.fx
-        yd = (np.asarray(v, dtype=np.float64) - self.cy) / self.fy
+        xd = (asarray(u, dtype=np.float64) - self.cx) / self.fx
+        yd = (asarray(v, dtype=np.float64) - self.cy) / self.fy
         return _unit_directions(*self.undistort(xd, yd))
 
     def pixel_center_directions(self) -> NDArray[np.float32]:
@@ -453,7 +454,7 @@ class Camera:
         stay in cache; the result does not depend on the block size.
         """
         pixel_index, u_jitter, v_jitter, u_lens, v_lens = np.broadcast_arrays(
-            np.asarray(pixel_index, dtype=np.int64), *(np.asarray(a, dtype=np.float64)
+            asarray(pixel_index, dtype=np.int64), *(asarray(a, dtype=np.float64)
                                                        for a in (u_jitter, v_jitter, u_lens, v_lens)))
         n_pixels = self.width * self.height
         if pixel_index.ndim != 1:
@@ -461,10 +462,12 @@ class Camera:
         if pixel_index.size and (pixel_index.min() < 0 or pixel_index.max() >= n_pixels):
             raise ValueError(f"Camera.generate_rays: pixel_index must be in [0, {n_pixels}), "
                              f"got values in [{pixel_index.min()}, {pixel_index.max()}]")
-        origins = np.empty((pixel_index.size, 3))
-        directions = np.empty((pixel_index.size, 3))
-        for start in range(0, pixel_index.size, _RAY_BLOCK):
-            block = slice(start, start + _RAY_BLOCK)
+        xp = namespace(pixel_index)
+        origins = xp.empty((pixel_index.size, 3))
+        directions = xp.empty((pixel_index.size, 3))
+        block_size = _RAY_BLOCK if xp is np else max(pixel_index.size, 1)  # a GPU takes all rays at once
+        for start in range(0, pixel_index.size, block_size):
+            block = slice(start, start + block_size)
             origins[block], directions[block] = self._ray_block(
                 pixel_index[block], u_jitter[block], v_jitter[block], u_lens[block], v_lens[block])
         return origins, directions
@@ -477,7 +480,7 @@ class Camera:
         xd = (col + (u_jitter - 0.5 - self.cx)) / self.fx
         yd = (row + (v_jitter - 0.5 - self.cy)) / self.fy
         x, y = self._undistort_near(xd, yd, row, col) if self.has_distortion else (xd, yd)
-        origins = np.zeros((pixel_index.size, 3))
+        origins = namespace(pixel_index).zeros((pixel_index.size, 3))
         if self.aperture_radius_m > 0.0:
             lens_x, lens_y = sample_concentric_disk(u_lens, v_lens)
             origins[:, 0] = lens_x * self.aperture_radius_m

@@ -32,6 +32,7 @@ from .errors import ConfigError
 from .frame import Reason
 from .modulation import Modulation, ideal_raw
 from .transport import SPEED_OF_LIGHT_M_S
+from .backend import asarray, namespace
 
 NO_RETURN_RELATIVE_AMPLITUDE = 1e-9
 """A ≤ this · B counts as A = 0 (atan2(0, 0)): far above float64 round-off of the DFT sums (~1e-16 N B),
@@ -92,13 +93,14 @@ def phase_amplitude_offset(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     For N = 4 (steps = buckets C1, C3, C2, C4) these are eq. 2.38/2.49 φ = atan2(Q3 − Q4, Q1 − Q2),
     eq. 2.40 and eq. 2.41 exactly (the DFT weights are rounded to exact 0, ±1 where they are).
     """
-    q = np.asarray(samples, dtype=np.float64)
+    q = asarray(samples, dtype=np.float64)
     n = q.shape[0]
     theta = 2.0 * np.pi * np.arange(n) / n
     cos_k = np.round(np.cos(theta), 15)
     sin_k = np.round(np.sin(theta), 15)
-    real = np.tensordot(cos_k, q, axes=1)
-    imag = np.tensordot(sin_k, q, axes=1)
+    xp = namespace(q)
+    real = np.tensordot(xp.asarray(cos_k), q, axes=1)
+    imag = np.tensordot(xp.asarray(sin_k), q, axes=1)
     phase = np.mod(np.arctan2(imag, real), 2.0 * np.pi)
     phase = np.where(phase < 2.0 * np.pi, phase, 0.0)  # np.mod(-tiny, 2π) rounds up to 2π
     return phase, 2.0 / n * np.hypot(real, imag), q.mean(axis=0)
@@ -127,7 +129,7 @@ def decode_cw(raw: np.ndarray, modulation: Modulation) -> CwDecoding:
         results.append(phase_amplitude_offset(raw[start:start + n]))
         start += n
     phase, amplitude, offset = (np.stack(parts) for parts in zip(*results))
-    f_hz = np.asarray(modulation.frequencies_hz).reshape((-1,) + (1,) * (raw.ndim - 1))
+    f_hz = namespace(raw).asarray(modulation.frequencies_hz).reshape((-1,) + (1,) * (raw.ndim - 1))
     return CwDecoding(phase=phase, amplitude=amplitude, offset=offset,
                       wrapped_distance=SPEED_OF_LIGHT_M_S * phase / (4.0 * np.pi * f_hz))
 
@@ -180,15 +182,16 @@ def unwrap(cw: CwDecoding, modulation: Modulation, *, tolerance_m: float | None 
                           f"the highest frequency in the unambiguous range (a larger common divisor), "
                           f"got {n_candidates} for {modulation.frequencies_hz!r}")
     wrapped = cw.wrapped_distance
-    f_hz = np.asarray(modulation.frequencies_hz).reshape((-1,) + (1,) * (wrapped.ndim - 1))
+    xp = namespace(wrapped)
+    f_hz = xp.asarray(modulation.frequencies_hz).reshape((-1,) + (1,) * (wrapped.ndim - 1))
     total = cw.amplitude + cw.offset
-    weight = np.divide((f_hz * cw.amplitude) ** 2, total, out=np.zeros_like(total), where=total > 0)
+    weight = np.where(total > 0, (f_hz * cw.amplitude) ** 2 / np.where(total > 0, total, 1.0), 0.0)
     weight_sum = weight.sum(axis=0)
     weight = np.where(weight_sum > 0, weight, 1.0)  # no signal anywhere: equal weights (pixel is NO_RETURN)
     weight = weight / weight.sum(axis=0)
 
-    best_r2 = np.full(wrapped.shape[1:], np.inf)
-    best_d = np.zeros(wrapped.shape[1:])
+    best_r2 = xp.full(wrapped.shape[1:], np.inf)
+    best_d = xp.zeros(wrapped.shape[1:])
     for n in range(n_candidates):
         candidate = wrapped[h] + n * d_amb[h]
         unwrapped = np.empty_like(wrapped)
@@ -263,20 +266,28 @@ def decode(raw: np.ndarray, modulation: Modulation, *, min_amplitude_e: float = 
         amplitude = raw[0] + raw[1]
         offset = 0.5 * amplitude
         no_return = ~(amplitude > 0)
-        confidence = np.ones(amplitude.shape)
-        unwrap_failed = np.zeros(amplitude.shape, dtype=bool)
+        confidence = namespace(raw).ones(amplitude.shape)
+        unwrap_failed = namespace(raw).zeros(amplitude.shape, dtype=bool)
     saturated = (np.any(raw >= saturation_e, axis=0) if saturation_e is not None
-                 else np.zeros(amplitude.shape, dtype=bool))
+                 else namespace(raw).zeros(amplitude.shape, dtype=bool))
     with np.errstate(invalid="ignore"):  # NaN distances of no-return pixels compare False
         out_of_range = ~((distance >= range_min) & (distance <= range_max))
-    reason = np.select([saturated, no_return, amplitude < min_amplitude_e, unwrap_failed, out_of_range],
-                       [Reason.SATURATED, Reason.NO_RETURN, Reason.LOW_AMPLITUDE, Reason.UNWRAPPING_FAILED,
-                        Reason.OUT_OF_RANGE], Reason.VALID).astype(np.uint8)
+    reason = _first_reason([(saturated, Reason.SATURATED), (no_return, Reason.NO_RETURN),
+                            (amplitude < min_amplitude_e, Reason.LOW_AMPLITUDE),
+                            (unwrap_failed, Reason.UNWRAPPING_FAILED), (out_of_range, Reason.OUT_OF_RANGE)])
     valid = reason == Reason.VALID
     return Decoded(distance=np.where(valid, distance, np.nan).astype(np.float32),
                    amplitude=amplitude.astype(np.float32), offset=offset.astype(np.float32),
                    intensity=raw.mean(axis=0).astype(np.float32),
                    confidence=np.where(valid, confidence, 0.0).astype(np.float32), valid=valid, reason=reason)
+
+
+def _first_reason(checks: list) -> np.ndarray:
+    """uint8 reason per pixel: the first (mask, reason) pair that holds, else VALID (``np.select``, any backend)."""
+    reason = namespace(checks[0][0]).full(checks[0][0].shape, int(Reason.VALID), np.uint8)
+    for mask, code in reversed(checks):
+        reason = np.where(mask, np.uint8(code), reason)
+    return reason.astype(np.uint8)
 
 
 def radial_to_z(distance: np.ndarray, ray_directions: np.ndarray) -> np.ndarray:
@@ -287,8 +298,8 @@ def radial_to_z(distance: np.ndarray, ray_directions: np.ndarray) -> np.ndarray:
     distance : (*shape) radial distance lens → surface in metres (NaN where invalid, stays NaN).
     ray_directions : (*shape, 3) unit ray directions in the sensor frame (x right, y down, z forward).
     """
-    distance = np.asarray(distance, dtype=np.float64)
-    directions = np.asarray(ray_directions, dtype=np.float64)
+    distance = asarray(distance, dtype=np.float64)
+    directions = asarray(ray_directions, dtype=np.float64)
     if directions.shape != distance.shape + (3,):
         raise ConfigError(f"radial_to_z: ray_directions must have shape {distance.shape + (3,)}, "
                           f"got {directions.shape}")
@@ -308,7 +319,7 @@ def systematic_error_curve(modulation: Modulation, distances_m: np.ndarray) -> n
     (F, n) float64: CW — wrapped distance of each frequency minus the truth, wrapped into
     [−d_amb/2, d_amb/2) (the square wave's "wiggling" error, §6.4); pulsed — (1, n) eq. 2.36 minus the truth.
     """
-    distances_m = np.asarray(distances_m, dtype=np.float64)
+    distances_m = asarray(distances_m, dtype=np.float64)
     raw = ideal_raw(modulation, distances_m, 1.0)
     if not modulation.is_cw:
         return (decode_pulsed(raw, modulation) - distances_m)[None]
@@ -319,7 +330,7 @@ def systematic_error_curve(modulation: Modulation, distances_m: np.ndarray) -> n
 
 # ------------------------------------------------------------------ checks
 def _check_raw(raw: np.ndarray, modulation: Modulation) -> np.ndarray:
-    raw = np.asarray(raw, dtype=np.float64)
+    raw = asarray(raw, dtype=np.float64)
     if raw.ndim < 1 or raw.shape[0] != modulation.raw_count:
         raise ConfigError(f"decode: raw must have {modulation.raw_count} raw images on axis 0 "
                           f"({', '.join(modulation.raw_labels())}), got shape {raw.shape}")

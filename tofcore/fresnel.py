@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from .backend import asarray
 
 
 def fresnel_dielectric(cos_theta_i: ArrayLike, eta: ArrayLike) -> NDArray[np.float64]:
@@ -65,8 +66,8 @@ def fresnel_dielectric(cos_theta_i: ArrayLike, eta: ArrayLike) -> NDArray[np.flo
     Where sin²θ₂ ≥ 1 (total internal reflection for η < 1, and the grazing
     limit cos θ₁ = 0 for η = 1) the result is 1.
     """
-    cos_1 = np.clip(np.asarray(cos_theta_i, dtype=np.float64), 0.0, 1.0)
-    eta = np.asarray(eta, dtype=np.float64)
+    cos_1 = np.clip(asarray(cos_theta_i, dtype=np.float64), 0.0, 1.0)
+    eta = asarray(eta, dtype=np.float64)
     sin2_2 = (1.0 - cos_1 * cos_1) / (eta * eta)
     total_internal = sin2_2 >= 1.0
     cos_2 = np.sqrt(np.maximum(1.0 - sin2_2, 0.0))
@@ -118,9 +119,9 @@ def fresnel_conductor(
     (:math:`\ge (\eta c - 1)^2` and :math:`\ge (\eta - c)^2`), so F ∈ [0, 1].
     The only vanishing denominator is η = k = 0 at c = 0, whose limit 1 is used.
     """
-    cos_i = np.clip(np.asarray(cos_theta_i, dtype=np.float64), 0.0, 1.0)
-    eta = np.asarray(eta, dtype=np.float64)
-    k = np.asarray(k, dtype=np.float64)
+    cos_i = np.clip(asarray(cos_theta_i, dtype=np.float64), 0.0, 1.0)
+    eta = asarray(eta, dtype=np.float64)
+    k = asarray(k, dtype=np.float64)
     eta2_k2 = eta * eta + k * k
     two_eta_cos = 2.0 * eta * cos_i
     cos2 = cos_i * cos_i

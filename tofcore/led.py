@@ -20,6 +20,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .backend import namespace
 from .errors import ConfigError
 
 KINDS = ("point", "lambertian")
@@ -54,5 +55,5 @@ class LED:
         :math:`I = I_0 \\max(0, \\cos\\theta)` (eq. 2.9); it emits nothing backwards.
         """
         if self.kind == "point":
-            return np.full(np.shape(cos_axis), self.intensity_w_sr)
+            return namespace(cos_axis).full(np.shape(cos_axis), float(self.intensity_w_sr))
         return self.intensity_w_sr * np.maximum(cos_axis, 0.0)

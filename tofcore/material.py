@@ -37,6 +37,7 @@ from dataclasses import dataclass, field, fields
 
 import numpy as np
 
+from .backend import device_copy, namespace
 from .errors import ConfigError
 
 
@@ -88,7 +89,7 @@ class Texture:
         y0 = y0.astype(np.int64) % h
         x1 = (x0 + 1) % w
         y1 = (y0 + 1) % h
-        d = self.data
+        d = device_copy(namespace(uv), self.data)
         if d.ndim == 3:
             fx = fx[:, None]
             fy = fy[:, None]

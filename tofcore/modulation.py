@@ -53,6 +53,7 @@ import numpy as np
 
 from .errors import ConfigError
 from .transport import SPEED_OF_LIGHT_M_S
+from .backend import asarray
 
 KINDS = ("pulsed", "cw_square", "cw_sine")
 DEFAULT_PHASE_STEPS = 4
@@ -82,7 +83,7 @@ def sine_correlation(tau_s: np.ndarray, f_hz: float, offset_fraction: float) -> 
 
     .. math:: g(\\tau) = \\frac12 + \\frac1\\pi \\cos\\big(2\\pi (f\\tau - k/N)\\big)
     """
-    return 0.5 + np.cos(2.0 * np.pi * (f_hz * np.asarray(tau_s, dtype=np.float64) - offset_fraction)) / np.pi
+    return 0.5 + np.cos(2.0 * np.pi * (f_hz * asarray(tau_s, dtype=np.float64) - offset_fraction)) / np.pi
 
 
 def square_correlation(tau_s: np.ndarray, f_hz: float, offset_fraction: float, duty: float) -> np.ndarray:
@@ -111,7 +112,7 @@ def square_correlation(tau_s: np.ndarray, f_hz: float, offset_fraction: float, d
 
     This is the closed form of the thesis's loop over previous pulses (§5.1.2, listing after eq. 5.2).
     """
-    cycles = f_hz * np.asarray(tau_s, dtype=np.float64) - offset_fraction
+    cycles = f_hz * asarray(tau_s, dtype=np.float64) - offset_fraction
     u = np.abs(np.mod(cycles + 0.5, 1.0) - 0.5)
     return np.clip(0.25 + 0.5 * duty - u, max(0.0, duty - 0.5), min(duty, 0.5)) / duty
 
@@ -140,7 +141,7 @@ def pulsed_correlation(tau_s: np.ndarray, pulse_width_s: float, bucket: int) -> 
 
     and :math:`Q_2/(Q_1 + Q_2) = \\tau / t_0` (eq. 2.35) without ambient light.
     """
-    return np.clip(1.0 - np.abs(np.asarray(tau_s, dtype=np.float64) / pulse_width_s - bucket), 0.0, 1.0)
+    return np.clip(1.0 - np.abs(asarray(tau_s, dtype=np.float64) / pulse_width_s - bucket), 0.0, 1.0)
 
 
 # ------------------------------------------------------------------ configuration
@@ -290,7 +291,7 @@ class Modulation:
         """Per frequency d_amb = c / (2 f) in metres (eq. 2.42); pulsed: (d_max,) = (c t0 / 2,) (eq. 2.37)."""
         if not self.is_cw:
             return np.array([SPEED_OF_LIGHT_M_S * self.pulse_width_s / 2.0])
-        return SPEED_OF_LIGHT_M_S / (2.0 * np.asarray(self.frequencies_hz))
+        return SPEED_OF_LIGHT_M_S / (2.0 * asarray(self.frequencies_hz))
 
     def unambiguous_range_m(self) -> float:
         """Distance up to which the depth is unique, in metres.
@@ -319,7 +320,7 @@ def ideal_raw(modulation: Modulation, distance_m: np.ndarray, signal_e: np.ndarr
     -------
     float64 array with :math:`Q_j = S \\, g_j(2 d / c) + A_{amb} \\, \\mathrm{gate\\_duty}_j`.
     """
-    tau_s = 2.0 * np.asarray(distance_m, dtype=np.float64) / SPEED_OF_LIGHT_M_S
+    tau_s = 2.0 * asarray(distance_m, dtype=np.float64) / SPEED_OF_LIGHT_M_S
     duty = modulation.gate_duty()
-    return np.stack([np.asarray(signal_e, dtype=np.float64) * g(tau_s) + ambient_e * duty[j]
+    return np.stack([asarray(signal_e, dtype=np.float64) * g(tau_s) + ambient_e * duty[j]
                      for j, g in enumerate(modulation.correlations())])

@@ -37,6 +37,7 @@ import numpy as np
 
 from .errors import ConfigError
 from .transport import SPEED_OF_LIGHT_M_S
+from .backend import asarray
 
 
 def _check_rng(where: str, rng) -> None:
@@ -75,7 +76,7 @@ def add_raw_noise(raw: np.ndarray, *, read_noise_e: float, rng: np.random.Genera
     where = "add_raw_noise"
     _check_non_negative(where, "read_noise_e", read_noise_e)
     _check_rng(where, rng)
-    charge = np.asarray(raw, dtype=np.float64)
+    charge = asarray(raw, dtype=np.float64)
     if not np.isfinite(charge).all():
         raise ConfigError(f"{where}: raw must be finite, got {np.count_nonzero(~np.isfinite(charge))} "
                           f"non-finite values")
@@ -131,7 +132,7 @@ def li_sigma_m(amplitude, offset, f_hz: float, modulation_contrast: float) -> np
         raise ConfigError(f"{where}: f_hz must be a finite number > 0, got {f_hz!r}")
     if not (isinstance(modulation_contrast, (int, float, np.number)) and 0.0 < modulation_contrast <= 1.0):
         raise ConfigError(f"{where}: modulation_contrast must be a number in (0, 1], got {modulation_contrast!r}")
-    a, b = np.broadcast_arrays(np.asarray(amplitude, dtype=np.float64), np.asarray(offset, dtype=np.float64))
+    a, b = np.broadcast_arrays(asarray(amplitude, dtype=np.float64), asarray(offset, dtype=np.float64))
     scale_m = SPEED_OF_LIGHT_M_S / (4.0 * math.sqrt(2.0) * math.pi * f_hz)
     safe_a = np.where(a > 0.0, a, 1.0)
     sigma = np.where(a > 0.0, scale_m * np.sqrt(np.maximum(a + b, 0.0)) / (modulation_contrast * safe_a), np.inf)
@@ -153,8 +154,8 @@ def add_distance_noise(distance, sigma, rng: np.random.Generator) -> np.ndarray:
     """
     where = "add_distance_noise"
     _check_rng(where, rng)
-    d = np.asarray(distance, dtype=np.float64)
-    s = np.asarray(sigma, dtype=np.float64)
+    d = asarray(distance, dtype=np.float64)
+    s = asarray(sigma, dtype=np.float64)
     if np.any(s < 0.0):
         raise ConfigError(f"{where}: sigma must be >= 0 (m), got minimum {float(np.nanmin(s))!r}")
     shape = np.broadcast_shapes(d.shape, s.shape)
@@ -179,6 +180,6 @@ def keller_amplitude_noise(raw: np.ndarray, *, alpha_e: float, beta: float,
     _check_non_negative(where, "alpha_e", alpha_e)
     _check_non_negative(where, "beta", beta)
     _check_rng(where, rng)
-    value = np.asarray(raw, dtype=np.float64)
+    value = asarray(raw, dtype=np.float64)
     n = rng.standard_normal(value.shape)
     return np.maximum(value + alpha_e * n + value * beta * n, 0.0)

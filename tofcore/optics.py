@@ -42,6 +42,7 @@ import math
 import numpy as np
 
 from .errors import ConfigError
+from .backend import asarray, namespace
 
 try:  # OpenCV is optional: a faster convolution when installed, same result as the NumPy path
     import cv2
@@ -90,7 +91,7 @@ def bessel_j1(x: np.ndarray) -> np.ndarray:
     J1 is odd; the tests check it against the integral :math:`\\frac1\\pi\\int_0^\\pi
     \\cos(\\tau - x\\sin\\tau)\\,d\\tau`.
     """
-    x = np.asarray(x, dtype=np.float64)
+    x = asarray(x, dtype=np.float64)
     ax = np.abs(x)
     t2 = (np.minimum(ax, 3.0) / 3.0) ** 2
     small = x * (0.5 + t2 * (-0.56249985 + t2 * (0.21093573 + t2 * (-0.03954289 + t2 * (
@@ -124,7 +125,7 @@ def airy_profile(r_px: np.ndarray, *, radius_px: float, negative_lobe: float) ->
     Airy pattern. I has double zeros at the dark rings, so p stays continuously
     differentiable; the outer rings are the Airy ones (envelope 8/(π x³)).
     """
-    x = J1_ZERO_1 * np.asarray(r_px, dtype=np.float64) / radius_px
+    x = J1_ZERO_1 * asarray(r_px, dtype=np.float64) / radius_px
     safe_x = np.where(x > 0.0, x, 1.0)
     intensity = np.where(x > 0.0, (2.0 * bessel_j1(safe_x) / safe_x) ** 2, 1.0)
     first_ring = (x > J1_ZERO_1) & (x < J1_ZERO_2)
@@ -214,7 +215,7 @@ def _check_gaussians(sigmas_px, weights) -> tuple[list[float], list[float]]:
 def _float_vector(values) -> np.ndarray | None:
     """``values`` as a flat float64 array, or None if they are not numbers."""
     try:
-        return np.asarray(values, dtype=np.float64).ravel()
+        return asarray(values, dtype=np.float64).ravel()
     except (TypeError, ValueError):
         return None
 
@@ -287,12 +288,12 @@ def apply_scattering(raw: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     closest stand-in. Negative taps can make a dark pixel's charge negative
     next to a bright one; it is kept (noise clips it, :mod:`tofcore.noise`).
 
-    OpenCV's ``filter2D`` is used when installed, else an FFT convolution
-    (:func:`_convolve_fft`); both are exact to float64 round-off and tested
+    OpenCV's ``filter2D`` is used when installed, else (and always on the GPU, with cuFFT) an FFT
+    convolution (:func:`_convolve_fft`); both are exact to float64 round-off and tested
     against a direct sum.
     """
-    raw = np.asarray(raw, dtype=np.float64)
-    kernel = np.asarray(kernel, dtype=np.float64)
+    raw = asarray(raw, dtype=np.float64)
+    kernel = namespace(raw).asarray(kernel, dtype=np.float64)
     if kernel.ndim != 2 or kernel.shape[0] % 2 == 0 or kernel.shape[1] % 2 == 0 or not np.isfinite(kernel).all():
         raise ConfigError(f"apply_scattering: kernel must be a finite 2-D array with odd sides, "
                           f"got shape {kernel.shape!r}")
@@ -301,7 +302,8 @@ def apply_scattering(raw: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     if kernel.shape == (1, 1):
         return raw * kernel[0, 0]
     images = raw.reshape(-1, *raw.shape[-2:])
-    out = _convolve_cv2(images, kernel) if cv2 is not None else _convolve_fft(images, kernel)
+    on_cpu = namespace(images) is np
+    out = _convolve_cv2(images, kernel) if cv2 is not None and on_cpu else _convolve_fft(images, kernel)
     return out.reshape(raw.shape)
 
 
@@ -321,10 +323,11 @@ def _convolve_fft(images: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """
     hy, hx = kernel.shape[0] // 2, kernel.shape[1] // 2
     _, height, width = images.shape
-    padded = np.pad(images, ((0, 0), (hy, hy), (hx, hx)), mode="symmetric")
+    xp = namespace(images)  # NumPy, or CuPy's cuFFT on the GPU
+    padded = xp.pad(images, ((0, 0), (hy, hy), (hx, hx)), mode="symmetric")
     shape = (_fast_fft_length(height + 2 * hy), _fast_fft_length(width + 2 * hx))
-    spectrum = np.fft.rfft2(padded, s=shape) * np.fft.rfft2(kernel, s=shape)
-    full = np.fft.irfft2(spectrum, s=shape)
+    spectrum = xp.fft.rfft2(padded, s=shape) * xp.fft.rfft2(kernel, s=shape)
+    full = xp.fft.irfft2(spectrum, s=shape)
     return full[:, 2 * hy:2 * hy + height, 2 * hx:2 * hx + width]
 
 

@@ -39,10 +39,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import backend
 from . import decode as decoding
 from . import noise as noise_models
 from . import optics
 from .ambient import Ambient
+from .backend import gpu_errors, namespace
 from .errors import ConfigError
 from .frame import Frame
 from .plan import Plan, make_plan
@@ -132,8 +134,9 @@ def raw_images(correlation_means: np.ndarray, ambient_mean: np.ndarray, sensor) 
     light adds to every bucket the charge its gate lets through (SPEC §3).
     """
     mod = sensor.modulation
-    exposure = mod.raw_exposure_s()[:, None, None]
-    duty = mod.gate_duty()[:, None, None]
+    xp = namespace(correlation_means)
+    exposure = xp.asarray(mod.raw_exposure_s())[:, None, None]
+    duty = xp.asarray(mod.gate_duty())[:, None, None]
     return sensor.readout.responsivity * exposure * (correlation_means + ambient_mean[None] * duty)
 
 
@@ -150,8 +153,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                        target_error_m: float | None = None, ambient: Ambient | None = None,
                        reference_distance: np.ndarray | None = None,
                        progress: Callable[[dict], None] | None = None, cancel: Callable[[], bool] | None = None,
-                       workers: int | None = None, chunk_size: int = 1 << 16,
-                       every_pass: bool = True) -> Iterator[Frame]:
+                       workers: int | None = None, chunk_size: int | None = None,
+                       every_pass: bool = True, device: str | backend.Device = "cpu") -> Iterator[Frame]:
     """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
 
     The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
@@ -174,8 +177,46 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     workers, chunk_size : passed to the tracer.
     every_pass : build and yield a frame after every pass (False: only the final one, which saves
         decoding the intermediate passes).
+    device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering and decoding on the GPU;
+        the random sensor noise is drawn on the CPU so that both devices give the same frame) or
+        ``"auto"`` (the GPU when usable, else the CPU). The frame's arrays are NumPy either way;
+        ``frame.stats["device"]`` records where it ran and, for ``"auto"``, why it fell back.
+        GPU failures (no CuPy, no device, out of memory, CUDA errors) raise
+        :class:`~tofcore.backend.GpuUnavailable` with one line naming the cause; with ``"auto"``
+        a failure before the first frame falls back to the CPU (recorded in ``fallback_reason``).
     """
     _check_settings(spp, time_budget_s, target_error_m)
+    dev = backend.select_device(device)
+    if not dev.is_gpu:
+        yield from _render_passes(scene, sensor, pose, spp=spp, max_depth=max_depth, seed=seed,
+                                  time_budget_s=time_budget_s, target_error_m=target_error_m, ambient=ambient,
+                                  reference_distance=reference_distance, progress=progress, cancel=cancel,
+                                  workers=workers, chunk_size=chunk_size, every_pass=every_pass, device=dev)
+        return
+    started = False
+    try:
+        with gpu_errors():
+            for frame in _render_passes(scene, sensor, pose, spp=spp, max_depth=max_depth, seed=seed,
+                                        time_budget_s=time_budget_s, target_error_m=target_error_m,
+                                        ambient=ambient, reference_distance=reference_distance,
+                                        progress=progress, cancel=cancel, workers=workers,
+                                        chunk_size=chunk_size, every_pass=every_pass, device=dev):
+                started = True
+                yield frame
+    except backend.GpuUnavailable as exc:
+        if dev.requested != "auto" or started:
+            raise
+        yield from _render_passes(scene, sensor, pose, spp=spp, max_depth=max_depth, seed=seed,
+                                  time_budget_s=time_budget_s, target_error_m=target_error_m, ambient=ambient,
+                                  reference_distance=reference_distance, progress=progress, cancel=cancel,
+                                  workers=workers, chunk_size=None, every_pass=every_pass,
+                                  device=backend.cpu_device("auto", str(exc)))
+
+
+def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_budget_s, target_error_m, ambient,
+                   reference_distance, progress, cancel, workers, chunk_size, every_pass,
+                   device: backend.Device) -> Iterator[Frame]:
+    """:func:`render_progressive` on one resolved device."""
     if sensor.noise.model == "li" and sensor.modulation.kind == "pulsed":
         raise ConfigError(f"render: sensor {sensor.name!r}: noise model 'li' (eq. 2.43) needs a continuous-wave "
                           f"sensor, got modulation kind 'pulsed'; use noise model 'raw'")
@@ -199,16 +240,16 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     passes = trace_progressive(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
                                correlations=correlations + extra, ambient=ambient if plan.ambient else None,
                                spp=spp, max_depth=max_depth, seed=seed, workers=workers, chunk_size=chunk_size,
-                               cancel=cancel)
+                               cancel=cancel, device=device)
     for transport in passes:
         elapsed = time.perf_counter() - start
         samples = int(transport.sample_count[0])
-        sigma = depth_standard_error(transport, channels, n_raw, mod.gate_duty())
+        sigma = backend.to_host(depth_standard_error(transport, channels, n_raw, mod.gate_duty()))
         seen = np.isfinite(transport.first_hit.distance_m) & np.isfinite(sigma)
         row = {"pass": transport.stats.passes, "seconds": elapsed, "spp": samples,
                "est_depth_error_m": _rms(sigma[seen]), "rays": transport.stats.rays}
         if reference_distance is not None:
-            current = _decode_clean(transport, sensor, transport.max_depth, n_raw).distance
+            current = backend.to_host(_decode_clean(transport, sensor, transport.max_depth, n_raw).distance)
             both = np.isfinite(current) & np.isfinite(reference_distance)
             row["rms_error_m"] = _rms(current[both] - reference_distance[both])
         log.append(row)
@@ -228,7 +269,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
             "final": done, "trace_seconds": elapsed, "seconds": time.perf_counter() - start, "spp": samples,
             "spp_max": spp, "max_depth": max_depth, "seed": seed, "time_budget_s": time_budget_s,
             "target_error_m": target_error_m, "plan": plan.as_dict(), "convergence": list(log),
-            "transport": transport.stats.as_dict(),
+            "transport": transport.stats.as_dict(), "device": device.as_dict(),
         })
         yield frame
         if done:
@@ -265,13 +306,17 @@ def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int
                                    negative_lobe=s.negative_lobe, sigmas_px=s.sigmas_px, weights=s.weights)
         raw = optics.apply_scattering(raw, kernel)
     noise_rng = np.random.default_rng(np.random.SeedSequence([seed, 0x70F]))  # apart from the tracer's stream
-    if plan.raw_noise:
-        raw = noise_models.add_raw_noise(raw, read_noise_e=sensor.noise.read_noise_e, rng=noise_rng)
+    xp = namespace(raw)
+    if plan.raw_noise:  # drawn on the CPU from one stream, so both devices give the same frame
+        raw = xp.asarray(noise_models.add_raw_noise(backend.to_host(raw), read_noise_e=sensor.noise.read_noise_e,
+                                                    rng=noise_rng))
     full_well = sensor.readout.full_well_e
     raw = np.minimum(raw, full_well)
     decoded = decoding.decode(raw, mod, min_amplitude_e=sensor.invalid.min_amplitude_e,
                               saturation_e=full_well if sensor.invalid.invalidate_saturated else None,
                               range_m=tuple(sensor.range_m), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+    decoded = decoding.Decoded(**{k: backend.to_host(v) for k, v in vars(decoded).items()})
+    raw = backend.to_host(raw)
     distance = np.asarray(decoded.distance, dtype=np.float64)
     valid = np.asarray(decoded.valid, dtype=bool)
     if plan.distance_noise:
@@ -283,8 +328,8 @@ def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int
         distance = np.where(valid, noise_models.add_distance_noise(distance, sigma, noise_rng), np.nan)
 
     directions = cam.pixel_center_directions()
-    per_k = np.stack([_decode_clean(transport, sensor, k, n_raw).distance
-                      for k in range(1, transport.max_depth + 1)]).astype(np.float32)
+    per_k = backend.to_host(xp.stack([_decode_clean(transport, sensor, k, n_raw).distance
+                                      for k in range(1, transport.max_depth + 1)]).astype(np.float32))
     gt = transport.first_hit.distance_m
     as_depth = (lambda d: decoding.radial_to_z(d, directions)) if sensor.depth_output == "z" else (lambda d: d)
     return Frame(

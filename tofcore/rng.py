@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from .backend import is_device_array
+
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _MIX_PIXEL = np.uint64(0xD1B54A32D192ED03)
 _MIX_SAMPLE = np.uint64(0xAEF17502108EF2D9)
@@ -52,8 +54,12 @@ def uniform(key: np.uint64, pixel: np.ndarray, sample: np.ndarray, dim: int) -> 
 
     Returns
     -------
-    float64 array of the shape of ``pixel``, 53 random bits each.
+    float64 array of the shape of ``pixel``, 53 random bits each; on the GPU (CuPy arrays) one fused
+    kernel (:func:`tofcore.gpu.fused.uniform`) computes the same bits.
     """
+    if is_device_array(pixel):
+        from .gpu import fused
+        return fused.uniform(key, pixel, sample, dim)
     with np.errstate(over="ignore"):
         x = (key
              ^ (pixel.astype(np.uint64) * _MIX_PIXEL)

@@ -31,12 +31,13 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
+from .backend import asarray
 
 FloatArray = NDArray[np.float64]
 
 
 def _as_float64(values: ArrayLike) -> FloatArray:
-    return np.asarray(values, dtype=np.float64)
+    return asarray(values, dtype=np.float64)
 
 
 def sample_concentric_disk(u1: ArrayLike, u2: ArrayLike) -> tuple[FloatArray, FloatArray]:
@@ -223,7 +224,7 @@ def pdf_beckmann_normal(m: ArrayLike, alpha: ArrayLike) -> FloatArray:
 
 def _mirror_azimuth(m: FloatArray) -> FloatArray:
     """The other facet of m's V-cavity: (−m_x, −m_y, m_z)."""
-    return m * np.array([-1.0, -1.0, 1.0])
+    return np.stack([-m[..., 0], -m[..., 1], m[..., 2]], axis=-1)
 
 
 def sample_vcavity_visible_normal(

@@ -19,8 +19,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import functools
+
 import numpy as np
 
+from .backend import device_copy
 from .bsdf import SurfaceParams
 from .material import PARAMETER_NAMES
 from .scene import Scene
@@ -65,12 +68,26 @@ def orthonormal_basis(n: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 class MaterialTable:
-    """Per-material parameters as arrays, for vectorised lookup by material index."""
+    """The scene's arrays and per-material parameters on one device, for vectorised lookup by index.
 
-    def __init__(self, scene: Scene):
+    ``xp`` is the array module the tracer runs on (NumPy, or CuPy for the GPU): the scene's
+    triangles, vertices, normals, UVs and ids are uploaded once (:func:`tofcore.backend.device_copy`).
+    """
+
+    def __init__(self, scene: Scene, xp=np):
         self.scene = scene
-        self.values = {k: np.array([getattr(m, k) for m in scene.materials]) for k in PARAMETER_NAMES}
+        self.xp = xp
+        self.values = {k: xp.asarray(np.array([getattr(m, k) for m in scene.materials], np.float64))
+                       for k in PARAMETER_NAMES}
         self.textured = [i for i, m in enumerate(scene.materials) if m.textures]
+        on_device = functools.partial(device_copy, xp)
+        self.triangles = on_device(scene.triangles)
+        self.vertices = on_device(scene.vertices)
+        self.face_normals = on_device(scene.face_normals)
+        self.normals = None if scene.normals is None else on_device(scene.normals)
+        self.uvs = None if scene.uvs is None else on_device(scene.uvs)
+        self.material_ids = on_device(scene.material_ids)
+        self.object_ids = on_device(scene.object_ids)
 
     @property
     def has_textures(self) -> bool:
@@ -80,12 +97,12 @@ class MaterialTable:
 def surface_at(scene: Scene, table: MaterialTable, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
                ray_origin: np.ndarray, ray_direction: np.ndarray) -> Surface:
     """Surface where rays (float64 origins, unit directions; world frame) hit triangles ``prim`` at barycentrics (u, v)."""
-    tri = scene.triangles[prim]
+    tri = table.triangles[prim]
     w0 = (1.0 - u - v).astype(np.float64)[:, None]
     u64 = u.astype(np.float64)[:, None]
     v64 = v.astype(np.float64)[:, None]
-    verts = scene.vertices
-    ng = scene.face_normals[prim].astype(np.float64)
+    verts = table.vertices
+    ng = table.face_normals[prim].astype(np.float64)
     # Float64 ray-plane intersection (the BVH's float32 barycentrics only select the triangle).
     cos_ray = _dot(ray_direction, ng)
     steep = np.abs(cos_ray) > 1e-9
@@ -96,16 +113,16 @@ def surface_at(scene: Scene, table: MaterialTable, prim: np.ndarray, u: np.ndarr
 
     facing = np.where(_dot(ng, ray_direction) > 0, -1.0, 1.0)[:, None]
     ng = ng * facing
-    if scene.normals is not None:
-        nrm = scene.normals
+    if table.normals is not None:
+        nrm = table.normals
         ns = _normalize(w0 * nrm[tri[:, 0]] + u64 * nrm[tri[:, 1]] + v64 * nrm[tri[:, 2]])
     else:
         ns = ng.copy()
 
-    mat = scene.material_ids[prim]
+    mat = table.material_ids[prim]
     values = {k: table.values[k][mat] for k in PARAMETER_NAMES}
     if table.has_textures:
-        uv = w0 * scene.uvs[tri[:, 0]] + u64 * scene.uvs[tri[:, 1]] + v64 * scene.uvs[tri[:, 2]]
+        uv = w0 * table.uvs[tri[:, 0]] + u64 * table.uvs[tri[:, 1]] + v64 * table.uvs[tri[:, 2]]
         for i in table.textured:
             sel = np.flatnonzero(mat == i)
             if len(sel) == 0:
@@ -116,7 +133,7 @@ def surface_at(scene: Scene, table: MaterialTable, prim: np.ndarray, u: np.ndarr
                 if tex is not None:
                     values[key][sel] = tex.sample(uv[sel])
             if m.normal_texture is not None:
-                ns[sel] = _perturb(scene, prim[sel], ns[sel] * np.sign(_dot(ns[sel], ng[sel]))[:, None],
+                ns[sel] = _perturb(table, prim[sel], ns[sel] * np.sign(_dot(ns[sel], ng[sel]))[:, None],
                                    m.normal_texture.sample(uv[sel])[:, :3])
     ns = ns * np.where(_dot(ns, ng) < 0, -1.0, 1.0)[:, None]
     tangent, bitangent = orthonormal_basis(ns)
@@ -127,15 +144,15 @@ def surface_at(scene: Scene, table: MaterialTable, prim: np.ndarray, u: np.ndarr
                    shading_normal=ns, params=params)
 
 
-def _perturb(scene: Scene, prim: np.ndarray, n: np.ndarray, rgb: np.ndarray) -> np.ndarray:
+def _perturb(table: MaterialTable, prim: np.ndarray, n: np.ndarray, rgb: np.ndarray) -> np.ndarray:
     """Apply a tangent-space normal map (RGB in [0, 1]) to shading normals ``n``.
 
     The tangent follows increasing u on the triangle (dP/du from the UV
     parametrisation, Gram–Schmidt against n); the bitangent is n × t.
     """
-    tri = scene.triangles[prim]
-    p = scene.vertices.astype(np.float64)
-    uv = scene.uvs.astype(np.float64)
+    tri = table.triangles[prim]
+    p = table.vertices.astype(np.float64)
+    uv = table.uvs.astype(np.float64)
     e1, e2 = p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]]
     d1, d2 = uv[tri[:, 1]] - uv[tri[:, 0]], uv[tri[:, 2]] - uv[tri[:, 0]]
     det = d1[:, 0] * d2[:, 1] - d2[:, 0] * d1[:, 1]

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import rng
+from . import backend, rng
 from .ambient import Ambient
 from .bsdf import eval_bsdf, sample_bsdf
 from .camera import Camera
@@ -45,6 +45,7 @@ from .errors import Cancelled, ConfigError
 from .led import LED
 from .plan import leds_at_pinhole
 from .scene import Scene
+from .backend import namespace
 from .surface import MaterialTable, Surface, surface_at
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
@@ -208,12 +209,14 @@ class _Context:
     """Everything a chunk needs, fixed for the whole trace."""
 
     scene: Scene
-    table: MaterialTable
+    table: MaterialTable        # the scene's arrays on the tracing device
     camera: Camera
-    world_from_sensor: np.ndarray
-    lens_center: np.ndarray
-    led_positions: np.ndarray   # (L, 3) world frame
-    led_axis: np.ndarray        # (3,) world frame optical axis (+z of the sensor)
+    device: backend.Device      # where the wavefront runs; xp = device.xp
+    world_from_sensor: np.ndarray  # 4×4 host pose
+    rotation: object            # (3, 3) world_from_sensor rotation, device array
+    lens_center: object         # (3,) world frame, device array
+    led_positions: object       # (L, 3) world frame, device array
+    led_axis: object            # (3,) world frame optical axis (+z of the sensor), device array
     leds: tuple[LED, ...]
     skip_first_shadow: np.ndarray  # (L,) bool: LED at the centre of a pinhole lens
     correlations: tuple[Correlation, ...]
@@ -238,9 +241,10 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       correlations: Sequence[Correlation] = (),
                       ambient: Ambient | None = None,
                       spp: int = 16, max_depth: int = 5, seed: int = 0,
-                      chunk_size: int = 1 << 16, workers: int | None = None,
+                      chunk_size: int | None = None, workers: int | None = None,
                       transient_bin_m: float | None = None, transient_max_m: float | None = None,
-                      cancel: Callable[[], bool] | None = None) -> Iterator[Transport]:
+                      cancel: Callable[[], bool] | None = None,
+                      device: str | backend.Device = "cpu") -> Iterator[Transport]:
     """Trace in progressive passes, yielding the accumulated :class:`Transport` after each.
 
     Parameters
@@ -251,34 +255,44 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     ambient : background radiance; ``None`` or black skips all ambient work.
     spp : samples per pixel in total; max_depth : surface vertices per path (1 = direct only).
     seed : non-negative int; the same seed gives the same frame for any ``chunk_size``.
-    chunk_size : rays in flight per worker; bounds memory.
-    workers : threads tracing chunks at once (default: the CPU count). Chunks own disjoint
-        pixels, so the result does not depend on it.
+    chunk_size : paths in flight per chunk; bounds memory. Default: 65,536 on the CPU (temporaries
+        stay in cache); on the GPU as many as :func:`gpu_chunk_paths` allows in free device memory.
+    workers : threads tracing chunks at once on the CPU (default: the CPU count; the GPU uses one).
+        Chunks own disjoint pixels, so the result does not depend on it.
     transient_bin_m, transient_max_m : optional histogram of w over path length (bin width, range), metres.
     cancel : polled before every chunk; when it returns True, :class:`~tofcore.errors.Cancelled` is raised.
+    device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy) or ``"auto"``, or a resolved :class:`tofcore.backend.Device`.
+        On the GPU the accumulators of the yielded :class:`Transport` are CuPy arrays (``first_hit`` is
+        always NumPy); the same seed gives the same sums within float rounding (``tests/tofcore/test_gpu.py``).
 
     The yielded object is the live accumulator: copy what you keep between passes.
     """
+    dev = backend.select_device(device)
+    xp = dev.xp
     ctx = _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_depth, seed,
-                   transient_bin_m, transient_max_m)
+                   transient_bin_m, transient_max_m, dev)
     if not isinstance(spp, (int, np.integer)) or spp < 1:
         raise ConfigError(f"trace: spp must be an integer >= 1, got {spp!r}")
+    if chunk_size is None:
+        chunk_size = gpu_chunk_paths(xp, len(ctx.correlations)) if dev.is_gpu else CPU_CHUNK_PATHS
     if not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ConfigError(f"trace: chunk_size must be an integer >= 1, got {chunk_size!r}")
     workers = (os.cpu_count() or 1) if workers is None else workers
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ConfigError(f"trace: workers must be an integer >= 1, got {workers!r}")
+    if dev.is_gpu:
+        workers = 1  # one stream of large wavefronts; threads would only serialise on it
     start = time.perf_counter()
     n_pix = camera.width * camera.height
     n_corr = len(ctx.correlations)
     stats = TraceStats()
     transport = Transport(
         width=camera.width, height=camera.height, max_depth=max_depth, n_correlations=n_corr,
-        sample_count=np.zeros(n_pix, np.int64),
-        signal_sum=np.zeros((max_depth, n_pix)), correlation_sum=np.zeros((max_depth, n_corr, n_pix)),
-        ambient_sum=np.zeros(n_pix), square_sum=np.zeros((n_corr + 2, n_pix)),
+        sample_count=xp.zeros(n_pix, np.int64),
+        signal_sum=xp.zeros((max_depth, n_pix)), correlation_sum=xp.zeros((max_depth, n_corr, n_pix)),
+        ambient_sum=xp.zeros(n_pix), square_sum=xp.zeros((n_corr + 2, n_pix)),
         first_hit=_first_hit(ctx, stats),
-        transient_sum=np.zeros((n_pix, ctx.transient_bins)) if ctx.transient_bins else None,
+        transient_sum=xp.zeros((n_pix, ctx.transient_bins)) if ctx.transient_bins else None,
         transient_bin_m=ctx.transient_bin_m, stats=stats)
     first_sample = 0
     with ThreadPoolExecutor(max_workers=workers) as pool:
@@ -302,7 +316,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
 
 
 def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_depth, seed,
-             transient_bin_m, transient_max_m) -> _Context:
+             transient_bin_m, transient_max_m, device: backend.Device) -> _Context:
     if not isinstance(scene, Scene):
         raise ConfigError(f"trace: scene must be a tofcore.Scene, got {type(scene).__name__}")
     if not isinstance(camera, Camera):
@@ -334,14 +348,42 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
     led_world = positions @ rot.T + pose[:3, 3]
     lo, hi = scene.bounds
     extent = float(np.max(np.abs(np.concatenate([lo, hi, pose[:3, 3]]))))
+    xp = device.xp
     return _Context(
-        scene=scene, table=MaterialTable(scene), camera=camera, world_from_sensor=pose, lens_center=pose[:3, 3],
-        led_positions=led_world, led_axis=rot[:, 2], leds=leds,
+        scene=scene, table=MaterialTable(scene, xp), camera=camera, device=device, world_from_sensor=pose,
+        rotation=xp.asarray(rot), lens_center=xp.asarray(pose[:3, 3]),
+        led_positions=xp.asarray(led_world), led_axis=xp.asarray(rot[:, 2]), leds=leds,
         skip_first_shadow=leds_at_pinhole(camera, leds),
         correlations=correlations, ambient=None if ambient is None or ambient.is_black else ambient,
         max_depth=int(max_depth), key=rng.seed_key(seed),
         offset_scale=_OFFSET_RELATIVE * max(extent, 1e-3),
         transient_bins=bins, transient_bin_m=transient_bin_m)
+
+
+CPU_CHUNK_PATHS = 1 << 16
+"""Paths per chunk on the CPU: the per-bounce temporaries of 65,536 paths stay in L2/L3."""
+
+GPU_BYTES_PER_PATH = 2048
+"""Peak device memory per path in flight (all path state and per-bounce temporaries, 12 correlation
+channels), measured with CuPy's memory pool on the GPU benchmark frame (docs/benchmarks.md)."""
+
+GPU_MEMORY_FRACTION = 0.5
+"""Share of the free device memory one chunk may take (the rest: CuPy's pool slack, other processes)."""
+
+GPU_MAX_CHUNK_PATHS = 1 << 23
+"""At most 8.4 M paths per chunk: a whole 512 × 424 × 16 spp pass fits; more adds nothing but memory."""
+
+
+def gpu_chunk_paths(xp, n_correlations: int) -> int:
+    """Paths per chunk on the GPU: as many as fit in ``GPU_MEMORY_FRACTION`` of the free device memory.
+
+    Memory per path grows with the correlation channels (8 bytes each, per-path totals and per-bounce
+    sums); ``GPU_BYTES_PER_PATH`` holds 12. The chunk never drops below ``CPU_CHUNK_PATHS``, so a
+    nearly full GPU fails with a clear out-of-memory error rather than crawling.
+    """
+    free = backend.free_device_bytes(xp) or 0
+    per_path = GPU_BYTES_PER_PATH + 24 * max(0, n_correlations - 12)
+    return int(min(GPU_MAX_CHUNK_PATHS, max(CPU_CHUNK_PATHS, free * GPU_MEMORY_FRACTION // per_path)))
 
 
 _OFFSET_RELATIVE = 2.0**-16
@@ -356,30 +398,32 @@ triangle a ray leaves is excluded outright (``ignore_prim``).
 
 
 def _first_hit(ctx: _Context, stats: TraceStats) -> FirstHit:
+    """Trace the pixel-centre rays on the tracing device; the buffers come back as NumPy arrays."""
+    xp = ctx.device.xp
     cam = ctx.camera
-    rot = ctx.world_from_sensor[:3, :3]
-    d = cam.pixel_center_directions().reshape(-1, 3).astype(np.float64) @ rot.T
+    d = xp.asarray(cam.pixel_center_directions().reshape(-1, 3).astype(np.float64)) @ ctx.rotation.T
     n = len(d)
-    origin = np.broadcast_to(ctx.lens_center, (n, 3))
+    origin = xp.broadcast_to(ctx.lens_center, (n, 3))
     hits = ctx.scene.bvh.intersect(origin.astype(np.float32), d.astype(np.float32))
     stats.camera_rays += n
     hit = hits.prim >= 0
-    distance = np.full(n, np.nan)
-    position = np.full((n, 3), np.nan, np.float32)
-    normal = np.full((n, 3), np.nan, np.float32)
-    material = np.full(n, -1, np.int32)
-    obj = np.full(n, -1, np.int32)
+    distance = xp.full(n, np.nan)
+    position = xp.full((n, 3), np.nan, np.float32)
+    normal = xp.full((n, 3), np.nan, np.float32)
+    material = xp.full(n, -1, np.int32)
+    obj = xp.full(n, -1, np.int32)
     if hit.any():
         surf = surface_at(ctx.scene, ctx.table, hits.prim[hit], hits.u[hit], hits.v[hit], origin[hit], d[hit])
-        distance[hit] = np.linalg.norm(surf.position - ctx.lens_center, axis=1)
+        distance[hit] = xp.linalg.norm(surf.position - ctx.lens_center, axis=1)
         position[hit] = surf.position
         normal[hit] = surf.geometric_normal
-        material[hit] = ctx.scene.material_ids[hits.prim[hit]]
-        obj[hit] = ctx.scene.object_ids[hits.prim[hit]]
+        material[hit] = ctx.table.material_ids[hits.prim[hit]]
+        obj[hit] = ctx.table.object_ids[hits.prim[hit]]
     shape = (cam.height, cam.width)
-    return FirstHit(distance_m=distance.reshape(shape), position_m=position.reshape(shape + (3,)),
-                    normal=normal.reshape(shape + (3,)), material_id=material.reshape(shape),
-                    object_id=obj.reshape(shape), direction=d.astype(np.float32).reshape(shape + (3,)))
+    host = backend.to_host
+    return FirstHit(distance_m=host(distance).reshape(shape), position_m=host(position).reshape(shape + (3,)),
+                    normal=host(normal).reshape(shape + (3,)), material_id=host(material).reshape(shape),
+                    object_id=host(obj).reshape(shape), direction=host(d).astype(np.float32).reshape(shape + (3,)))
 
 
 def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sample: int, n_samples: int
@@ -391,20 +435,21 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
     """
     n_pix = p1 - p0
     n_corr = len(ctx.correlations)
+    xp = ctx.device.xp
     stats = TraceStats()
     # Path state, one entry per live path (compacted after every bounce):
-    slot = np.arange(n_pix * n_samples)                         # index of the path within the chunk
+    slot = xp.arange(n_pix * n_samples)                         # index of the path within the chunk
     local_pixel = slot // n_samples                             # pixel within the chunk; paths ordered (pixel, sample)
     pixel = p0 + local_pixel                                    # flat pixel index in the frame
     sample = first_sample + slot % n_samples                    # sample index of the pixel
-    throughput = np.ones(len(slot))                             # β: Π f cosθ / pdf so far
-    path_length = np.zeros(len(slot))                           # metres travelled from the lens, float64
-    prev_prim = np.full(len(slot), -1, np.int32)                # triangle the ray leaves (never hit again)
+    throughput = xp.ones(len(slot))                             # β: Π f cosθ / pdf so far
+    path_length = xp.zeros(len(slot))                           # metres travelled from the lens, float64
+    prev_prim = xp.full(len(slot), -1, np.int32)                # triangle the ray leaves (never hit again)
     # Per-path totals over all bounces, for the per-sample variance: signal, correlations..., ambient.
-    path_total = np.zeros((n_corr + 2, len(slot)))
+    path_total = xp.zeros((n_corr + 2, len(slot)))
 
     cam = ctx.camera
-    rot = ctx.world_from_sensor[:3, :3]
+    rot = ctx.rotation
     o_s, d_s = cam.generate_rays(
         pixel, rng.uniform(ctx.key, pixel, sample, _DIM_PIXEL_U), rng.uniform(ctx.key, pixel, sample, _DIM_PIXEL_V),
         rng.uniform(ctx.key, pixel, sample, _DIM_LENS_U), rng.uniform(ctx.key, pixel, sample, _DIM_LENS_V))
@@ -439,8 +484,8 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
         spawn = surf.position + surf.geometric_normal * ctx.offset_scale
 
         # Next-event estimation to every LED, summed per path in LED order.
-        w_sum = np.zeros(len(slot))
-        wg_sum = np.zeros((n_corr, len(slot)))
+        w_sum = xp.zeros(len(slot))
+        wg_sum = xp.zeros((n_corr, len(slot)))
         for i, led in enumerate(ctx.leds):
             w, led_distance = _connect_led(ctx, stats, surf, spawn, wo, prim, throughput, i, led, depth)
             total_length = path_length + led_distance
@@ -476,7 +521,7 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
         if len(slot) == 0:
             break
 
-    all_slots = np.arange(path_total.shape[1])
+    all_slots = xp.arange(path_total.shape[1])
     local = all_slots // n_samples
     sq = np.stack([np.bincount(local, path_total[c] ** 2, minlength=n_pix) for c in range(n_corr + 2)])
     out.square_sum[:, p0:p1] += sq
@@ -524,7 +569,7 @@ def _add_transient(ctx: _Context, out: Transport, p0: int, p1: int, local_pixel:
     frac = x - b0
     b0 = b0.astype(np.int64)
     n = (p1 - p0) * nb
-    hist = np.zeros(n)
+    hist = namespace(w).zeros(n)
     for b, wt in ((b0, w * (1.0 - frac)), (b0 + 1, w * frac)):
         ok = (b >= 0) & (b < nb) & (wt != 0)
         hist += np.bincount(local_pixel[ok] * nb + b[ok], wt[ok], minlength=n)
