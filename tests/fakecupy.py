@@ -19,6 +19,7 @@ rest of the GPU path is the code that runs on the GPU.
 
 from __future__ import annotations
 
+import enum
 import types
 
 import numpy as np
@@ -107,6 +108,8 @@ def _unwrap(x, where: str):
         return x._a
     if isinstance(x, np.ndarray):
         raise TypeError(f"fakecupy: a NumPy array of shape {x.shape} in {where} (host data in a device expression)")
+    if isinstance(x, enum.Enum):  # CuPy takes exact Python/NumPy scalars only, not IntEnum members
+        raise TypeError(f"fakecupy: an enum member {x!r} in {where} (use int(...))")
     if isinstance(x, tuple):
         return tuple(_unwrap(v, where) for v in x)
     if isinstance(x, list):

@@ -222,3 +222,23 @@ def gpu_errors():
             raise GpuUnavailable(f"GPU: out of device memory ({_first_line(exc)}); lower chunk_size or "
                                  f"free the GPU, or use device='cpu'") from None
         raise GpuUnavailable(f"GPU: CUDA error ({type(exc).__name__}: {_first_line(exc)})") from None
+
+
+def scatter_sum(index, weights, length: int):
+    """``np.bincount(index, weights, minlength=length)`` with ``0 <= index < length``, on any backend.
+
+    CuPy's ``bincount`` reads ``index.max()`` back to the host to size its output, a synchronisation
+    per call; here the length is known, so the device adds with atomics (``cupyx.scatter_add``) and the
+    host never waits. NumPy (and test doubles) sum in index order, as ``bincount`` does.
+    """
+    xp = namespace(index, weights)
+    if xp is np:
+        return np.bincount(index, weights, minlength=length)
+    out = xp.zeros(length, np.float64)
+    if xp.__name__ == "cupy":
+        import cupyx
+
+        cupyx.scatter_add(out, index, weights)
+    else:
+        np.add.at(out, index, weights)
+    return out

@@ -150,16 +150,23 @@ class SurfaceParams:
         arrays = np.broadcast_arrays(
             *(np.atleast_1d(asarray(getattr(self, name), dtype=np.float64)) for name in names)
         )
+        bad = {}
         for name, array in zip(names, arrays):
             if array.ndim != 1:
                 raise SceneError(f"SurfaceParams: {name} must be 1-D, got shape {array.shape!r}")
-            rule, check = _PARAMETER_RULES[name]
-            bad = ~check(array)
-            if np.any(bad):
-                raise SceneError(
-                    f"SurfaceParams: {name} must be {rule}, got {float(array[bad][0])!r}"
-                )
+            bad[name] = ~_PARAMETER_RULES[name][1](array)
             object.__setattr__(self, name, namespace(array).ascontiguousarray(array))
+        # One host round trip for all checks (each would be a GPU synchronisation), then the culprit.
+        if bool(np.stack([b.any() for b in bad.values()]).any()):
+            for name, b in bad.items():
+                if b.any():
+                    raise SceneError(f"SurfaceParams: {name} must be {_PARAMETER_RULES[name][0]}, "
+                                     f"got {float(getattr(self, name)[b][0])!r}")
+        metallic = self.metallic
+        # Which Fresnel terms the points need (specular_fresnel), read back once here.
+        has_metal, all_metal = (bool(x) for x in np.stack([metallic.any(), (metallic == 1.0).all()]).tolist())
+        object.__setattr__(self, "_has_metal", has_metal)
+        object.__setattr__(self, "_all_metal", all_metal)
 
 
 @dataclass(frozen=True)
@@ -343,10 +350,10 @@ def specular_fresnel(params: SurfaceParams, cos_theta: ArrayLike) -> FloatArray:
     """
     metallic = params.metallic
     # Leave out the Fresnel term a batch of points does not need (all dielectric or all metal).
-    if not metallic.any():
+    if not params._has_metal:
         return fresnel_dielectric(cos_theta, params.ior)
     conductor = fresnel_conductor(cos_theta, params.ior, params.extinction)
-    if (metallic == 1.0).all():
+    if params._all_metal:
         return conductor
     return (1.0 - metallic) * fresnel_dielectric(cos_theta, params.ior) + metallic * conductor
 

@@ -72,11 +72,13 @@ def cmd_render(args: argparse.Namespace) -> int:
     from .render import render
     from .writers import write_frame
     from .ambient import Ambient
+    from .backend import select_device
 
     formats = tuple(f for f in args.formats.split(",") if f)
     scene = _scene(args.scene)
     sensor = load_preset(args.preset)
     ambient = Ambient(radiance_w_m2_sr=args.ambient) if args.ambient else None
+    device = select_device(args.device)
     if args.verbose:
         from .plan import make_plan
 
@@ -84,9 +86,11 @@ def cmd_render(args: argparse.Namespace) -> int:
         print(f"sensor {sensor.name!r}: {sensor.camera.width}x{sensor.camera.height}, {sensor.modulation.kind}, "
               f"raw images {', '.join(sensor.modulation.raw_labels())}")
         print(make_plan(scene, sensor, max_depth=args.max_depth, ambient=ambient).describe())
+        print(f"device: {device.description}" + (f" (auto: {device.fallback_reason})" if device.fallback_reason
+                                                  else ""))
     frame = render(scene, sensor, spp=args.spp, max_depth=args.max_depth, seed=args.seed,
                    time_budget_s=args.time_budget, target_error_m=args.target_error, ambient=ambient,
-                   progress=_progress_bar(args.quiet))
+                   progress=_progress_bar(args.quiet), device=device)
     if not args.quiet:
         sys.stderr.write("\n")
     files = write_frame(frame, args.out, formats=formats)
@@ -132,7 +136,9 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--ambient", type=float, default=0.0, metavar="W_M2_SR",
                    help="constant ambient radiance, W m^-2 sr^-1")
     r.add_argument("--formats", default="exr,png,ply,json", help="comma list of exr, png, ply, json")
-    r.add_argument("--verbose", action="store_true", help="print the scene, sensor and render plan")
+    r.add_argument("--device", choices=("cpu", "gpu", "auto"), default="auto",
+                   help="cpu (NumPy), gpu (CuPy on an NVIDIA GPU) or auto (the GPU when usable)")
+    r.add_argument("--verbose", action="store_true", help="print the scene, sensor, render plan and device")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     r.set_defaults(func=cmd_render)
     p = sub.add_parser("presets", help="list the sensor presets")

@@ -275,7 +275,7 @@ def decode(raw: np.ndarray, modulation: Modulation, *, min_amplitude_e: float = 
     reason = _first_reason([(saturated, Reason.SATURATED), (no_return, Reason.NO_RETURN),
                             (amplitude < min_amplitude_e, Reason.LOW_AMPLITUDE),
                             (unwrap_failed, Reason.UNWRAPPING_FAILED), (out_of_range, Reason.OUT_OF_RANGE)])
-    valid = reason == Reason.VALID
+    valid = reason == int(Reason.VALID)
     return Decoded(distance=np.where(valid, distance, np.nan).astype(np.float32),
                    amplitude=amplitude.astype(np.float32), offset=offset.astype(np.float32),
                    intensity=raw.mean(axis=0).astype(np.float32),

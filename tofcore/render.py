@@ -240,7 +240,8 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
     passes = trace_progressive(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
                                correlations=correlations + extra, ambient=ambient if plan.ambient else None,
                                spp=spp, max_depth=max_depth, seed=seed, workers=workers, chunk_size=chunk_size,
-                               cancel=cancel, device=device)
+                               cancel=cancel, device=device,
+                               progressive=every_pass or time_budget_s is not None or target_error_m is not None)
     for transport in passes:
         elapsed = time.perf_counter() - start
         samples = int(transport.sample_count[0])

@@ -45,7 +45,7 @@ from .errors import Cancelled, ConfigError
 from .led import LED
 from .plan import leds_at_pinhole
 from .scene import Scene
-from .backend import namespace
+from .backend import namespace, scatter_sum
 from .surface import MaterialTable, Surface, surface_at
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
@@ -188,20 +188,28 @@ class Transport:
         return max_k
 
 
-def pass_schedule(spp: int) -> list[int]:
-    """Samples per progressive pass: 1, 1, 2, 4, 8, 16, 16, … summing to ``spp``.
+def pass_schedule(spp: int, progressive: bool = True) -> list[int]:
+    """Samples per pass summing to ``spp``: 1, 1, 2, 4, 8, 16, 16, … (progressive), else 16, 16, ….
 
-    Depends on spp only (never on chunk size), so results are reproducible, and
-    the first passes of a longer render equal a shorter render.
+    Progressive passes give early frames and error estimates (previews, time budgets, target errors);
+    without them a render needs no small passes, and on a GPU every pass costs the same kernel
+    launches whatever its size. Depends on spp and ``progressive`` only (never on chunk size or
+    device), so results are reproducible, and the first passes of a longer render equal a shorter
+    render of the same kind.
     """
+    if not progressive:
+        return [min(_MAX_PASS, spp - done) for done in range(0, spp, _MAX_PASS)]
     passes, done, size = [], 0, 1
     while done < spp:
         n = min(size, spp - done)
         passes.append(n)
         done += n
         if len(passes) > 1:
-            size = min(2 * size, 16)
+            size = min(2 * size, _MAX_PASS)
     return passes
+
+
+_MAX_PASS = 16  # samples per pixel in the largest pass
 
 
 @dataclass(frozen=True)
@@ -244,7 +252,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       chunk_size: int | None = None, workers: int | None = None,
                       transient_bin_m: float | None = None, transient_max_m: float | None = None,
                       cancel: Callable[[], bool] | None = None,
-                      device: str | backend.Device = "cpu") -> Iterator[Transport]:
+                      device: str | backend.Device = "cpu", progressive: bool = True) -> Iterator[Transport]:
     """Trace in progressive passes, yielding the accumulated :class:`Transport` after each.
 
     Parameters
@@ -261,7 +269,8 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         Chunks own disjoint pixels, so the result does not depend on it.
     transient_bin_m, transient_max_m : optional histogram of w over path length (bin width, range), metres.
     cancel : polled before every chunk; when it returns True, :class:`~tofcore.errors.Cancelled` is raised.
-    device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy) or ``"auto"``, or a resolved :class:`tofcore.backend.Device`.
+    progressive : passes of 1, 1, 2, 4, … samples (True) or of 16 (False); see :func:`pass_schedule`.
+    device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy) or ``"auto", or a resolved :class:`tofcore.backend.Device`.
         On the GPU the accumulators of the yielded :class:`Transport` are CuPy arrays (``first_hit`` is
         always NumPy); the same seed gives the same sums within float rounding (``tests/tofcore/test_gpu.py``).
 
@@ -296,7 +305,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         transient_bin_m=ctx.transient_bin_m, stats=stats)
     first_sample = 0
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        for n_samples in pass_schedule(int(spp)):
+        for n_samples in pass_schedule(int(spp), progressive):
             pixels_per_chunk = max(1, chunk_size // n_samples)
             chunks = [(p0, min(n_pix, p0 + pixels_per_chunk)) for p0 in range(0, n_pix, pixels_per_chunk)]
             run = functools.partial(_trace_chunk, ctx, transport, first_sample=first_sample, n_samples=n_samples)
@@ -496,9 +505,9 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
             for j, g in enumerate(ctx.correlations):
                 wg_sum[j] += w * g(tau)
         k = depth - 1
-        out.signal_sum[k, p0:p1] += np.bincount(local_pixel, w_sum, minlength=n_pix)
+        out.signal_sum[k, p0:p1] += scatter_sum(local_pixel, w_sum, n_pix)
         for j in range(n_corr):
-            out.correlation_sum[k, j, p0:p1] += np.bincount(local_pixel, wg_sum[j], minlength=n_pix)
+            out.correlation_sum[k, j, p0:p1] += scatter_sum(local_pixel, wg_sum[j], n_pix)
         path_total[0, slot] += w_sum
         path_total[1:n_corr + 1, slot] += wg_sum
 
@@ -523,10 +532,10 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
 
     all_slots = xp.arange(path_total.shape[1])
     local = all_slots // n_samples
-    sq = np.stack([np.bincount(local, path_total[c] ** 2, minlength=n_pix) for c in range(n_corr + 2)])
+    sq = np.stack([scatter_sum(local, path_total[c] ** 2, n_pix) for c in range(n_corr + 2)])
     out.square_sum[:, p0:p1] += sq
     if ctx.ambient is not None:
-        out.ambient_sum[p0:p1] += np.bincount(local, path_total[-1], minlength=n_pix)
+        out.ambient_sum[p0:p1] += scatter_sum(local, path_total[-1], n_pix)
     return stats
 
 
@@ -572,5 +581,5 @@ def _add_transient(ctx: _Context, out: Transport, p0: int, p1: int, local_pixel:
     hist = namespace(w).zeros(n)
     for b, wt in ((b0, w * (1.0 - frac)), (b0 + 1, w * frac)):
         ok = (b >= 0) & (b < nb) & (wt != 0)
-        hist += np.bincount(local_pixel[ok] * nb + b[ok], wt[ok], minlength=n)
+        hist += scatter_sum(local_pixel[ok] * nb + b[ok], wt[ok], n)
     out.transient_sum[p0:p1] += hist.reshape(p1 - p0, nb)

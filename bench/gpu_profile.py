@@ -1,0 +1,69 @@
+"""Profile of the GPU backend on the Kinect v2 room frame (512 × 424, 16 spp, 5 vertices), for developers.
+
+Prints warm whole-pipeline times (median of 5), a 1-spp pass, the memory pool, a cProfile of one frame
+(where host time goes: launches and synchronisation), CPU/GPU agreement at full resolution and the time
+to 1 mm estimated depth error. Needs CuPy and a CUDA GPU: ``python bench/gpu_profile.py``.
+The benchmark beside the peers is ``bench/bench_gpu.py``.
+"""
+
+import cProfile
+import io
+import pstats
+import statistics
+import time
+
+import cupy as cp
+import numpy as np
+
+from tofcore import demo_scene, load_preset, render
+
+
+def sync():
+    cp.cuda.Device().synchronize()
+
+
+def timed(n, **kwargs):
+    times, frame = [], None
+    for _ in range(n):
+        sync()
+        t = time.perf_counter()
+        frame = render(scene, sensor, device="gpu", **kwargs)
+        sync()
+        times.append(time.perf_counter() - t)
+    return statistics.median(times), times, frame
+
+
+scene = demo_scene("room")
+sensor = load_preset("kinect_v2")
+print("triangles", scene.triangle_count)
+t = time.perf_counter()
+f = render(scene, sensor, spp=16, max_depth=5, device="gpu")
+sync()
+print(f"cold first frame {time.perf_counter() - t:.2f} s", f.stats["device"])
+med, times, f = timed(5, spp=16, max_depth=5)
+print(f"kinect room 16 spp whole pipeline: median {med * 1e3:.1f} ms  all {[round(x * 1e3, 1) for x in times]}")
+print(f"  trace {f.stats['trace_seconds'] * 1e3:.1f} ms, rays {f.stats['transport']['rays'] / 1e6:.2f} M, "
+      f"valid {f.valid.mean():.3f}, est. error {f.stats['convergence'][-1]['est_depth_error_m'] * 1e3:.2f} mm")
+print(f"  memory pool {cp.get_default_memory_pool().total_bytes() / 2**20:.0f} MiB")
+med1, _, _ = timed(5, spp=1, max_depth=5)
+print(f"1 spp frame: median {med1 * 1e3:.1f} ms")
+profile = cProfile.Profile()
+profile.enable()
+render(scene, sensor, spp=16, max_depth=5, device="gpu")
+sync()
+profile.disable()
+out = io.StringIO()
+pstats.Stats(profile, stream=out).sort_stats("tottime").print_stats(30)
+print(out.getvalue()[:7000])
+fc = render(scene, sensor, spp=2, max_depth=5, device="cpu", seed=3)
+fg = render(scene, sensor, spp=2, max_depth=5, device="gpu", seed=3)
+scale = np.abs(fc.raw).max(axis=0)
+rel = np.abs(fg.raw - fc.raw).max(axis=0) / np.where(scale > 0, scale, 1)
+both = fc.valid & fg.valid
+print("full-res 2 spp CPU vs GPU: pixels raw rel > 1e-9:", np.mean(rel > 1e-9), "max rel", rel.max(),
+      "depth |d| > 1e-6 m:", np.mean(np.abs(fg.depth[both] - fc.depth[both]) > 1e-6),
+      "valid differs:", np.mean(fc.valid != fg.valid))
+t = time.perf_counter()
+fconv = render(scene, sensor, spp=1 << 16, max_depth=5, device="gpu", target_error_m=0.001, time_budget_s=60)
+print(f"room to 1 mm estimated: {time.perf_counter() - t:.1f} s, spp {fconv.stats['spp']}, "
+      f"est. {fconv.stats['convergence'][-1]['est_depth_error_m'] * 1e3:.2f} mm")
