@@ -82,11 +82,6 @@ def _error_channels(modulation) -> _ErrorChannels:
     return _ErrorChannels(a, b, "phasor", C / (4 * np.pi * modulation.frequencies_hz[first]))
 
 
-def _combine(correlations, weights: np.ndarray) -> Callable[[np.ndarray], np.ndarray]:
-    used = [(w, g) for w, g in zip(weights, correlations) if w != 0]
-    return lambda tau: sum(w * g(tau) for w, g in used)
-
-
 def depth_standard_error(transport: Transport, channels: _ErrorChannels, n_raw: int,
                          gate_duty: np.ndarray) -> np.ndarray:
     r"""(H, W) Monte Carlo standard error (m) of each pixel's distance by the delta method.
@@ -227,8 +222,7 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
     correlations = list(mod.correlations())
     n_raw = len(correlations)
     channels = _error_channels(mod)
-    extra = [_combine(correlations, channels.weights_a), _combine(correlations, channels.weights_b),
-             _combine(correlations, channels.weights_a + channels.weights_b)]
+    extra = np.stack([channels.weights_a, channels.weights_b, channels.weights_a + channels.weights_b])
     if reference_distance is not None:
         reference_distance = np.asarray(reference_distance, dtype=np.float64)
         if reference_distance.shape != (sensor.camera.height, sensor.camera.width):
@@ -238,7 +232,7 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
     log: list[dict] = []
     start = time.perf_counter()
     passes = trace_progressive(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
-                               correlations=correlations + extra, ambient=ambient if plan.ambient else None,
+                               correlations=correlations, derived_correlations=extra, ambient=ambient if plan.ambient else None,
                                spp=spp, max_depth=max_depth, seed=seed, workers=workers, chunk_size=chunk_size,
                                cancel=cancel, device=device,
                                progressive=every_pass or time_budget_s is not None or target_error_m is not None)

@@ -228,6 +228,8 @@ class _Context:
     leds: tuple[LED, ...]
     skip_first_shadow: np.ndarray  # (L,) bool: LED at the centre of a pinhole lens
     correlations: tuple[Correlation, ...]
+    derived: object | None      # (D, J) weights of the derived channels over the g_j, device array
+    n_channels: int             # J + D correlation channels summed per pixel
     ambient: Ambient | None
     max_depth: int
     key: np.uint64
@@ -247,6 +249,7 @@ def trace(scene: Scene, camera: Camera, leds: Sequence[LED], **kwargs) -> Transp
 def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       world_from_sensor: np.ndarray | None = None,
                       correlations: Sequence[Correlation] = (),
+                      derived_correlations: np.ndarray | None = None,
                       ambient: Ambient | None = None,
                       spp: int = 16, max_depth: int = 5, seed: int = 0,
                       chunk_size: int | None = None, workers: int | None = None,
@@ -260,6 +263,9 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     scene, camera, leds : what to render; LED positions are in the sensor frame.
     world_from_sensor : 4×4 pose (sensor frame = OpenCV: x right, y down, z forward); identity by default.
     correlations : g_j(τ), τ in seconds, one per sensor bucket/phase image.
+    derived_correlations : optional (D, J) weights; channel J + d sums Σ_j W[d, j] w g_j(τ) (e.g. the
+        phasor of one frequency for the error estimate). Computed from the J values already evaluated
+        (one matrix product), not by evaluating the g_j again.
     ambient : background radiance; ``None`` or black skips all ambient work.
     spp : samples per pixel in total; max_depth : surface vertices per path (1 = direct only).
     seed : non-negative int; the same seed gives the same frame for any ``chunk_size``.
@@ -279,11 +285,11 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     dev = backend.select_device(device)
     xp = dev.xp
     ctx = _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_depth, seed,
-                   transient_bin_m, transient_max_m, dev)
+                   transient_bin_m, transient_max_m, dev, derived_correlations)
     if not isinstance(spp, (int, np.integer)) or spp < 1:
         raise ConfigError(f"trace: spp must be an integer >= 1, got {spp!r}")
     if chunk_size is None:
-        chunk_size = gpu_chunk_paths(xp, len(ctx.correlations)) if dev.is_gpu else CPU_CHUNK_PATHS
+        chunk_size = gpu_chunk_paths(xp, ctx.n_channels) if dev.is_gpu else CPU_CHUNK_PATHS
     if not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ConfigError(f"trace: chunk_size must be an integer >= 1, got {chunk_size!r}")
     workers = (os.cpu_count() or 1) if workers is None else workers
@@ -293,7 +299,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         workers = 1  # one stream of large wavefronts; threads would only serialise on it
     start = time.perf_counter()
     n_pix = camera.width * camera.height
-    n_corr = len(ctx.correlations)
+    n_corr = ctx.n_channels
     stats = TraceStats()
     transport = Transport(
         width=camera.width, height=camera.height, max_depth=max_depth, n_correlations=n_corr,
@@ -325,7 +331,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
 
 
 def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_depth, seed,
-             transient_bin_m, transient_max_m, device: backend.Device) -> _Context:
+             transient_bin_m, transient_max_m, device: backend.Device, derived=None) -> _Context:
     if not isinstance(scene, Scene):
         raise ConfigError(f"trace: scene must be a tofcore.Scene, got {type(scene).__name__}")
     if not isinstance(camera, Camera):
@@ -347,6 +353,11 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
     for j, g in enumerate(correlations):
         if not callable(g):
             raise ConfigError(f"trace: correlations[{j}] must be callable g(tau_s), got {type(g).__name__}")
+    if derived is not None:
+        derived = np.asarray(derived, np.float64)
+        if derived.ndim != 2 or derived.shape[1] != len(correlations) or not np.isfinite(derived).all():
+            raise ConfigError(f"trace: derived_correlations must be a finite (D, {len(correlations)}) array, "
+                              f"got shape {derived.shape}")
     bins = 0
     if transient_bin_m is not None:
         if not transient_bin_m > 0 or not transient_max_m or not transient_max_m > transient_bin_m:
@@ -363,7 +374,9 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
         rotation=xp.asarray(rot), lens_center=xp.asarray(pose[:3, 3]),
         led_positions=xp.asarray(led_world), led_axis=xp.asarray(rot[:, 2]), leds=leds,
         skip_first_shadow=leds_at_pinhole(camera, leds),
-        correlations=correlations, ambient=None if ambient is None or ambient.is_black else ambient,
+        correlations=correlations, derived=None if derived is None else xp.asarray(derived),
+        n_channels=len(correlations) + (0 if derived is None else len(derived)),
+        ambient=None if ambient is None or ambient.is_black else ambient,
         max_depth=int(max_depth), key=rng.seed_key(seed),
         offset_scale=_OFFSET_RELATIVE * max(extent, 1e-3),
         transient_bins=bins, transient_bin_m=transient_bin_m)
@@ -443,7 +456,7 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
     Returns the chunk's ray counters.
     """
     n_pix = p1 - p0
-    n_corr = len(ctx.correlations)
+    n_corr = ctx.n_channels
     xp = ctx.device.xp
     stats = TraceStats()
     # Path state, one entry per live path (compacted after every bounce):
@@ -501,13 +514,13 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
             if ctx.transient_bins:
                 _add_transient(ctx, out, p0, p1, local_pixel, w, total_length)
             w_sum += w
-            tau = total_length / SPEED_OF_LIGHT_M_S
-            for j, g in enumerate(ctx.correlations):
-                wg_sum[j] += w * g(tau)
+            if n_corr:
+                wg_sum += w * _channels(ctx, total_length / SPEED_OF_LIGHT_M_S)
         k = depth - 1
         out.signal_sum[k, p0:p1] += scatter_sum(local_pixel, w_sum, n_pix)
-        for j in range(n_corr):
-            out.correlation_sum[k, j, p0:p1] += scatter_sum(local_pixel, wg_sum[j], n_pix)
+        if n_corr:  # all channels in one scatter: channel c of pixel p goes to bin c·n_pix + p
+            bins = (xp.arange(n_corr)[:, None] * n_pix + local_pixel).ravel()
+            out.correlation_sum[k, :, p0:p1] += scatter_sum(bins, wg_sum.ravel(), n_corr * n_pix).reshape(n_corr, n_pix)
         path_total[0, slot] += w_sum
         path_total[1:n_corr + 1, slot] += wg_sum
 
@@ -532,11 +545,19 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
 
     all_slots = xp.arange(path_total.shape[1])
     local = all_slots // n_samples
-    sq = np.stack([scatter_sum(local, path_total[c] ** 2, n_pix) for c in range(n_corr + 2)])
+    n_ch = n_corr + 2
+    bins = (xp.arange(n_ch)[:, None] * n_pix + local).ravel()
+    sq = scatter_sum(bins, (path_total ** 2).ravel(), n_ch * n_pix).reshape(n_ch, n_pix)
     out.square_sum[:, p0:p1] += sq
     if ctx.ambient is not None:
         out.ambient_sum[p0:p1] += scatter_sum(local, path_total[-1], n_pix)
     return stats
+
+
+def _channels(ctx: _Context, tau):
+    """(J + D, N) correlation channels of delays τ (s): the g_j(τ), then the derived combinations."""
+    g = namespace(tau).stack([g_j(tau) for g_j in ctx.correlations])
+    return g if ctx.derived is None else namespace(tau).concatenate([g, ctx.derived @ g])
 
 
 def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndarray, wo: np.ndarray,
