@@ -197,8 +197,8 @@ def unwrap(cw: CwDecoding, modulation: Modulation, *, tolerance_m: float | None 
         unwrapped = np.empty_like(wrapped)
         for i in range(wrapped.shape[0]):
             unwrapped[i] = wrapped[i] + np.round((candidate - wrapped[i]) / d_amb[i]) * d_amb[i]
-        mean = np.einsum("i...,i...->...", weight, unwrapped)
-        r2 = np.einsum("i...,i...->...", weight, (unwrapped - mean) ** 2)
+        mean = (weight * unwrapped).sum(axis=0)
+        r2 = (weight * (unwrapped - mean) ** 2).sum(axis=0)
         better = r2 < best_r2
         best_r2 = np.where(better, r2, best_r2)
         best_d = np.where(better, mean, best_d)

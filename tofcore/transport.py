@@ -46,7 +46,7 @@ from .led import LED
 from .plan import leds_at_pinhole
 from .scene import Scene
 from .backend import namespace, scatter_sum
-from .surface import MaterialTable, Surface, surface_at
+from .surface import MaterialTable, Surface, dot, surface_at
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
 
@@ -533,7 +533,7 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
                          rng.uniform(ctx.key, pixel, sample, _bounce_dim(depth, 2)))
         new_dir = surf.to_world(bs.wi)
         # A direction below the geometric surface would leak through it (shading normals): end the path.
-        alive = (bs.weight > 0) & (np.einsum("ij,ij->i", new_dir, surf.geometric_normal) > 0)
+        alive = (bs.weight > 0) & (dot(new_dir, surf.geometric_normal) > 0)
         keep = np.flatnonzero(alive)
         slot, local_pixel, pixel, sample = slot[keep], local_pixel[keep], pixel[keep], sample[keep]
         throughput = throughput[keep] * bs.weight[keep]
@@ -567,8 +567,8 @@ def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndar
     to_led = ctx.led_positions[i] - surf.position
     dist = np.linalg.norm(to_led, axis=1)
     wi_world = to_led / dist[:, None]
-    cos_geo = np.einsum("ij,ij->i", wi_world, surf.geometric_normal)
-    cos_shading = np.einsum("ij,ij->i", wi_world, surf.shading_normal)
+    cos_geo = dot(wi_world, surf.geometric_normal)
+    cos_shading = dot(wi_world, surf.shading_normal)
     intensity = led.intensity(-wi_world @ ctx.led_axis)
     f = eval_bsdf(surf.params, wo, surf.to_local(wi_world))
     w = throughput * f * np.maximum(cos_shading, 0.0) * intensity / dist**2
