@@ -183,7 +183,7 @@ def install(monkeypatch) -> None:
     """Make ``device="gpu"`` run on this fake, with the CUDA kernels replaced by their NumPy twins."""
     import sys
 
-    from tofcore import backend, bvh, rng
+    from tofcore import backend, bvh, fresnel, modulation, rng
     from tofcore.gpu import fused, traversal
 
     module = sys.modules[__name__]
@@ -203,6 +203,14 @@ def install(monkeypatch) -> None:
     def uniform(key, pixel, sample, dim):
         return asarray(rng.uniform(key, asnumpy(pixel), asnumpy(sample), dim))
 
+    def twin(numpy_function):  # the kernel's NumPy twin, through a host round trip
+        def run(*args, **kwargs):
+            return asarray(numpy_function(*(asnumpy(a) if isinstance(a, ndarray) else a for a in args), **kwargs))
+        return run
+
     monkeypatch.setattr(traversal, "intersect", intersect)
     monkeypatch.setattr(traversal, "occluded", occluded)
     monkeypatch.setattr(fused, "uniform", uniform)
+    monkeypatch.setattr(fused, "fresnel_dielectric", twin(fresnel.fresnel_dielectric))
+    monkeypatch.setattr(fused, "fresnel_conductor", twin(fresnel.fresnel_conductor))
+    monkeypatch.setattr(fused, "square_correlation", twin(modulation.square_correlation))

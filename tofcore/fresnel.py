@@ -24,7 +24,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from .backend import asarray
+from .backend import asarray, is_device_array
 
 
 def fresnel_dielectric(cos_theta_i: ArrayLike, eta: ArrayLike) -> NDArray[np.float64]:
@@ -66,6 +66,9 @@ def fresnel_dielectric(cos_theta_i: ArrayLike, eta: ArrayLike) -> NDArray[np.flo
     Where sin²θ₂ ≥ 1 (total internal reflection for η < 1, and the grazing
     limit cos θ₁ = 0 for η = 1) the result is 1.
     """
+    if is_device_array(cos_theta_i):
+        from .gpu import fused
+        return fused.fresnel_dielectric(cos_theta_i, eta)
     cos_1 = np.clip(asarray(cos_theta_i, dtype=np.float64), 0.0, 1.0)
     eta = asarray(eta, dtype=np.float64)
     sin2_2 = (1.0 - cos_1 * cos_1) / (eta * eta)
@@ -119,6 +122,9 @@ def fresnel_conductor(
     (:math:`\ge (\eta c - 1)^2` and :math:`\ge (\eta - c)^2`), so F ∈ [0, 1].
     The only vanishing denominator is η = k = 0 at c = 0, whose limit 1 is used.
     """
+    if is_device_array(cos_theta_i):
+        from .gpu import fused
+        return fused.fresnel_conductor(cos_theta_i, eta, k)
     cos_i = np.clip(asarray(cos_theta_i, dtype=np.float64), 0.0, 1.0)
     eta = asarray(eta, dtype=np.float64)
     k = asarray(k, dtype=np.float64)

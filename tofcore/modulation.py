@@ -53,7 +53,7 @@ import numpy as np
 
 from .errors import ConfigError
 from .transport import SPEED_OF_LIGHT_M_S
-from .backend import asarray
+from .backend import asarray, is_device_array
 
 KINDS = ("pulsed", "cw_square", "cw_sine")
 DEFAULT_PHASE_STEPS = 4
@@ -112,6 +112,9 @@ def square_correlation(tau_s: np.ndarray, f_hz: float, offset_fraction: float, d
 
     This is the closed form of the thesis's loop over previous pulses (§5.1.2, listing after eq. 5.2).
     """
+    if is_device_array(tau_s):
+        from .gpu import fused
+        return fused.square_correlation(tau_s, f_hz, offset_fraction, duty)
     cycles = f_hz * asarray(tau_s, dtype=np.float64) - offset_fraction
     u = np.abs(np.mod(cycles + 0.5, 1.0) - 0.5)
     return np.clip(0.25 + 0.5 * duty - u, max(0.0, duty - 0.5), min(duty, 0.5)) / duty

@@ -265,6 +265,31 @@ def test_uniform_kernel_equals_numpy_hash():
 
 @pytest.mark.gpu
 @cuda_only
+def test_fused_kernels_equal_their_numpy_twins():
+    """Fresnel and the square-wave correlation, over the whole domain incl. grazing, TIR and eta < 1."""
+    import cupy as cp
+
+    from tofcore import fresnel
+    from tofcore.modulation import square_correlation
+
+    rng = np.random.default_rng(3)
+    n = 1_000_000
+    cos = np.concatenate([rng.random(n), [0.0, 1.0, -0.1, 1.1, 1e-300]])
+    eta = np.concatenate([rng.uniform(0.05, 4.0, n), [1.0, 1.52, 0.5, 1.0, 1.0]])
+    k = np.concatenate([rng.uniform(0.0, 8.0, n), [0.0, 0.0, 3.0, 0.0, 0.0]])
+    np.testing.assert_array_equal(cp.asnumpy(fresnel.fresnel_dielectric(cp.asarray(cos), cp.asarray(eta))),
+                                  fresnel.fresnel_dielectric(cos, eta))
+    np.testing.assert_array_equal(
+        cp.asnumpy(fresnel.fresnel_conductor(cp.asarray(cos), cp.asarray(eta), cp.asarray(k))),
+        fresnel.fresnel_conductor(cos, eta, k))
+    tau = np.concatenate([rng.uniform(0, 2e-7, n), [0.0, 1 / 80e6, -1e-9]])
+    for f_hz, offset, duty in ((80e6, 0.0, 0.5), (16e6, 1 / 3, 0.5), (120e6, 2 / 3, 0.3), (30e6, 0.75, 0.7)):
+        np.testing.assert_array_equal(cp.asnumpy(square_correlation(cp.asarray(tau), f_hz, offset, duty)),
+                                      square_correlation(tau, f_hz, offset, duty))
+
+
+@pytest.mark.gpu
+@cuda_only
 def test_kinect_frame_stays_within_the_gpu_memory_budget():
     """A 512 × 424 frame at 64 spp: peak device memory ≤ one chunk's budget + the accumulators."""
     import cupy as cp

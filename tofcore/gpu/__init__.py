@@ -10,6 +10,8 @@ module                      kernel                                          NumP
 ==========================  ==============================================  ==================================
 :mod:`.traversal`           closest hit / any hit over the BVH records      ``BVH.intersect`` / ``BVH.occluded``
 :mod:`.fused`               counter-based uniforms (SplitMix64 ×2)          :func:`tofcore.rng.uniform`
+:mod:`.fused`               dielectric and conductor Fresnel                :mod:`tofcore.fresnel`
+:mod:`.fused`               square-wave correlation g_j(τ)                  ``modulation.square_correlation``
 ==========================  ==============================================  ==================================
 
 Nothing here is imported unless a device array reaches a dispatching function,
