@@ -8,6 +8,7 @@ Modules, one concept each:
 * :mod:`batch.blend` — the bpy side (open, list cameras, export a view); only workers import it
 * :mod:`batch.dataset` — the dataset folder: atomic files, index, records, verification, lock
 * :mod:`batch.card` — the generated dataset card (README.md)
+* :mod:`batch.devices` — ``--device cpu|gpu|auto``: visible GPUs, one pinned worker per GPU, CPU fall-back
 * :mod:`batch.run` — executors (local spawn pool, Dask, in-process), resume logic, progress, summary
 * :mod:`batch.compare` — the sensor comparison report
 * :mod:`batch.cli` — ``python -m batch run | validate | compare``

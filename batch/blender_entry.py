@@ -5,7 +5,7 @@ Usage::
     blender -b scene.blend --python batch/blender_entry.py -- --preset kinect_v2 --out DATASET/ \\
         [--frames 1-10] [--cameras Cam1,Cam2] [--spp 64] [--max-depth 5] [--seed 0] \\
         [--time-budget S] [--target-error M] [--ambient W_M2_SR] [--resolution-scale F] \\
-        [--formats exr,png,ply,json] [--retry-failed] [--verify sha256|size] [--quiet]
+        [--formats exr,png,ply,json] [--device cpu|gpu|auto] [--retry-failed] [--verify sha256|size] [--quiet]
 
 Blender passes everything after ``--`` to the script untouched. Cameras: the
 ones named, else the cameras whose ToF settings are enabled (``camera.tof``,
@@ -14,7 +14,10 @@ else the current frame. ``--preset`` takes a comma-separated list to render
 every view with several sensors.
 
 This process has imported bpy, so it starts no worker process: the views are
-rendered here one after another (tofcore's tracer still uses threads). The
+rendered here one after another (tofcore's tracer still uses threads).
+``--device gpu`` renders on this process's GPU (the first one
+``CUDA_VISIBLE_DEVICES`` shows; CuPy must be importable from Blender's Python),
+``auto`` falls back to the CPU when it cannot. The
 dataset layout, index, resume rules and job ids are those of ``python -m
 batch run``: the same file, camera, frame, preset, quality and seed give the
 same job id and the same frame either way.
@@ -43,7 +46,7 @@ def script_args(argv: list[str]) -> list[str]:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from batch.cli import _Formatter, add_quality_options
+    from batch.cli import _Formatter, add_device_option, add_quality_options
 
     parser = argparse.ArgumentParser(
         prog="blender -b FILE.blend --python batch/blender_entry.py --",
@@ -59,6 +62,7 @@ def build_parser() -> argparse.ArgumentParser:
                         ambient_help="constant ambient radiance (default: the exporter's, from the world)",
                         scale_help="image size factor (intrinsics scaled)")
     parser.add_argument("--formats", default="exr,png,ply,json", help="comma list of exr, png, ply, json")
+    add_device_option(parser, gpu_help="on this process's GPU, the first CUDA_VISIBLE_DEVICES shows")
     parser.add_argument("--retry-failed", action="store_true", help="render only the frames recorded as failed")
     parser.add_argument("--verify", choices=["sha256", "size"], default="sha256",
                         help="how finished frames are checked before being skipped")
@@ -108,7 +112,7 @@ def main(argv: list[str] | None = None) -> int:
                                                                        for k, v in blend.inspect(p).items()}))
         for note in expansion.notes:
             print(f"note: {note}", file=sys.stderr)
-        result = run_jobs(expansion.jobs, args.out, inline=True, retry_failed=args.retry_failed,
+        result = run_jobs(expansion.jobs, args.out, inline=True, device=args.device, retry_failed=args.retry_failed,
                           verify=args.verify, quiet=args.quiet, set_file=f"{path} (blender_entry.py)")
     except Interrupted as exc:
         print(f"\ninterrupted ({exc}): finished frames are kept; rerun to continue", file=sys.stderr)

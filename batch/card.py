@@ -18,6 +18,31 @@ def _fmt(value: float | None, scale: float = 1.0, digits: int = 1) -> str:
     return "–" if value is None else f"{value * scale:.{digits}f}"
 
 
+def device_rows(records: list[dict]) -> list[tuple[str, int]]:
+    """(device, frames) for the ok records, most frames first: which devices rendered the dataset."""
+    counts: Counter = Counter()
+    for r in records:
+        if r.get("status") != "ok":
+            continue
+        device = r.get("device") or {}
+        if not device.get("description"):
+            counts["not recorded (rendered before records held the device)"] += 1
+            continue
+        text = device["description"]
+        if device.get("name") == "gpu" and r.get("cuda_visible_devices") and "CUDA_VISIBLE_DEVICES" not in text:
+            text += f" (CUDA_VISIBLE_DEVICES={r['cuda_visible_devices']})"
+        if device.get("fallback_reason"):
+            text += f"; asked for {device.get('requested')}, fell back: {device['fallback_reason']}"
+        counts[text] += 1
+    return counts.most_common()
+
+
+def _device_lines(rows: list[tuple[str, int]]) -> list[str]:
+    if len(rows) <= 1:
+        return [f"* rendered on: {rows[0][0]} ({rows[0][1]} frames)" if rows else "* rendered on: –"]
+    return [f"* rendered on {len(rows)} devices:"] + [f"  * {text} — {n} frames" for text, n in rows]
+
+
 def dataset_card(records: list[dict], *, set_file: str | None, description: str = "",
                  jobs_in_set: int | None = None) -> str:
     """Markdown text of the card for ``records`` (the index, one record per job)."""
@@ -51,6 +76,7 @@ def dataset_card(records: list[dict], *, set_file: str | None, description: str 
         f"* scenes: {len(scenes)} — " + ", ".join(f"{name} ({n} frames)" for name, n in sorted(scenes.items())),
         f"* views: {len(views)}",
         f"* formats: {', '.join(formats) or '–'}",
+        *_device_lines(device_rows(records)),
         "",
         "| preset | sensor | resolution | frames ok | failed | mean render s | mean spp | "
         "mean RMS error vs GT mm | mean multipath RMS mm | mean valid % |",
@@ -78,7 +104,9 @@ def dataset_card(records: list[dict], *, set_file: str | None, description: str 
         "Each frame's render seed is derived from the set seed and the frame's job id (a hash of the scene "
         "file's content, the view, the full sensor description, the quality, the ambient light, the formats "
         "and the set seed), so the same set gives the same frames on any executor and worker count — "
-        "except with a time budget, which depends on the machine's speed.",
+        "except with a time budget, which depends on the machine's speed. The device is not part of the "
+        "job: CPU and GPU give the same frame within float32 rounding; `device` in each record says which "
+        "rendered it.",
         "",
         "## Layout",
         "",

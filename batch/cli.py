@@ -7,11 +7,19 @@ Examples::
     python -m batch run batch/examples/demo_set.toml --out datasets/demo --dask local --workers 2
     python -m batch run batch/examples/demo_set.toml --out datasets/demo --scheduler tcp://10.0.0.5:8786
     python -m batch run batch/examples/demo_set.toml --out datasets/demo --retry-failed
+    python -m batch run batch/examples/demo_set.toml --out datasets/demo --device gpu   # one worker per GPU
     python -m batch compare --scene room --presets kinect_v2,o3d303,xtion2 --out report/
 
+Devices (--device, batch/devices.py): cpu (NumPy, the default); gpu (CuPy, one
+worker process per visible GPU, each pinned with CUDA_VISIBLE_DEVICES; limit the
+GPUs with CUDA_VISIBLE_DEVICES=0,2 or --workers); auto (the GPUs when usable,
+else the CPU, the reason printed and stored in every record). On a Dask cluster
+(--scheduler) start each worker with its own CUDA_VISIBLE_DEVICES.
+
 Exit codes: 0 every frame ok; 1 some frames failed (they are in the index with
-their error); 2 bad arguments or set file (nothing rendered); 130 / 143
-interrupted by Ctrl-C / SIGTERM (finished frames are kept; rerun to continue).
+their error); 2 bad arguments or set file, or --device gpu without a usable GPU
+(nothing rendered); 130 / 143 interrupted by Ctrl-C / SIGTERM (finished frames
+are kept; rerun to continue).
 """
 
 from __future__ import annotations
@@ -69,10 +77,6 @@ def _vector3(text: str) -> tuple[float, float, float]:
     return values
 
 
-def _default_workers() -> int:
-    return 1
-
-
 # --------------------------------------------------------------------------- commands
 
 def cmd_validate(args: argparse.Namespace) -> int:
@@ -119,8 +123,9 @@ def cmd_run(args: argparse.Namespace) -> int:
     for note in expansion.notes:
         print(f"note: {note}", file=sys.stderr)
     result = run_jobs(expansion.jobs, args.out, workers=args.workers, threads_per_worker=args.threads_per_worker,
-                      scheduler=args.scheduler, dask_local=args.dask == "local", retry_failed=args.retry_failed,
-                      verify=args.verify, quiet=args.quiet, set_file=str(spec.path), description=spec.description)
+                      scheduler=args.scheduler, dask_local=args.dask == "local", device=args.device,
+                      retry_failed=args.retry_failed, verify=args.verify, quiet=args.quiet, set_file=str(spec.path),
+                      description=spec.description)
     print(summary(result, args.out), file=sys.stderr)
     return result.exit_code
 
@@ -146,10 +151,21 @@ class _Formatter(argparse.RawDescriptionHelpFormatter):
         return text
 
 
+def add_device_option(parser: argparse.ArgumentParser, *, gpu_help: str) -> None:
+    """``--device cpu|gpu|auto``, shared by ``run``, ``compare`` and the Blender entry script."""
+    parser.add_argument("--device", choices=["cpu", "gpu", "auto"], default="cpu",
+                        help="where frames render: cpu (NumPy), gpu (CuPy; " + gpu_help + "; no usable GPU: "
+                             "error, exit code 2) or auto (the GPU when usable, else the CPU, the reason "
+                             "recorded in every frame's record)")
+
+
 def _executor_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--workers", type=_positive_int, default=_default_workers(), metavar="N",
+    parser.add_argument("--workers", type=_positive_int, default=None, metavar="N",
                         help="worker processes (local pool, or LocalCluster workers with --dask local); "
-                             "each render also uses tracer threads")
+                             "each render also uses tracer threads (default: 1; with --device gpu/auto one "
+                             "per visible GPU: a smaller N uses the first N GPUs, a larger N is clamped)")
+    add_device_option(parser, gpu_help="one worker process per visible GPU, pinned with CUDA_VISIBLE_DEVICES; "
+                                       "on a --scheduler cluster each worker uses the GPU its environment shows")
     parser.add_argument("--threads-per-worker", type=_positive_int, default=None, metavar="N",
                         help="tracer threads per render (default: CPU count / workers; on a --scheduler "
                              "cluster each machine's CPU count); frames do not depend on it")
@@ -158,7 +174,8 @@ def _executor_options(parser: argparse.ArgumentParser) -> None:
                        help="run on an existing Dask distributed cluster (needs dask[distributed]; workers "
                             "must see the dataset and scene files at the same paths)")
     where.add_argument("--dask", choices=["local"], default=None,
-                       help="start a Dask LocalCluster of --workers processes")
+                       help="start a Dask LocalCluster of --workers processes (with --device gpu/auto: "
+                            "one per GPU, each pinned with CUDA_VISIBLE_DEVICES)")
     parser.add_argument("--quiet", action="store_true", help="log one line per frame instead of a progress bar")
 
 

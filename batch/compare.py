@@ -18,6 +18,9 @@ ground truth (``depth − gt_depth`` over valid pixels), multipath error (RMS of
 ``distance − direct_distance`` over valid pixels: what the indirect light adds,
 noise included).
 
+``--device cpu|gpu|auto`` and ``--workers`` work as for ``python -m batch run``
+(:mod:`batch.devices`): with ``gpu`` the presets render at once, one per GPU.
+
 Every preset sees the same pose; its own intrinsics decide the field of view,
 so the images differ in size and extent: each is scaled (nearest neighbour,
 aspect kept) to the same cell width.
@@ -214,7 +217,8 @@ def compare(args: argparse.Namespace) -> int:
     view = group_by_view(expansion.jobs)[0]  # one view: the first camera of a .blend without --camera
     jobs = list(view.jobs)
     result = run_jobs(jobs, args.out, workers=args.workers, threads_per_worker=args.threads_per_worker,
-                      scheduler=args.scheduler, dask_local=args.dask == "local", quiet=args.quiet,
+                      scheduler=args.scheduler, dask_local=args.dask == "local", device=args.device,
+                      quiet=args.quiet,
                       description=f"Sensor comparison: {view.label}, presets {', '.join(j.preset for j in jobs)}")
     if result.interrupted is not None:
         raise result.interrupted

@@ -22,8 +22,14 @@ ambient_w_m2_sr, formats, width, height), ``dir`` and ``files`` (kind, name,
 bytes, sha256), ``render_seconds``, ``spp`` reached, ``passes``,
 ``est_depth_error_m`` and ``convergence`` (per pass: seconds, spp, estimated
 RMS depth error), ``rms_depth_error_m``, ``median_abs_depth_error_m``,
-``multipath_rms_m``, ``valid_fraction``, ``error`` and ``traceback`` when
-failed, ``host``, ``finished`` (UTC).
+``multipath_rms_m``, ``valid_fraction``, ``device`` (where the frame rendered:
+``name`` ``"cpu"``/``"gpu"``, ``description`` e.g. ``"GPU 0 (CUDA_VISIBLE_DEVICES=1):
+NVIDIA H100 … (CuPy 14.0)"``, ``requested`` ``"cpu"``/``"gpu"``/``"auto"``,
+``fallback_reason`` why ``auto`` used the CPU; a failed frame has only what was
+requested), ``cuda_visible_devices`` (the worker's ``CUDA_VISIBLE_DEVICES`` for
+GPU and auto renders: the GPU it was pinned to), ``error`` and ``traceback``
+when failed (a GPU failure: one line, no traceback), ``host``, ``finished``
+(UTC).
 
 Resuming
 --------

@@ -13,7 +13,10 @@ defines the frame —
 
 so an edited set re-renders exactly the frames it changed, and two entries
 that describe the same frame render it once. Labels (scene name, preset
-label) are not part of the id. Each job's render seed is derived from the set
+label) are not part of the id, nor is the render device (``--device``): the
+CPU and the GPU render the same frame from the same seed (within float32
+rounding), so a dataset may be resumed on another device; each record says
+which device rendered it. Each job's render seed is derived from the set
 seed and the job id (:func:`derive_seed`), so a frame does not depend on the
 order, the executor or the number of workers.
 
@@ -80,6 +83,8 @@ class ViewTask:
     jobs: tuple[Job, ...]
     dataset: str = ""                 # absolute dataset folder, set by the runner
     render_threads: int | None = None  # tofcore tracer threads; None: its default (CPU count)
+    device: str = "cpu"               # tofcore.render's device: "cpu", "gpu" or "auto" (batch.devices)
+    fallback_reason: str | None = None  # "auto" that the runner already resolved to the CPU, and why
 
     @property
     def label(self) -> str:
@@ -251,6 +256,9 @@ def make_job(*, scene: str, source: dict, view: dict, world_from_sensor, preset:
     pose = None if world_from_sensor is None else np.asarray(world_from_sensor, dtype=np.float64).tolist()
     view_identity = ({"camera": view["camera"], "frame": view["frame"]} if pose is None
                      else {"world_from_sensor": pose, "frame": view.get("frame")})
+    # Not in the definition: labels, and the render device. CPU and GPU give the same frame from the same
+    # seed (within float32 rounding, tests/tofcore/test_gpu.py), so they are the same job: a dataset can
+    # be resumed on another device, and the record says which device rendered each frame.
     definition = {"format": JOB_FORMAT, "tofcore": tofcore.__version__, "source": _source_identity(source),
                   "view": view_identity, "sensor": sensor, "quality": quality, "ambient_w_m2_sr": ambient_w_m2_sr,
                   "set_seed": set_seed, "formats": sorted(formats)}
@@ -294,8 +302,12 @@ def expand(spec: SetSpec, inspect_blend: Callable[[str], BlendInfo] = inspect_bl
     return Expansion(jobs=jobs, notes=notes)
 
 
-def group_by_view(jobs: list[Job], dataset: str = "", render_threads: int | None = None) -> list[ViewTask]:
-    """One task per view (same source, view and ambient), jobs in their given order, tasks in first-job order."""
+def group_by_view(jobs: list[Job], dataset: str = "", render_threads: int | None = None, device: str = "cpu",
+                  fallback_reason: str | None = None) -> list[ViewTask]:
+    """One task per view (same source, view and ambient), jobs in their given order, tasks in first-job order.
+
+    ``dataset``, ``render_threads``, ``device`` and ``fallback_reason`` are copied into every task.
+    """
     tasks: dict[str, list[Job]] = {}
     for job in jobs:
         key = short_hash({"source": _source_identity(job.source), "view": job.view,
@@ -303,5 +315,6 @@ def group_by_view(jobs: list[Job], dataset: str = "", render_threads: int | None
         tasks.setdefault(key, []).append(job)
     return [ViewTask(view_id=key, scene=group[0].scene, source=group[0].source, view=group[0].view,
                      world_from_sensor=group[0].world_from_sensor, ambient_w_m2_sr=group[0].ambient_w_m2_sr,
-                     jobs=tuple(group), dataset=dataset, render_threads=render_threads)
+                     jobs=tuple(group), dataset=dataset, render_threads=render_threads, device=device,
+                     fallback_reason=fallback_reason)
             for key, group in tasks.items()]

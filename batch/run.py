@@ -4,9 +4,13 @@ Executors
 ---------
 ===================  ===========================================================================
 ``LocalExecutor``    a ``ProcessPoolExecutor`` with the "spawn" context (the default);
-                     ``--workers N`` processes, at most N view tasks in flight
-``DaskExecutor``     ``distributed.Client(address)`` for an existing cluster (``--scheduler``),
-                     or a ``LocalCluster`` of worker processes (``--dask local``)
+                     ``--workers N`` processes, at most N view tasks in flight; with
+                     ``--device gpu``/``auto`` one process per GPU, each pinned to its GPU
+                     (``CUDA_VISIBLE_DEVICES``, set by the pool initializer)
+``DaskExecutor``     ``distributed.Client(address)`` for an existing cluster (``--scheduler``;
+                     each worker uses the GPU its environment shows), or a ``LocalCluster``
+                     of worker processes (``--dask local``; one per GPU, each pinned, with a
+                     GPU plan)
 ``InlineExecutor``   this process, one view after another (inside Blender, where bpy is
                      imported and no worker may be started)
 ===================  ===========================================================================
@@ -14,6 +18,10 @@ Executors
 The process that runs :func:`run_jobs` with a pool must not have imported
 ``bpy``: a process that did hangs when it forks, and its spawned children
 cannot import ``_bpy``. The workers import it themselves when a task needs it.
+
+Where frames render (CPU, which GPUs) is decided once, before the dataset is
+touched, by :func:`batch.devices.plan_devices`; a ``--device gpu`` run without
+a usable GPU stops there with one line (exit code 2).
 
 Every executor calls :func:`batch.worker.run_view` on :class:`~batch.jobs.ViewTask`
 objects and yields their records; the parent appends each record to the index
@@ -41,6 +49,7 @@ from typing import TextIO
 
 from .card import dataset_card
 from .dataset import Dataset
+from .devices import VISIBLE_ENV, plan_devices
 from .jobs import Job, ViewTask, group_by_view
 from .worker import failed_record, init_worker, run_view
 
@@ -105,19 +114,34 @@ class InlineExecutor:
 
 
 class LocalExecutor:
-    """A spawn-context process pool with at most ``workers`` view tasks in flight."""
+    """A spawn-context process pool with at most ``workers`` view tasks in flight.
 
-    def __init__(self, workers: int):
+    With ``gpus`` (``CUDA_VISIBLE_DEVICES`` ids), one worker process per GPU: every new pool gets a
+    queue holding each id once, and each process's initializer takes one before anything in the
+    process uses CUDA (:func:`batch.worker.init_worker`). A pool that breaks (a worker killed) is
+    replaced by a new one with a full queue.
+    """
+
+    def __init__(self, workers: int, gpus: tuple[str, ...] = ()):
         if "bpy" in sys.modules:
             raise RuntimeError("this process has imported bpy: it must not start worker processes (they could "
                                "not import bpy); run `python -m batch run` in a plain Python process")
-        self.workers = workers
-        self.name = f"local pool, {workers} worker process{'es' if workers != 1 else ''}"
+        self.gpus = tuple(gpus)
+        self.workers = len(self.gpus) if self.gpus else workers
+        self.name = f"local pool, {self.workers} worker process{'es' if self.workers != 1 else ''}"
+        if self.gpus:
+            self.name += f" (one per GPU: {VISIBLE_ENV} {', '.join(self.gpus)})"
         self.pool: cf.ProcessPoolExecutor | None = None
 
     def _new_pool(self) -> cf.ProcessPoolExecutor:
-        return cf.ProcessPoolExecutor(max_workers=self.workers, mp_context=multiprocessing.get_context("spawn"),
-                                      initializer=init_worker, initargs=(os.getpid(),))
+        context = multiprocessing.get_context("spawn")
+        gpu_ids = None
+        if self.gpus:
+            gpu_ids = context.Queue()
+            for gpu in self.gpus:
+                gpu_ids.put(gpu)
+        return cf.ProcessPoolExecutor(max_workers=self.workers, mp_context=context,
+                                      initializer=init_worker, initargs=(os.getpid(), gpu_ids))
 
     def results(self, tasks: list[ViewTask]) -> Iterator[Result]:
         pending = deque(tasks)
@@ -173,7 +197,7 @@ class DaskExecutor:
     the dataset folder and scene files at the same paths (a shared file system).
     """
 
-    def __init__(self, address: str | None = None, workers: int = 1):
+    def __init__(self, address: str | None = None, workers: int = 1, gpus: tuple[str, ...] = ()):
         try:
             from distributed import Client, LocalCluster
         except ImportError:
@@ -183,10 +207,21 @@ class DaskExecutor:
 
         self.cluster = None
         if address is None:
-            self.cluster = LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
+            self.cluster = LocalCluster(n_workers=0 if gpus else workers, threads_per_worker=1, processes=True,
                                         dashboard_address=None, silence_logs=logging.ERROR)
+            if gpus:  # one worker per GPU, CUDA_VISIBLE_DEVICES in its environment (as dask-cuda does)
+                template = self.cluster.new_spec
+                for gpu in gpus:
+                    options = dict(template["options"], env={VISIBLE_ENV: gpu})
+                    self.cluster.worker_spec[f"gpu-{gpu}"] = {"cls": template["cls"], "options": options}
+                self.cluster.scale(len(gpus))
+                workers = len(gpus)
             self.client = Client(self.cluster)
+            if gpus:
+                self.client.wait_for_workers(workers, timeout=120)
             self.name = f"Dask LocalCluster, {workers} worker process{'es' if workers != 1 else ''}"
+            if gpus:
+                self.name += f" (one per GPU: {VISIBLE_ENV} {', '.join(gpus)})"
         else:
             self.client = Client(address, timeout="30s")
             n = len(self.client.scheduler_info().get("workers", {}))
@@ -224,12 +259,13 @@ class DaskExecutor:
 
 
 def make_executor(*, workers: int = 1, scheduler: str | None = None, dask_local: bool = False,
-                  inline: bool = False):
+                  inline: bool = False, gpus: tuple[str, ...] = ()):
+    """The executor for these options; ``gpus``: pin one local or LocalCluster worker to each."""
     if inline:
         return InlineExecutor()
     if scheduler is not None or dask_local:
-        return DaskExecutor(scheduler, workers=workers)
-    return LocalExecutor(workers)
+        return DaskExecutor(scheduler, workers=workers, gpus=gpus if scheduler is None else ())
+    return LocalExecutor(workers, gpus=gpus)
 
 
 # --------------------------------------------------------------------------- progress
@@ -243,6 +279,17 @@ def _duration(seconds: float) -> str:
     if seconds < 3600:
         return f"{seconds // 60}m{seconds % 60:02d}s"
     return f"{seconds // 3600}h{seconds % 3600 // 60:02d}m"
+
+
+def _device_tag(record: dict) -> str:
+    """``", GPU 1"`` / ``", CPU (auto fall-back)"`` for a frame's log line; nothing for a plain CPU frame."""
+    device = record.get("device") or {}
+    if device.get("name") == "gpu":
+        visible = record.get("cuda_visible_devices")
+        return f", GPU {visible}" if visible else ", GPU"
+    if device.get("fallback_reason"):
+        return f", CPU ({device.get('requested')} fall-back)"
+    return ""
 
 
 class Progress:
@@ -279,7 +326,7 @@ class Progress:
         if record["status"] == "ok":
             rms = record.get("rms_depth_error_m")
             detail = (f"{record.get('render_seconds', 0):.1f} s, {record.get('spp')} spp, RMS error "
-                      f"{'–' if rms is None else f'{rms * 1000:.1f}'} mm")
+                      f"{'–' if rms is None else f'{rms * 1000:.1f}'} mm{_device_tag(record)}")
             self.stream.write(f"[{self.done}/{self.total}] ok      {record['job_id']} {label} ({detail})\n")
         else:
             self.stream.write(f"[{self.done}/{self.total}] FAILED  {record['job_id']} {label}: {record['error']}\n")
@@ -379,26 +426,37 @@ def _ordered(records: dict[str, dict], jobs: list[Job]) -> list[dict]:
     return [records[i] for i in ids if i in records] + [r for i, r in records.items() if i not in in_set]
 
 
-def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, workers: int = 1,
+def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, workers: int | None = None,
              threads_per_worker: int | None = None, scheduler: str | None = None, dask_local: bool = False,
-             inline: bool = False, retry_failed: bool = False, verify: str = "sha256", quiet: bool = False,
-             set_file: str | None = None, description: str = "", stream: TextIO | None = None) -> RunResult:
+             inline: bool = False, device: str = "cpu", retry_failed: bool = False, verify: str = "sha256",
+             quiet: bool = False, set_file: str | None = None, description: str = "",
+             stream: TextIO | None = None) -> RunResult:
     """Render the jobs not yet done into ``dataset``; see the module docstring.
 
     Parameters
     ----------
     jobs : from :func:`batch.jobs.expand`, in set order.
     dataset : the dataset folder (created if needed).
-    workers : local worker processes, or LocalCluster workers with ``dask_local``.
+    workers : local worker processes, or LocalCluster workers with ``dask_local`` (default: 1; with a
+        GPU plan one per GPU, and never more).
     threads_per_worker : tracer threads per render (default: CPU count / workers, at least 1; on a
         remote cluster: each worker machine's CPU count).
     scheduler, dask_local, inline : the executor (default: the local pool).
+    device : ``"cpu"``, ``"gpu"`` or ``"auto"`` (:mod:`batch.devices`); raises
+        :class:`~tofcore.backend.GpuUnavailable` for ``"gpu"`` without a usable GPU, before anything
+        is written.
     retry_failed : render only the frames recorded as failed.
     verify : ``"sha256"`` (default) or ``"size"``: how finished frames are checked before they are skipped.
     quiet : plain log lines instead of the progress bar.
     """
     stream = stream or sys.stderr
     log = (lambda message: _log(message, stream))
+    where = ("inline" if inline else "cluster" if executor is not None or scheduler is not None
+             else "dask-local" if dask_local else "local")
+    devices = plan_devices(device, executor=where, workers=workers)
+    workers = devices.workers
+    for note in devices.notes:
+        log(note)
     result = RunResult(jobs=len(jobs))
     started = time.monotonic()
     data = Dataset(dataset)
@@ -414,13 +472,14 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
         data.rewrite_index(_ordered(records, jobs))
         if threads_per_worker is None and scheduler is None:
             threads_per_worker = max(1, (os.cpu_count() or 1) // max(1, workers if not inline else 1))
-        tasks = group_by_view(todo, dataset=str(data.root), render_threads=threads_per_worker)
+        tasks = group_by_view(todo, dataset=str(data.root), render_threads=threads_per_worker,
+                              device=devices.render, fallback_reason=devices.fallback_reason)
         if result.recovered:
             log(f"{result.recovered} finished frame(s) taken from their record.json (index line missing)")
         progress = Progress(len(todo), quiet=quiet, stream=stream)
         if todo:
             executor = executor or make_executor(workers=workers, scheduler=scheduler, dask_local=dask_local,
-                                                 inline=inline)
+                                                 inline=inline, gpus=devices.gpus)
             result.executor = executor.name
             skipped = f", {result.skipped_failed} failed earlier (--retry-failed retries them)" \
                 if result.skipped_failed else ""

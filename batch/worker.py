@@ -12,15 +12,32 @@ folder is renamed to ``frames/<job_id>/``. A folder named after a job is
 therefore complete; a killed worker leaves only a ``.partial-`` folder, which
 the next run removes.
 
+Devices (:mod:`batch.devices`): every render gets the task's ``device``
+(``"cpu"``, ``"gpu"``, ``"auto"``; the CPU with the reason when the run's plan
+fell back). A GPU worker of the local pool is pinned to one GPU by
+:func:`init_worker`, which sets ``CUDA_VISIBLE_DEVICES`` first thing in the new
+process (nothing has touched CUDA yet: CUDA reads the variable when it
+initialises, at the first render). The record stores ``device`` (the frame's
+``stats["device"]``: name, description, requested, fallback_reason) and
+``cuda_visible_devices`` (this process's value, for GPU and auto renders). A GPU
+failure (``GpuUnavailable``: no CuPy or device, out of memory, CUDA errors;
+raw CuPy exceptions are converted) fails the frame with one line and no
+traceback; with ``auto`` the frame is rendered again on the CPU and the reason
+recorded.
+
 Fault injection for tests: ``TOF_BATCH_FAIL`` holds comma-separated
 :mod:`fnmatch` patterns; a job whose id or label (``scene/view/preset``)
-matches one raises before rendering.
+matches one raises before rendering. A pattern written ``gpu:PATTERN`` raises a
+one-line ``GpuUnavailable`` instead, in place of a GPU or auto render (what an
+out-of-memory GPU does), so the GPU failure paths run on machines without one
+(with ``TOF_BATCH_FAKE_GPU``, :mod:`batch.devices`).
 """
 
 from __future__ import annotations
 
 import fnmatch
 import os
+import queue
 import secrets
 import shutil
 import signal
@@ -35,6 +52,7 @@ from pathlib import Path
 import numpy as np
 
 from . import dataset as ds
+from .devices import VISIBLE_ENV, gpu_error_line, is_gpu_error, render_device
 from .jobs import Job, ViewTask, file_sha256
 
 FAIL_ENV = "TOF_BATCH_FAIL"
@@ -60,14 +78,21 @@ class JobError(RuntimeError):
 
 # --------------------------------------------------------------------------- worker process set-up
 
-def init_worker(parent_pid: int | None = None) -> None:
-    """Process-pool initializer: leave Ctrl-C to the parent, and exit if the parent dies.
+def init_worker(parent_pid: int | None = None, gpu_ids=None) -> None:
+    """Process-pool initializer: pin the worker to its GPU, leave Ctrl-C to the parent, exit if the parent dies.
+
+    ``gpu_ids`` (a multiprocessing queue holding one ``CUDA_VISIBLE_DEVICES``
+    id per worker process, ``--device gpu``/``auto``): the worker takes one and
+    makes it its only visible GPU before anything in it uses CUDA, so N
+    workers render on N different GPUs.
 
     The terminal sends SIGINT to the whole process group; the parent stops the
     workers itself. A parent killed with SIGKILL cannot: a watchdog thread
     ends the worker within a second of the parent's death, so no orphan keeps
     writing into the dataset.
     """
+    if gpu_ids is not None:
+        pin_gpu(gpu_ids)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.signal(signal.SIGTERM, _on_sigterm)
     if parent_pid is None:
@@ -80,6 +105,16 @@ def init_worker(parent_pid: int | None = None) -> None:
             time.sleep(0.5)
 
     threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
+
+
+def pin_gpu(gpu_ids) -> str:
+    """Take one GPU id from the queue and make it this process's only visible GPU; the id."""
+    try:
+        gpu = gpu_ids.get(timeout=60)
+    except queue.Empty:
+        raise RuntimeError("GPU worker: no GPU id left for this process") from None
+    os.environ[VISIBLE_ENV] = gpu
+    return gpu
 
 
 # --------------------------------------------------------------------------- scenes
@@ -157,11 +192,19 @@ def _check_unchanged(source: dict) -> None:
 
 # --------------------------------------------------------------------------- one job
 
-def _maybe_fail(job: Job) -> None:
+def _maybe_fail(job: Job, gpu: bool = False) -> None:
+    """Raise for a job matched by ``TOF_BATCH_FAIL``; ``gpu:``-patterns (checked with ``gpu=True``,
+    inside a GPU or auto render) raise a one-line ``GpuUnavailable``, as a failing GPU does."""
+    from tofcore.backend import GpuUnavailable
+
     patterns = [p.strip() for p in os.environ.get(FAIL_ENV, "").split(",") if p.strip()]
     for pattern in patterns:
-        if fnmatch.fnmatchcase(job.job_id, pattern) or fnmatch.fnmatchcase(job.label, pattern):
-            raise RuntimeError(f"fault injected by {FAIL_ENV}={pattern!r}")
+        is_gpu, glob = pattern.startswith("gpu:"), pattern.removeprefix("gpu:")
+        if is_gpu != gpu or not (fnmatch.fnmatchcase(job.job_id, glob) or fnmatch.fnmatchcase(job.label, glob)):
+            continue
+        if gpu:
+            raise GpuUnavailable(f"GPU: fault injected by {FAIL_ENV}={pattern!r}")
+        raise RuntimeError(f"fault injected by {FAIL_ENV}={pattern!r}")
 
 
 def _rms(values: np.ndarray) -> float | None:
@@ -198,7 +241,38 @@ def _base_record(job: Job, task: ViewTask) -> dict:
                      "ambient_w_m2_sr": job.ambient_w_m2_sr, "formats": list(job.formats),
                      "width": job.sensor["camera"]["width"], "height": job.sensor["camera"]["height"]},
         "world_from_sensor": job.world_from_sensor, "host": socket.gethostname(), "pid": os.getpid(),
+        # Replaced by the frame's stats["device"] once rendered; what was asked for until then.
+        "device": {"name": None, "description": None, "requested": task.device,
+                   "fallback_reason": task.fallback_reason},
+        "cuda_visible_devices": None if task.device == "cpu" else os.environ.get(VISIBLE_ENV),
     }
+
+
+def _render(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient):
+    """``tofcore.render`` on the task's device; for ``auto``, a GPU failure renders again on the CPU.
+
+    CuPy exceptions that reach here are turned into one-line ``GpuUnavailable`` errors (the core
+    does so too; this is the second line of defence), so no partial frame is ever written.
+    """
+    import tofcore
+    from tofcore.backend import cpu_device, gpu_errors
+
+    sensor = tofcore.Sensor.from_dict(job.sensor, where=f"preset {job.preset!r}")
+    q = job.quality
+    settings = dict(spp=q["spp"], max_depth=q["max_depth"], seed=job.seed, time_budget_s=q["time_budget_s"],
+                    target_error_m=q["target_error_m"], ambient=ambient, workers=task.render_threads,
+                    cancel=_STOP.is_set)
+    device = render_device(task.device, task.fallback_reason)
+    try:
+        with gpu_errors():
+            if task.device != "cpu" and task.fallback_reason is None:
+                _maybe_fail(job, gpu=True)
+            return tofcore.render(scene, sensor, pose, device=device, **settings)
+    except Exception as exc:
+        if task.device != "auto" or not is_gpu_error(exc):
+            raise
+        reason = gpu_error_line(exc).removeprefix("GpuUnavailable: ")
+    return tofcore.render(scene, sensor, pose, device=cpu_device("auto", reason), **settings)
 
 
 def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warnings: list[str]) -> dict:
@@ -211,11 +285,7 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
     started = time.perf_counter()
     try:
         _maybe_fail(job)
-        sensor = tofcore.Sensor.from_dict(job.sensor, where=f"preset {job.preset!r}")
-        q = job.quality
-        frame = tofcore.render(scene, sensor, pose, spp=q["spp"], max_depth=q["max_depth"], seed=job.seed,
-                               time_budget_s=q["time_budget_s"], target_error_m=q["target_error_m"],
-                               ambient=ambient, workers=task.render_threads, cancel=_STOP.is_set)
+        frame = _render(job, task, scene, pose, ambient)
         frame.metadata["batch"] = {"job_id": job.job_id, "scene": job.scene, "view": job.view,
                                    "preset": job.preset, "seed": job.seed, "set_seed": job.set_seed,
                                    "source": job.source, "export_warnings": warnings}
@@ -224,7 +294,7 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
         stats = frame.stats
         convergence = stats.get("convergence", [])
         record.update({
-            "status": "ok", "error": None,
+            "status": "ok", "error": None, "device": stats.get("device", record["device"]),
             "dir": f"{ds.FRAMES}/{job.job_id}",
             "files": [ds.file_entry(kind, path) for kind, path in written.items()],
             "world_from_sensor": np.asarray(frame.world_from_sensor).tolist(),
@@ -253,11 +323,18 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
 
 def failed_record(job: Job, task: ViewTask, exc: BaseException, seconds: float = 0.0,
                   record: dict | None = None) -> dict:
-    """The record of a job that raised ``exc`` (the message, and the traceback's last lines)."""
+    """The record of a job that raised ``exc``: the message, and the traceback's last lines.
+
+    A GPU failure (:func:`batch.devices.is_gpu_error`) gives one line naming the cause and no traceback.
+    """
     record = dict(record or _base_record(job, task))
-    tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))
-    record.update({"status": "failed", "error": f"{type(exc).__name__}: {exc}",
-                   "traceback": tb[-4000:], "dir": None, "files": [], "seconds": seconds,
+    if is_gpu_error(exc):
+        error, tb = gpu_error_line(exc), None
+    else:
+        error = f"{type(exc).__name__}: {exc}"
+        tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))[-4000:]
+    record.update({"status": "failed", "error": error,
+                   "traceback": tb, "dir": None, "files": [], "seconds": seconds,
                    "finished": datetime.now(timezone.utc).isoformat(timespec="seconds")})
     return record
 

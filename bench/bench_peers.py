@@ -100,6 +100,19 @@ def _mitsuba_scene(mi, scene, cam, pose, led_world, integrator: dict, film: dict
     return mi.load_dict(d)
 
 
+def mitsuba_integrator_film(transient: bool, max_depth: int) -> tuple[dict, dict]:
+    """The integrator and film dicts of the Mitsuba (``path``, RGB ``hdrfilm``) or mitransient
+    (``transient_path``, ``phasor_hdr_film``) frame; also used by ``bench/bench_gpu.py``."""
+    integ = {"type": "transient_path" if transient else "path", "max_depth": max_depth + 1, "rr_depth": 1000}
+    if transient:
+        span = 299_792_458.0 / 8e6          # FFT bins k·8 MHz; k = 2..15 → 16..120 MHz (14 frequencies)
+        film = {"type": "phasor_hdr_film", "temporal_bins": 64, "bin_width_opl": span / 64, "start_opl": 0.0,
+                "wl_mean": span / 8.5, "wl_sigma": span / (6 * 6.4 / 3)}
+    else:
+        film = {"type": "hdrfilm", "pixel_format": "rgb"}
+    return integ, film
+
+
 def _save_preview(img: np.ndarray, path: str) -> None:
     """Grey PNG of an (H, W[, C]) radiance image, scaled to its 99th percentile (to check the view)."""
     import matplotlib
@@ -116,13 +129,7 @@ def run_mitsuba(detail, spp, max_depth, width, height, transient: bool, repeat: 
     if transient:
         import mitransient  # noqa: F401
     scene, cam, pose, led_world = _setup(detail, width, height)
-    integ = {"type": "transient_path" if transient else "path", "max_depth": max_depth + 1, "rr_depth": 1000}
-    if transient:
-        span = 299_792_458.0 / 8e6          # FFT bins k·8 MHz; k = 2..15 → 16..120 MHz (14 frequencies)
-        film = {"type": "phasor_hdr_film", "temporal_bins": 64, "bin_width_opl": span / 64, "start_opl": 0.0,
-                "wl_mean": span / 8.5, "wl_sigma": span / (6 * 6.4 / 3)}
-    else:
-        film = {"type": "hdrfilm", "pixel_format": "rgb"}
+    integ, film = mitsuba_integrator_film(transient, max_depth)
     t0 = time.perf_counter()
     sc = _mitsuba_scene(mi, scene, cam, pose, led_world, integ, film, spp)
     load_s = time.perf_counter() - t0

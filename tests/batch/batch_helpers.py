@@ -26,17 +26,23 @@ def write_set(folder: Path, body: str, name: str = "set.toml") -> Path:
 
 
 def batch(*args: str, env: dict | None = None, timeout: float = 240, cwd: Path = REPO) -> subprocess.CompletedProcess:
-    """``python -m batch ARGS`` in a fresh process; its output is captured."""
+    """``python -m batch ARGS`` in a fresh process; its output is captured. ``env``: a value None unsets."""
     full_env = dict(os.environ)
     full_env.pop(_FAIL_ENV, None)
+    full_env.pop(_FAKE_GPU_ENV, None)
     full_env["PYTHONPATH"] = os.pathsep.join([str(REPO)] + ([full_env["PYTHONPATH"]] if full_env.get("PYTHONPATH")
                                                             else []))
-    full_env.update(env or {})
+    for key, value in (env or {}).items():
+        if value is None:
+            full_env.pop(key, None)
+        else:
+            full_env[key] = value
     return subprocess.run([sys.executable, "-m", "batch", *args], cwd=cwd, env=full_env, capture_output=True,
                           text=True, timeout=timeout)
 
 
 _FAIL_ENV = "TOF_BATCH_FAIL"
+_FAKE_GPU_ENV = "TOF_BATCH_FAKE_GPU"
 
 
 def read_index(dataset: Path) -> list[dict]:

@@ -168,3 +168,28 @@ cameras = ["Other"]
     dask = batch("run", str(set_file), "--out", str(tmp_path / "dask"), "--dask", "local", "--quiet")
     assert dask.returncode == 0, dask.stderr
     assert assert_same_frames(tmp_path / "local", tmp_path / "dask") == 1
+
+
+def test_blender_entry_device(tmp_path, blend_file):
+    """The Blender entry renders in its own process: --device gpu needs a GPU there, auto falls back."""
+    blend, _ = blend_file
+    env = dict(os.environ, PYTHONPATH=str(REPO), CUDA_VISIBLE_DEVICES="")
+    env.pop("TOF_BATCH_FAKE_GPU", None)
+
+    def entry(device: str, out: Path) -> subprocess.CompletedProcess:
+        return subprocess.run(
+            [sys.executable, "-c", EMULATE_BLENDER, str(blend), str(REPO / "batch" / "blender_entry.py"),
+             "--preset", "kinect_v2", "--out", str(out), "--cameras", "TofCam", "--spp", "2", "--max-depth", "2",
+             "--resolution-scale", "0.0625", "--device", device, "--quiet"],
+            cwd=tmp_path, env=env, capture_output=True, text=True, timeout=240)
+
+    gpu = entry("gpu", tmp_path / "gpu")
+    assert gpu.returncode == 2, gpu.stderr
+    errors = [line for line in gpu.stderr.splitlines() if line.startswith("error:")]
+    assert len(errors) == 1 and errors[0].startswith("error: --device gpu: no usable GPU: GPU: ")
+    assert "Traceback" not in gpu.stderr and not (tmp_path / "gpu").exists()
+    auto = entry("auto", tmp_path / "auto")
+    assert auto.returncode == 0, auto.stderr
+    (record,) = read_index(tmp_path / "auto")
+    assert record["device"]["name"] == "cpu" and record["device"]["requested"] == "auto"
+    assert record["device"]["fallback_reason"].startswith("GPU: ")
