@@ -6,7 +6,9 @@ delegates:
 ==================  ============================================================================
 module              concept
 ==================  ============================================================================
-``preferences``     add-on preferences (default output folder, tracer threads, preview delay)
+``preferences``     add-on preferences (default output folder, tracer threads, preview delay, device),
+                    Install CuPy for GPU rendering, Check GPU
+``gpu``             CuPy in Blender's Python: its folder, the pip command, CUDA libraries, GPU status
 ``properties``      ``camera.tof`` and ``material.tof``, settings → ``tofcore.Sensor``
 ``operators``       Add ToF Camera, Apply Sensor to Camera, Render ToF, the live preview
 ``panels``          the ToF Sensor and Near-IR panels, menu entries

@@ -11,6 +11,9 @@ Steps (``make addon`` runs them):
 3. Download the listed OpenEXR wheels (cp311 for Blender 4.2–5.0, cp313 for
    5.1+, per platform) with ``pip download --only-binary=:all:``; they are
    kept in a cache folder and reused. NumPy is not bundled: Blender ships it.
+   Nor are CuPy and NVIDIA's CUDA libraries (about 1 GB): the add-on installs
+   them on request (Preferences › Install CuPy for GPU rendering, ``addon/gpu.py``).
+   A manifest that lists any of these (:data:`NOT_BUNDLED`) is refused.
 4. Stage ``addon/*`` + the manifest + ``wheels/`` in one folder (the manifest
    must sit next to the add-on's ``__init__.py`` at the root of the zip).
 5. Run Blender's own extension tool (``blender_ext.py``, shipped inside the
@@ -47,6 +50,9 @@ REPO_ROOT = Path(__file__).resolve().parent.parent
 MANIFEST_NAME = "blender_manifest.toml"
 #: Files of the add-on folder that are development tools, not part of the extension.
 NOT_SHIPPED = ("build.py",)
+#: Distributions never bundled (name prefixes): Blender ships NumPy; the GPU packages are installed on
+#: request into the extension's user folder (addon/gpu.py), which keeps the zips small.
+NOT_BUNDLED = ("numpy", "cupy", "nvidia-", "cuda-", "fastrlock")
 
 #: Wheel platform tag prefix → Blender platform (the rule of blender_ext.py, for the tags used here).
 _WHEEL_SYSTEMS = {"manylinux": "linux", "musllinux": "linux", "linux": "linux", "macosx": "macos", "win": "windows"}
@@ -125,6 +131,11 @@ def select_wheels(manifest: dict, platforms: list[str] | None) -> tuple[list[Whe
     """The manifest's wheels and platforms, limited to ``platforms`` when given."""
     all_platforms = list(manifest.get("platforms", []))
     wheels = [Wheel.parse(entry) for entry in manifest.get("wheels", [])]
+    for wheel in wheels:
+        if wheel.distribution.lower().replace("_", "-").startswith(NOT_BUNDLED):
+            raise BuildError(f"{MANIFEST_NAME}: wheels must not bundle {wheel.filename!r}: Blender ships NumPy, "
+                             f"and CuPy with the CUDA libraries is installed on request by the add-on "
+                             f"(Preferences > Install CuPy for GPU rendering)")
     if not platforms:
         return wheels, all_platforms
     unknown = [p for p in platforms if p not in all_platforms]

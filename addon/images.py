@@ -11,6 +11,9 @@ image              content (RGBA float, display-ready values, colour space Non-C
                    limit = max(1 mm, 99th percentile of |error|); transparent where either is invalid
 =================  ====================================================================================
 
+Each image's custom property ``tof_device`` names the device that rendered it
+(e.g. ``"CPU (NumPy 1.26.4)"``, ``"GPU 0: NVIDIA … (CuPy 13.6.0)"``).
+
 The colour maps are NumPy only (:func:`frame_rgba`, testable without Blender);
 :func:`update_images` writes them with ``image.pixels.foreach_set``, rows
 flipped because Blender stores images bottom-up. The limits of every map are
@@ -143,11 +146,19 @@ def read_pixels(image) -> np.ndarray:
     return flat.reshape(height, width, 4)[::-1]
 
 
+#: Custom property of the images: the device that rendered them (``frame.stats["device"]["description"]``).
+DEVICE_KEY = "tof_device"
+
+
 def update_images(frame) -> dict[str, dict]:
-    """Show ``frame`` in the four images of :data:`IMAGE_NAMES`; returns the colour-map limits by image name."""
+    """Show ``frame`` in the four images of :data:`IMAGE_NAMES`, each with the device that rendered it
+    (custom property :data:`DEVICE_KEY`); returns the colour-map limits by image name."""
     limits = {}
+    device = (frame.stats.get("device") or {}).get("description", "")
     for quantity, (rgba, quantity_limits) in frame_rgba(frame).items():
         name = IMAGE_NAMES[quantity]
-        set_pixels(_image(name, frame.width, frame.height), rgba)
+        image = _image(name, frame.width, frame.height)
+        set_pixels(image, rgba)
+        image[DEVICE_KEY] = device
         limits[name] = quantity_limits
     return limits

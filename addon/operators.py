@@ -17,6 +17,19 @@ is written by :func:`tofcore.write_frame` (atomic files) to the output folder.
 ``INVOKE_DEFAULT`` calls ``execute``) runs the same job in the calling thread,
 calling :func:`_apply_pass` after every pass.
 
+Device
+------
+Both the render and the live preview run on the preferences' ``device``
+(``cpu``, ``gpu`` or ``auto``, passed to :func:`tofcore.render_progressive`).
+Before a ``gpu``/``auto`` job, :func:`.gpu.activate` makes the CuPy the add-on
+installed importable (its CUDA libraries loaded); ``gpu`` without any CuPy
+stops at once with the way to install it. The device that rendered
+(``frame.stats["device"]["description"]``) is in the summary, the panel, the
+status bar and the images' ``tof_device`` property; an ``auto`` render that fell
+back to the CPU ends with a WARNING naming why. A GPU that fails
+(:class:`tofcore.backend.GpuUnavailable`: no device, driver too old, out of
+memory) is an ERROR with tofcore's one-line reason.
+
 Live preview
 ------------
 While a camera's ``live_preview`` is on, a ``depsgraph_update_post`` handler
@@ -27,8 +40,8 @@ resolution, ``preview_spp``), cancelling the previous one; a second timer
 drains its queue into the same images. Nothing is written.
 
 Every failure the user can cause is reported: no active camera, a camera
-without ToF sensor, nothing visible to render, invalid overrides (ERROR);
-skipped objects, missing textures (WARNING, from the exporter).
+without ToF sensor, nothing visible to render, invalid overrides, an unusable
+GPU (ERROR); skipped objects, missing textures, a GPU fallback (WARNING).
 """
 
 from __future__ import annotations
@@ -48,7 +61,7 @@ from mathutils import Matrix
 
 import tofcore
 
-from . import export, images, mapping, preferences, properties
+from . import export, gpu, images, mapping, preferences, properties
 
 #: Custom property that marks an LED empty; its value is the LED number (1-based).
 LED_KEY = "tof_led"
@@ -78,14 +91,16 @@ class RenderJob:
     formats : :func:`tofcore.write_frame` formats.
     camera : name of the Blender camera (for the UI).
     kind : ``"render"`` or ``"preview"``.
+    device : tofcore's ``device``: ``"cpu"``, ``"gpu"`` or ``"auto"``.
     """
 
     def __init__(self, *, scene, sensor, pose, ambient=None, settings: dict, workers: int | None = None,
                  out_dir: str | None = None, formats: tuple[str, ...] = (), camera: str = "",
-                 kind: str = "render") -> None:
+                 kind: str = "render", device: str = "cpu") -> None:
         self.scene, self.sensor, self.pose, self.ambient = scene, sensor, pose, ambient
         self.settings = dict(settings)
         self.workers = workers
+        self.device = device
         self.out_dir = out_dir
         self.formats = tuple(formats)
         self.camera = camera
@@ -111,7 +126,7 @@ class RenderJob:
         frame = None
         for frame in tofcore.render_progressive(self.scene, self.sensor, self.pose, ambient=self.ambient,
                                                 cancel=self._cancel.is_set, workers=self.workers,
-                                                **self.settings):
+                                                device=self.device, **self.settings):
             on_pass(frame)
         if self.cancelled:
             raise tofcore.Cancelled("render cancelled after its last pass; nothing written")
@@ -128,7 +143,7 @@ class RenderJob:
             except tofcore.Cancelled:
                 self.messages.put(("cancelled", None))
             except Exception as err:  # reported in the UI; the thread must not die silently
-                self.messages.put(("error", f"{type(err).__name__}: {err}"))
+                self.messages.put(("error", error_text(err)))
 
         self.thread = threading.Thread(target=work, name=f"tof-{self.kind}-{self.camera}", daemon=True)
         self.thread.start()
@@ -149,6 +164,14 @@ class RenderJob:
     def join(self, timeout: float | None = None) -> None:
         if self.thread is not None:
             self.thread.join(timeout)
+
+
+def error_text(err: BaseException) -> str:
+    """One line for a failed job: tofcore's own errors as they are (they name their cause), others with
+    their type."""
+    if isinstance(err, tofcore.TofError):
+        return str(err)
+    return f"{type(err).__name__}: {err}"
 
 
 # --------------------------------------------------------------------------- scene → job
@@ -190,6 +213,9 @@ def prepare_render(context, report, *, preview: bool = False) -> RenderJob | Non
     if problem:
         report({'ERROR'}, problem)
         return None
+    device = prepare_device(preferences.get(context).device, report)
+    if device is None:
+        return None
     settings = camera_obj.data.tof
     try:
         sensor = properties.sensor_from_settings(settings, scale=settings.preview_scale if preview else 1.0)
@@ -223,8 +249,30 @@ def prepare_render(context, report, *, preview: bool = False) -> RenderJob | Non
     if pose is None:
         pose = tofcore.from_blender_matrix_world(camera_obj.matrix_world)
     return RenderJob(scene=result.scene, sensor=sensor, pose=pose, ambient=result.ambient, settings=quality,
-                     workers=preferences.get().workers or None, out_dir=out_dir, formats=formats,
-                     camera=camera_obj.name, kind="preview" if preview else "render")
+                     workers=preferences.get(context).workers or None, out_dir=out_dir, formats=formats,
+                     camera=camera_obj.name, kind="preview" if preview else "render", device=device)
+
+
+def prepare_device(device: str, report) -> str | None:
+    """The preferences' ``device`` ready to render with, or None after an ERROR ``report``.
+
+    ``gpu``/``auto``: the add-on's CuPy folder goes on ``sys.path`` and its CUDA libraries are loaded
+    (:func:`.gpu.activate`; CuPy itself is imported by tofcore in the worker). ``gpu`` without any CuPy
+    stops here, naming the Blender way to install it (tofcore's own message suggests ``pip``).
+    """
+    if device not in ("cpu", "gpu", "auto"):
+        report({'ERROR'}, f"Preferences: device must be one of ['cpu', 'gpu', 'auto'], got {device!r}")
+        return None
+    if device == "cpu":
+        return device
+    gpu.activate(preferences.cupy_folder())
+    if device == "gpu" and not gpu.installed_cupy():
+        problem = gpu.platform_problem()
+        report({'ERROR'}, f"Device GPU: {problem}" if problem else
+               "Device GPU needs CuPy in Blender's Python: Preferences > Add-ons > ToF Camera Simulator > "
+               "Install CuPy for GPU rendering (or set Device to CPU or Auto)")
+        return None
+    return device
 
 
 # --------------------------------------------------------------------------- showing passes
@@ -239,6 +287,18 @@ def _apply_pass(frame) -> None:
                        seconds=float(frame.stats.get("seconds", row.get("seconds", 0.0))),
                        final=bool(frame.stats.get("final")), limits=limits,
                        resolution=(frame.width, frame.height))
+    device = frame.stats.get("device") or {}
+    last_result.update(device=device.get("description", ""), device_name=device.get("name", ""),
+                       fallback_reason=device.get("fallback_reason"))
+
+
+def device_report(frame, report) -> None:
+    """After a job: the status learns which device rendered; an ``auto`` render that fell back to the CPU
+    is a WARNING naming why."""
+    device = frame.stats.get("device") or {}
+    gpu.note_device(device)
+    if device.get("fallback_reason"):
+        report({'WARNING'}, gpu.fallback_warning(device["fallback_reason"]))
 
 
 def _begin_result(job: RenderJob) -> None:
@@ -269,8 +329,10 @@ def _summary(frame, written: dict, job: RenderJob) -> str:
     error = frame.stats["convergence"][-1].get("est_depth_error_m")
     error_text = "–" if error is None else f"{error * 1000:.2f} mm"
     where = f"{len(written)} files written to {job.out_dir}" if written else "no files written (no formats)"
+    device = (frame.stats.get("device") or {}).get("description")
+    on = f" on {device}" if device else ""
     return (f"ToF render of {job.camera!r}: {where}; {frame.stats['spp']} spp, "
-            f"est. depth error {error_text}, {frame.stats['seconds']:.1f} s")
+            f"est. depth error {error_text}, {frame.stats['seconds']:.1f} s{on}")
 
 
 def _redraw(context) -> None:
@@ -369,6 +431,7 @@ the final frame is written to the output folder. Esc cancels"""
             wm.progress_end()
             self._end()
         last_result.update(state="done", files=len(written), out_dir=job.out_dir or "")
+        device_report(frame, self.report)
         self.report({'INFO'}, _summary(frame, written, job))
         return {'FINISHED'}
 
@@ -403,7 +466,8 @@ the final frame is written to the output folder. Esc cancels"""
             _show_in_image_editors(context)
             context.window_manager.progress_update(int(100 * progress_fraction(job)))
             if not job.cancelled:
-                _set_status(context, f"ToF render of {job.camera!r}: {progress_text()} (Esc to cancel)")
+                on = f" on {last_result['device']}" if last_result.get("device") else ""
+                _set_status(context, f"ToF render of {job.camera!r}{on}: {progress_text()} (Esc to cancel)")
             _redraw(context)
         if end is None:
             return {'PASS_THROUGH'}
@@ -414,6 +478,7 @@ the final frame is written to the output folder. Esc cancels"""
         if kind == "done":
             frame, written = payload
             last_result.update(state="done", files=len(written), out_dir=self._job.out_dir or "")
+            device_report(frame, self.report)
             self.report({'INFO'}, _summary(frame, written, self._job))
             return {'FINISHED'}
         if kind == "cancelled":
@@ -707,6 +772,8 @@ def poll_live_preview(context=None) -> bool:
         last_result["state"] = {"done": "done", "cancelled": "cancelled"}.get(kind, "error")
         if kind == "error":
             last_result["message"] = payload
+        elif kind == "done":
+            device_report(payload[0], lambda levels, message: _preview.messages.append((min(levels), message)))
         _preview.job = None
     _redraw(context or bpy.context)
     return _preview.job is not None

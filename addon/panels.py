@@ -15,14 +15,14 @@ from __future__ import annotations
 import bpy
 from bpy.types import Panel
 
-from . import operators, properties
+from . import gpu, operators, properties
 from .operators import TOF_OT_add_camera, TOF_OT_apply_sensor, TOF_OT_cancel_render, TOF_OT_render
 
 _STATE_TEXT = {"running": "Rendering", "done": "Done", "cancelled": "Cancelled", "error": "Failed"}
 
 
 def draw_result(layout, camera_name: str | None = None) -> None:
-    """The last (or running) render: state, progress, estimated depth error, time, files."""
+    """The last (or running) render: state, progress, estimated depth error, time, device, files."""
     result = operators.last_result
     if not result or (camera_name is not None and result.get("camera") != camera_name):
         return
@@ -42,6 +42,11 @@ def draw_result(layout, camera_name: str | None = None) -> None:
         box.label(text=text)
     if state == "running":
         box.operator(TOF_OT_cancel_render.bl_idname, icon='CANCEL')
+    if result.get("device"):
+        box.label(text=f"Device: {result['device']}", icon='MEMORY' if result.get("device_name") == "gpu"
+                  else 'DESKTOP')
+    if result.get("fallback_reason"):
+        box.label(text=gpu.fallback_warning(result["fallback_reason"]), icon='ERROR')
     if result.get("files"):
         box.label(text=f"{result['files']} files in {result.get('out_dir', '')}", icon='FILE_FOLDER')
     if "resolution" in result:

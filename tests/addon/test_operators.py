@@ -586,3 +586,200 @@ def test_modal_render_and_escape(tof, tmp_path):
     assert operators.active_render_job() is None and operators.last_result["state"] == "cancelled"
     op._job.join(5.0)
     assert not op._job.thread.is_alive()
+
+
+# --------------------------------------------------------------------------- the render device (preferences)
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))    # tests/: the CuPy stand-in
+import fakecupy  # noqa: E402
+
+from addon import gpu, preferences  # noqa: E402
+from tofcore import backend  # noqa: E402
+
+#: What tofcore raises for a GPU machine whose driver or device does not answer (no such machine here).
+NO_DEVICE = ("GPU: CuPy 13.6.0 found no usable CUDA device (CUDARuntimeError: cudaErrorNoDevice: "
+             "no CUDA-capable device is detected)")
+
+
+@pytest.fixture
+def prefs(tof, monkeypatch):
+    """The add-on's real preferences: an add-on entry for the plain package, removed afterwards; the GPU
+    status starts afresh."""
+    monkeypatch.setattr(gpu, "_status", None)
+    entry = bpy.context.preferences.addons.new()
+    entry.module = "addon"
+    assert preferences.get() == entry.preferences and entry.preferences.device == 'cpu'
+    yield entry.preferences
+    bpy.context.preferences.addons.remove(entry)
+
+
+@pytest.fixture
+def render_calls(monkeypatch):
+    """Every ``tofcore.render_progressive`` call's ``device`` argument (the render itself runs as usual)."""
+    calls = []
+    original = tofcore.render_progressive
+
+    def recording(*args, **kwargs):
+        calls.append(kwargs.get("device"))
+        return original(*args, **kwargs)
+
+    monkeypatch.setattr(tofcore, "render_progressive", recording)
+    return calls
+
+
+def run_execute(operator_class, context=None):
+    """``operator_class.execute`` on a stand-in operator that collects its reports: (result, Reports)."""
+    from types import SimpleNamespace
+
+    op = SimpleNamespace(report=Reports())
+    for name in ("execute", "_start"):
+        setattr(op, name, getattr(operator_class, name).__get__(op))
+    op._end = getattr(operator_class, "_end", None)
+    return op.execute(context or bpy.context), op.report
+
+
+def _gpu_usable() -> bool:
+    return backend.select_device("auto").name == "gpu"
+
+
+def test_render_default_device_is_cpu(prefs, tmp_path, render_calls):
+    add_plane_and_cube()
+    add_tof_camera(output_dir=str(tmp_path))
+    result, reports = run_execute(operators.TOF_OT_render)
+    assert result == {'FINISHED'} and render_calls == ["cpu"]
+    assert not reports.of("WARNING") and not reports.of("ERROR")
+    device = f"CPU (NumPy {np.__version__})"
+    assert reports.of("INFO")[0].endswith(f" on {device}")
+    assert operators.last_result["device"] == device and operators.last_result["fallback_reason"] is None
+    assert all(bpy.data.images[name][images.DEVICE_KEY] == device for name in images.IMAGE_NAMES.values())
+
+
+def test_render_auto_without_gpu_falls_back_to_cpu(prefs, tmp_path, render_calls):
+    """This machine has no CuPy/GPU: "auto" renders on the CPU and says why, as a WARNING."""
+    if _gpu_usable():
+        pytest.skip("a usable GPU: auto does not fall back here")
+    add_plane_and_cube()
+    add_tof_camera(output_dir=str(tmp_path))
+    prefs.device = 'auto'
+    result, reports = run_execute(operators.TOF_OT_render)
+    assert result == {'FINISHED'} and render_calls == ["auto"]
+    assert not reports.of("ERROR")
+    warnings = reports.of("WARNING")
+    assert len(warnings) == 1 and warnings[0].startswith("Rendered on the CPU: ")
+    if not gpu.installed_cupy():   # then the warning says how to get CuPy in Blender, not with pip
+        assert "Install CuPy for GPU rendering" in warnings[0]
+    assert f"on CPU (NumPy {np.__version__})" in reports.of("INFO")[0]
+    assert operators.last_result["device_name"] == "cpu" and operators.last_result["fallback_reason"]
+    import json
+    device = json.loads((tmp_path / "frame.json").read_text())["stats"]["device"]
+    assert device["name"] == "cpu" and device["requested"] == "auto" and device["fallback_reason"]
+
+
+def test_render_auto_names_the_gpu_failure(prefs, tmp_path, monkeypatch):
+    def no_device():
+        raise backend.GpuUnavailable(NO_DEVICE)
+
+    monkeypatch.setattr(backend, "_gpu_module", no_device)
+    monkeypatch.setattr(gpu, "installed_cupy", lambda: [("cupy-cuda12x", "13.6.0", str(tmp_path))])
+    add_plane_and_cube()
+    add_tof_camera(output_dir=str(tmp_path))
+    prefs.device = 'auto'
+    result, reports = run_execute(operators.TOF_OT_render)
+    assert result == {'FINISHED'}
+    assert reports.of("WARNING") == [f"Rendered on the CPU: {NO_DEVICE}"]
+    assert gpu.status().problem == NO_DEVICE and gpu.status().device is None
+
+
+def test_render_gpu_without_cupy_is_a_clean_error(prefs, tmp_path, monkeypatch, render_calls):
+    monkeypatch.setattr(gpu, "installed_cupy", lambda: [])
+    add_plane_and_cube()
+    add_tof_camera(output_dir=str(tmp_path / "out"))
+    prefs.device = 'gpu'
+    result, reports = run_execute(operators.TOF_OT_render)
+    assert result == {'CANCELLED'} and render_calls == []
+    (error,) = reports.of("ERROR")
+    assert error == ("Device GPU needs CuPy in Blender's Python: Preferences > Add-ons > ToF Camera Simulator > "
+                     "Install CuPy for GPU rendering (or set Device to CPU or Auto)")
+    with pytest.raises(RuntimeError, match="Device GPU needs CuPy") as raised:
+        bpy.ops.tof.render()
+    assert "Traceback" not in str(raised.value)
+    assert not (tmp_path / "out").exists() and operators.active_render_job() is None
+    if not _gpu_usable():   # past the add-on's check, tofcore itself refuses "gpu" here with one line
+        prefs.device = 'cpu'
+        job = operators.prepare_render(bpy.context, Reports())
+        job.device = "gpu"
+        with pytest.raises(backend.GpuUnavailable, match="^GPU: ") as raised:
+            job.run(lambda frame: None)
+        assert "\n" not in str(raised.value) and operators.error_text(raised.value) == str(raised.value)
+
+
+def test_render_gpu_unusable_is_a_clean_error(prefs, tmp_path, monkeypatch, render_calls):
+    """CuPy installed, but tofcore finds no usable device: one-line ERROR, CANCELLED, nothing written."""
+    def no_device():
+        raise backend.GpuUnavailable(NO_DEVICE)
+
+    monkeypatch.setattr(backend, "_gpu_module", no_device)
+    monkeypatch.setattr(gpu, "installed_cupy", lambda: [("cupy-cuda12x", "13.6.0", str(tmp_path))])
+    add_plane_and_cube()
+    add_tof_camera(output_dir=str(tmp_path / "out"))
+    prefs.device = 'gpu'
+    result, reports = run_execute(operators.TOF_OT_render)
+    assert result == {'CANCELLED'} and render_calls == ["gpu"]
+    assert reports.of("ERROR") == [f"ToF render failed: {NO_DEVICE}"]
+    assert operators.last_result["state"] == "error" and operators.active_render_job() is None
+    with pytest.raises(RuntimeError, match="ToF render failed: GPU: CuPy 13.6.0 found no usable CUDA device") \
+            as raised:
+        bpy.ops.tof.render()
+    assert "Traceback" not in str(raised.value)
+    assert not (tmp_path / "out").exists()
+    # The UI's worker thread posts the same one line (no exception type in front of tofcore's message).
+    job = operators.prepare_render(bpy.context, Reports())
+    assert job.device == "gpu"
+    job.start()
+    _, end = _drain(job)
+    assert end == ("error", NO_DEVICE)
+
+
+def test_render_on_gpu_stand_in(prefs, tmp_path, monkeypatch, render_calls):
+    """device "gpu" end to end on tests/fakecupy.py (CuPy's rules, NumPy inside): the device is reported."""
+    fakecupy.install(monkeypatch)
+    monkeypatch.setattr(gpu, "installed_cupy", lambda: [("cupy-cuda12x", "fake", str(tmp_path))])
+    add_plane_and_cube()
+    add_tof_camera(output_dir=str(tmp_path))
+    prefs.device = 'gpu'
+    result, reports = run_execute(operators.TOF_OT_render)
+    assert result == {'FINISHED'} and render_calls == ["gpu"], reports.items
+    description = "fake GPU (NumPy behind CuPy's rules)"
+    assert reports.of("INFO")[0].endswith(f" on {description}") and not reports.of("WARNING")
+    assert operators.last_result["device"] == description and operators.last_result["device_name"] == "gpu"
+    assert bpy.data.images["ToF Depth"][images.DEVICE_KEY] == description
+    assert gpu.status().device == description
+    # The live preview runs on the same device.
+    camera = bpy.context.scene.camera
+    camera.data.tof.live_preview = True
+    job = operators.start_live_preview(bpy.context)
+    assert job is not None and job.device == "gpu"
+    job.join(60.0)
+    assert operators.poll_live_preview() is False
+    assert operators.last_result["kind"] == "preview" and operators.last_result["device"] == description
+    camera.data.tof.live_preview = False
+
+
+def test_panel_shows_device_and_fallback(prefs, tmp_path):
+    from addon import panels
+
+    labels = []
+
+    class Layout(RecordingLayout):
+        def label(self, text="", **kwargs):
+            labels.append(text)
+            return self
+
+    add_plane_and_cube()
+    camera = add_tof_camera(output_dir=str(tmp_path))
+    operators.last_result.update(camera=camera.name, kind="render", state="done", device="CPU (NumPy 1.26.4)",
+                                 device_name="cpu", fallback_reason="GPU: CuPy is not installed")
+    panels.draw_result(Layout([]), camera.name)
+    assert "Device: CPU (NumPy 1.26.4)" in labels
+    assert any(text.startswith("Rendered on the CPU") for text in labels)
+    operators.last_result.clear()

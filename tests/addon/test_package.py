@@ -100,6 +100,20 @@ def test_wheel_selection_per_platform():
         build.select_wheels(manifest, ["beos-x64"])
 
 
+@pytest.mark.parametrize("wheel", ["cupy_cuda12x-13.6.0-cp311-cp311-manylinux2014_x86_64.whl",
+                                   "nvidia_cublas_cu12-12.9.3.13-py3-none-manylinux_2_27_x86_64.whl",
+                                   "numpy-1.26.4-cp311-cp311-manylinux_2_17_x86_64.whl"])
+def test_gpu_packages_and_numpy_are_never_bundled(wheel):
+    """The zips stay small: CuPy and the CUDA libraries are installed on request (addon/gpu.py)."""
+    manifest = tomllib.loads(MANIFEST.read_text(encoding="utf-8"))
+    assert not any(w.lower().lstrip("./").startswith(("wheels/cupy", "wheels/nvidia", "wheels/numpy"))
+                   for w in manifest["wheels"])
+    manifest["wheels"] = [*manifest["wheels"], f"./wheels/{wheel}"]
+    with pytest.raises(build.BuildError, match=f"wheels must not bundle '{wheel}'"):
+        build.select_wheels(manifest, None)
+    assert "network" in manifest["permissions"]    # Install CuPy downloads, only when asked
+
+
 @pytest.mark.bpy
 def test_manifest_validates(tmp_path):
     tool = _blender_ext()
@@ -130,7 +144,14 @@ INSTALL_SCRIPT = textwrap.dedent('''
     site = bpy.utils.user_resource("EXTENSIONS", path=os.path.join(
         ".local", "lib", "python{}.{}".format(*sys.version_info[:2]), "site-packages"))
     package = os.path.join(bpy.utils.user_resource("EXTENSIONS"), "user_default", "tof_camera")
+    addon = bpy.context.preferences.addons.get("bl_ext.user_default.tof_camera")
+    prefs = addon.preferences if addon is not None else None
+    module = sys.modules.get("bl_ext.user_default.tof_camera.preferences")
     print("RESULT " + json.dumps({
+        "device": getattr(prefs, "device", None),
+        "cupy_package": getattr(prefs, "cupy_package", None),
+        "cupy_folder": module.cupy_folder() if module else None,
+        "cupy_imported": "cupy" in sys.modules,
         "operator": sorted(result),
         "addons": [a.module for a in bpy.context.preferences.addons],
         "site_packages": sorted(os.listdir(site)) if os.path.isdir(site) else [],
@@ -166,6 +187,8 @@ def test_built_zip_installs_and_enables(tmp_path):
     wheels = sorted(n for n in names if n.startswith("wheels/"))
     assert wheels == sorted(w.lstrip("./") for w in packed_manifest["wheels"])
     assert not any("numpy" in w.lower() for w in wheels)
+    assert not any(name.startswith(("cupy", "nvidia")) for w in wheels for name in [w.split("/")[-1].lower()])
+    assert zips[0].stat().st_size < 10e6, f"{zips[0].name}: {zips[0].stat().st_size / 1e6:.1f} MB"
     assert packed_manifest["platforms"] == ["linux-x64"]
 
     home = tmp_path / "blender-home"
@@ -182,3 +205,10 @@ def test_built_zip_installs_and_enables(tmp_path):
     assert any(name.startswith("OpenEXR") for name in report["site_packages"])
     assert report["presets"] == ["kinect_v2.toml", "o3d303.toml", "xtion2.toml"]
     assert "blender_manifest.toml" in report["package"]
+    # The GPU preferences of the installed extension: CPU by default; CuPy would go into the extension's
+    # user folder (not created, nothing imported at registration).
+    assert report["device"] == "cpu" and report["cupy_package"] == "cupy-cuda12x"
+    assert report["cupy_folder"].endswith(os.path.join("extensions", ".user", "user_default", "tof_camera",
+                                                       "site-packages"))
+    assert str(home) in report["cupy_folder"] and not os.path.exists(report["cupy_folder"])
+    assert report["cupy_imported"] is False
