@@ -2,7 +2,7 @@
 
 Runs in the PyPI ``bpy`` module. Nothing is downloaded: the installer's pip is replaced by a stand-in
 (this Python printing what pip prints and writing a CuPy dist-info), whose command line is otherwise
-the real one (:func:`addon.gpu.cupy_install_command`, tested in ``test_gpu.py``).
+the real one (:func:`addon.gpu.cupy_install_command`, tested in ``test_cupy_install.py``).
 """
 
 from __future__ import annotations
