@@ -25,6 +25,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository r
 import tofcore  # noqa: E402
 
 import addon  # noqa: E402
+from addon_helpers import Reports  # noqa: E402
 from addon import images, mapping, operators, properties  # noqa: E402
 
 #: Every file write_frame produces with all formats.
@@ -85,17 +86,6 @@ def snapshot() -> dict[str, np.ndarray]:
     return {name: images.read_pixels(bpy.data.images[name]).copy() for name in images.IMAGE_NAMES.values()}
 
 
-class Reports:
-    """Stands in for ``Operator.report``: collects (level, message)."""
-
-    def __init__(self) -> None:
-        self.items: list[tuple[str, str]] = []
-
-    def __call__(self, levels, message: str) -> None:
-        self.items.extend((level, message) for level in levels)
-
-    def of(self, level: str) -> list[str]:
-        return [message for lvl, message in self.items if lvl == level]
 
 
 # --------------------------------------------------------------------------- registration

@@ -24,18 +24,10 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: the CuPy
 import fakecupy  # noqa: E402
 
 import addon  # noqa: E402
+from addon_helpers import Reports  # noqa: E402
 from addon import gpu, preferences  # noqa: E402
 
 
-class Reports:
-    def __init__(self) -> None:
-        self.items: list[tuple[str, str]] = []
-
-    def __call__(self, levels, message: str) -> None:
-        self.items.extend((level, message) for level in levels)
-
-    def of(self, level: str) -> list[str]:
-        return [message for lvl, message in self.items if lvl == level]
 
 
 @pytest.fixture

@@ -20,7 +20,6 @@ import pytest
 
 import tofcore
 from tofcore import backend
-from tofcore.bvh import BVH
 from tofcore.camera import Camera
 from tofcore.modulation import Modulation
 from tofcore.presets import load_preset
