@@ -2,32 +2,36 @@
 
 ``write_frame(frame, out_dir)`` writes, with ``prefix`` before every name:
 
-=================  ==========  =================================================================
-file               kind        content
-=================  ==========  =================================================================
-``frame.exr``      exr         one part, float32 channels, ZIP (lossless): ``depth``,
-                               ``distance``, ``amplitude``, ``intensity``, ``offset``,
-                               ``confidence``, ``valid`` (0/1), ``reason`` (code),
-                               ``gt_distance``, ``gt_depth``, ``direct_distance``, ``object_id``
-                               (exact below 2²⁴), ``raw.<label>`` per raw image,
-                               ``distance_k1`` … ``distance_kK``; header attributes
-                               ``tofcore`` (the JSON document below, without files and
-                               previews) and ``world_from_sensor`` (4×4 float64)
-``depth_mm.png``   depth_mm    16-bit grey: depth in mm rounded to nearest (ties to even),
-                               0 where invalid, clipped to 65535 mm (65.535 m)
-``depth.png``      depth       8-bit RGB: turbo-like colour map over [min, max] of the valid
-                               depth, invalid black
-``intensity.png``  intensity   8-bit RGB grey: log(1 + intensity) over its finite range
-``error.png``      error       8-bit RGB: depth − gt_depth in mm, blue (−) – white – red (+)
-                               over ±limit_mm, limit = max(1 mm, 99th percentile of |error|),
-                               black where invalid or without ground truth
-``reason.png``     reason      8-bit RGB: one colour per :class:`Reason` (legend in the JSON)
-``points.ply``     ply         binary little-endian valid points, sensor frame, metres:
-                               float x y z, float amplitude (e⁻), uchar intensity (grey level
-                               of ``intensity.png``)
-``frame.json``     json        frame metadata, stats, units, preview limits, and every file
-                               above with its size and SHA-256; written last
-=================  ==========  =================================================================
+===================  ============  =================================================================
+file                 kind          content
+===================  ============  =================================================================
+``frame.exr``        exr           one part, float32 channels, ZIP (lossless): ``depth``,
+                                   ``distance``, ``amplitude``, ``intensity``, ``offset``,
+                                   ``confidence``, ``valid`` (0/1), ``reason`` (code),
+                                   ``gt_distance``, ``gt_depth``, ``direct_distance``, ``object_id``
+                                   (exact below 2²⁴), ``raw.<label>`` per raw image,
+                                   ``distance_k1`` … ``distance_kK``; header attributes
+                                   ``tofcore`` (the JSON document below, without files and
+                                   previews) and ``world_from_sensor`` (4×4 float64)
+``depth_mm.png``     depth_mm      16-bit grey: depth in mm rounded to nearest (ties to even),
+                                   0 where invalid, clipped to 65535 mm (65.535 m)
+``depth.png``        depth         8-bit RGB: turbo-like colour map over [min, max] of the valid
+                                   depth, invalid black
+``intensity.png``    intensity     8-bit RGB grey: log(1 + intensity) over its finite range
+``error.png``        error         8-bit RGB: depth − gt_depth in mm, blue (−) – white – red (+)
+                                   over ±limit_mm, limit = max(1 mm, 99th percentile of |error|),
+                                   black where invalid or without ground truth
+``reason.png``       reason        8-bit RGB: one colour per :class:`Reason` (legend in the JSON)
+``convergence.png``  convergence   8-bit RGB 640×400 plot of ``stats["convergence"]``: estimated RMS
+                                   depth error (mm, log) against time (s, log), spp on the top axis,
+                                   the actual error when the log has ``rms_error_m``; title with the
+                                   final spp, time and error (:mod:`tofcore.convergence_plot`)
+``points.ply``       ply           binary little-endian valid points, sensor frame, metres:
+                                   float x y z, float amplitude (e⁻), uchar intensity (grey level
+                                   of ``intensity.png``)
+``frame.json``       json          frame metadata, stats, units, preview limits, and every file
+                                   above with its size and SHA-256; written last
+===================  ============  =================================================================
 
 Every file is written atomically (temp file ``.name.tmp-XXXXXXXX`` in the same
 directory, flush, fsync, ``os.replace``): a failure leaves the previous file or
@@ -106,7 +110,7 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
     Returns
     -------
     ``{kind: path}`` with kinds ``exr``, ``depth_mm``, ``depth``, ``intensity``, ``error``,
-    ``reason``, ``ply``, ``json`` for the formats asked (see the module docstring).
+    ``reason``, ``convergence``, ``ply``, ``json`` for the formats asked (see the module docstring).
 
     Raises
     ------
@@ -120,6 +124,8 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
     if "exr" in formats and OpenEXR is None:
         raise ImportError("write_frame: format 'exr' needs the OpenEXR package, which is not installed: "
                           "pip install OpenEXR  (or pip install 'tofcore[exr]')")
+    from .convergence_plot import convergence_png  # here: that module imports this one's PNG encoder
+
     document = _frame_document(frame)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -136,6 +142,8 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
             png = _encode_png(image)
             written[kind] = _atomic_write(out / f"{prefix}{kind}.png", lambda tmp: tmp.write_bytes(png))
             previews[kind] = {"file": written[kind].name, **limits}
+        png = convergence_png(frame.stats.get("convergence") or [])
+        written["convergence"] = _atomic_write(out / f"{prefix}convergence.png", lambda tmp: tmp.write_bytes(png))
     if "ply" in formats:
         written["ply"] = _atomic_write(out / f"{prefix}points.ply", lambda tmp: _write_ply(tmp, frame))
     if "json" in formats:

@@ -212,3 +212,34 @@ def test_unconvertible_stats_raise_before_writing(tmp_path):
 def test_prefix_with_separator_raises(frame, tmp_path):
     with pytest.raises(ValueError, match="prefix"):
         writers.write_frame(frame, tmp_path, "json", prefix="a/b")
+
+
+def test_convergence_png_is_written_and_listed(tmp_path):
+    from tofcore import convergence_plot
+
+    logged = make_frame()
+    logged.stats["convergence"] = [{"pass": i + 1, "seconds": 0.1 * 2 ** i, "spp": 2 ** i, "rays": 48,
+                                    "est_depth_error_m": 0.01 / 2 ** (i / 2)} for i in range(3)]
+    written = writers.write_frame(logged, tmp_path, ("png", "json"), prefix="f0_")
+    path = written["convergence"]
+    assert path.name == "f0_convergence.png" and path.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(p.name for p in written.values())  # no temp files
+    width, height = np.frombuffer(path.read_bytes()[16:24], ">u4").tolist()
+    assert (width, height) == (640, 400)
+    files = {r["kind"]: r for r in json.loads(written["json"].read_text("utf-8"))["files"]}
+    assert files["convergence"]["name"] == "f0_convergence.png"
+    assert files["convergence"]["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+    assert path.read_bytes() == convergence_plot.convergence_png(logged.stats["convergence"])  # a pure function
+
+
+def test_convergence_png_without_log_or_plotting_packages(frame, tmp_path, monkeypatch):
+    from tofcore import convergence_plot
+
+    monkeypatch.setattr(writers, "cv2", None)
+    monkeypatch.setattr(convergence_plot, "cv2", None)
+    monkeypatch.setattr(convergence_plot, "_MATPLOTLIB", [None])
+    assert "convergence" not in frame.stats
+    written = writers.write_frame(frame, tmp_path, "png")   # no log at all: "no convergence log"
+    data = written["convergence"].read_bytes()
+    assert data[12:16] == b"IHDR" and np.frombuffer(data[16:24], ">u4").tolist() == [640, 400]
+    assert "convergence" not in writers.write_frame(frame, tmp_path / "json", "json")
