@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 import statistics
 from collections import Counter, defaultdict
 from datetime import datetime, timezone
@@ -16,6 +17,66 @@ def _mean(values) -> float | None:
 
 def _fmt(value: float | None, scale: float = 1.0, digits: int = 1) -> str:
     return "–" if value is None else f"{value * scale:.{digits}f}"
+
+
+def _numbers(values) -> list[float]:
+    """The finite numbers among ``values`` (None, NaN and non-numbers left out: records from older runs)."""
+    return [float(v) for v in values
+            if isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)]
+
+
+def _median(values) -> float | None:
+    values = _numbers(values)
+    return statistics.median(values) if values else None
+
+
+def _max(values) -> float | None:
+    values = _numbers(values)
+    return max(values) if values else None
+
+
+def convergence_rows(records: list[dict]) -> list[tuple[str, int, float | None, float | None, float | None,
+                                                        float | None]]:
+    """Per preset (sorted), over its ok records: (preset, frames, median and max final estimated depth
+    error in m, median spp, median render seconds); None where no record holds the value."""
+    by_preset: dict[str, list[dict]] = defaultdict(list)
+    for r in records:
+        if r.get("status") == "ok":
+            by_preset[r["preset"]].append(r)
+    return [(preset, len(rows), _median(r.get("est_depth_error_m") for r in rows),
+             _max(r.get("est_depth_error_m") for r in rows), _median(r.get("spp") for r in rows),
+             _median(r.get("render_seconds") for r in rows))
+            for preset, rows in sorted(by_preset.items())]
+
+
+def convergence_example(records: list[dict]) -> str | None:
+    """``frames/<job_id>/convergence.png`` of the first ok record (by job id) that wrote one, else None."""
+    for r in sorted(records, key=lambda r: str(r.get("job_id"))):
+        if r.get("status") != "ok" or not r.get("dir"):
+            continue
+        for entry in r.get("files") or []:
+            if entry.get("kind") == "convergence":
+                return f"{r['dir']}/{entry['name']}"
+    return None
+
+
+def _convergence_lines(records: list[dict]) -> list[str]:
+    rows = convergence_rows(records)
+    if not rows:
+        return []
+    lines = ["", "## Convergence", "",
+             "The estimated RMS depth error (Monte Carlo, from the per-pixel variances) after each frame's "
+             "last pass, with the samples per pixel and seconds it took; `convergence` in each record has "
+             "every pass.", "",
+             "| preset | frames ok | median est. depth error mm | max est. depth error mm | median spp | "
+             "median render s |", "|---|---|---|---|---|---|"]
+    for preset, n, error_median, error_max, spp, seconds in rows:
+        lines.append(f"| {preset} | {n} | {_fmt(error_median, 1000, 2)} | {_fmt(error_max, 1000, 2)} "
+                     f"| {_fmt(spp, digits=0)} | {_fmt(seconds, digits=2)} |")
+    example = convergence_example(records)
+    if example:
+        lines += ["", f"One frame's convergence (`{example}`):", "", f"![convergence of one frame]({example})"]
+    return lines
 
 
 def device_rows(records: list[dict]) -> list[tuple[str, int]]:
@@ -92,6 +153,7 @@ def dataset_card(records: list[dict], *, set_file: str | None, description: str 
             f"| {_fmt(_mean(r.get('rms_depth_error_m') for r in good), 1000)} "
             f"| {_fmt(_mean(r.get('multipath_rms_m') for r in good), 1000)} "
             f"| {_fmt(_mean(r.get('valid_fraction') for r in good), 100)} |")
+    lines += _convergence_lines(records)
     lines += ["", "## Settings", "", "| spp | max_depth | time_budget_s | target_error_m | resolution_scale | "
               "ambient W/(m² sr) | frames |", "|---|---|---|---|---|---|---|"]
     for key, n in settings.most_common():
@@ -115,7 +177,8 @@ def dataset_card(records: list[dict], *, set_file: str | None, description: str 
         "                         with SHA-256, render time, convergence, error vs ground truth, status)",
         f"{CARD}                this card",
         f"{FRAMES}/<job_id>/         frame.exr (all channels, float32), depth_mm.png (16-bit mm), previews",
-        "                         (depth, intensity, error, reason .png), points.ply, frame.json,",
+        "                         (depth, intensity, error, reason .png), convergence.png (error against",
+        "                         time), points.ply, frame.json,",
         f"                         {RECORD} (the frame's index record; written before the folder appears)",
         "```",
         "",

@@ -300,7 +300,7 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
             "world_from_sensor": np.asarray(frame.world_from_sensor).tolist(),
             "render_seconds": stats.get("seconds"), "trace_seconds": stats.get("trace_seconds"),
             "spp": stats.get("spp"), "passes": len(convergence),
-            "est_depth_error_m": convergence[-1]["est_depth_error_m"] if convergence else None,
+            "est_depth_error_m": convergence[-1].get("est_depth_error_m") if convergence else None,
             "convergence": [{k: row.get(k) for k in ("pass", "seconds", "spp", "est_depth_error_m")}
                             for row in convergence],
             "rays_per_second": stats.get("transport", {}).get("rays_per_second"),

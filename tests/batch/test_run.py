@@ -43,9 +43,12 @@ def test_local_pool_and_in_process_give_identical_frames(tmp_path, small_set):
     first = records[0]
     assert first["scene"] == "corner" and first["preset"] == "kinect_v2" and first["settings"]["width"] == 32
     assert first["rms_depth_error_m"] > 0 and 0 < first["valid_fraction"] <= 1 and first["convergence"]
-    assert {f["kind"] for f in first["files"]} >= {"exr", "depth_mm", "ply", "json"}
+    assert {f["kind"] for f in first["files"]} >= {"exr", "depth_mm", "convergence", "ply", "json"}
+    assert first["est_depth_error_m"] == first["convergence"][-1]["est_depth_error_m"]
     card = (tmp_path / "pool" / "README.md").read_text()
     assert "frames: **8** (8 ok, 0 failed)" in card and "tofcore.read_exr" in card
+    example = card.split("![convergence of one frame](", 1)[1].split(")", 1)[0]
+    assert "## Convergence" in card and (tmp_path / "pool" / example).is_file()
     # The same jobs in this process, one after another, with another thread count.
     jobs = expand(load_set(small_set)).jobs
     result = run_jobs(jobs, tmp_path / "inline", inline=True, threads_per_worker=1, quiet=True,
