@@ -11,6 +11,11 @@ image              content (RGBA float, display-ready values, colour space Non-C
                    limit = max(1 mm, 99th percentile of |error|); transparent where either is invalid
 =================  ====================================================================================
 
+After a render that wrote PNGs, ``ToF Convergence`` shows the final frame's
+``convergence.png`` (estimated depth error against time, spp on top; drawn by
+:mod:`tofcore.convergence_plot`), loaded from the written file
+(:func:`load_convergence_image`) and reloaded from it by the next render.
+
 Each image's custom property ``tof_device`` names the device that rendered it
 (e.g. ``"CPU (NumPy 1.26.4)"``, ``"GPU 0: NVIDIA … (CuPy 13.6.0)"``).
 
@@ -25,6 +30,7 @@ values are in the written ``frame.exr``.
 from __future__ import annotations
 
 import math
+from pathlib import Path
 
 import numpy as np
 
@@ -162,3 +168,26 @@ def update_images(frame) -> dict[str, dict]:
         image[DEVICE_KEY] = device
         limits[name] = quantity_limits
     return limits
+
+
+#: The image of the final frame's written ``convergence.png``.
+CONVERGENCE_IMAGE = "ToF Convergence"
+
+
+def load_convergence_image(path, device: str = ""):
+    """Show the written ``convergence.png`` at ``path`` as the image :data:`CONVERGENCE_IMAGE` (loaded
+    from the file, or reloaded when it exists), with the device that rendered it (:data:`DEVICE_KEY`)."""
+    import bpy
+    filepath = str(Path(path).resolve())
+    image = bpy.data.images.get(CONVERGENCE_IMAGE)
+    if image is not None and image.source != 'FILE':
+        bpy.data.images.remove(image)  # a generated image of that name: make room for ours
+        image = None
+    if image is None:
+        image = bpy.data.images.load(filepath, check_existing=False)
+        image.name = CONVERGENCE_IMAGE
+    else:
+        image.filepath = filepath
+        image.reload()
+    image[DEVICE_KEY] = device
+    return image

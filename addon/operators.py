@@ -11,7 +11,9 @@ timer drains the queue, shows each pass in the images of :mod:`.images`
 cursor, and the estimated depth error and elapsed time in the ToF panel. Esc
 sets the job's cancel flag: tofcore raises :class:`tofcore.Cancelled` between
 ray chunks, nothing is written, the images keep the last pass. The final frame
-is written by :func:`tofcore.write_frame` (atomic files) to the output folder.
+is written by :func:`tofcore.write_frame` (atomic files) to the output folder;
+its ``convergence.png`` is then loaded as the image "ToF Convergence"
+(:func:`.images.load_convergence_image`).
 
 ``execute`` (background mode ``-b``, where timers never fire and
 ``INVOKE_DEFAULT`` calls ``execute``) runs the same job in the calling thread,
@@ -325,6 +327,16 @@ def progress_fraction(job: RenderJob) -> float:
     return min(1.0, fraction)
 
 
+def _show_convergence(frame, written: dict) -> None:
+    """The final frame's written ``convergence.png`` (formats with ``png``) as the image "ToF Convergence"."""
+    path = written.get("convergence")
+    if path is None:
+        last_result.pop("convergence_image", None)
+        return
+    device = (frame.stats.get("device") or {}).get("description", "")
+    last_result["convergence_image"] = images.load_convergence_image(path, device).name
+
+
 def _summary(frame, written: dict, job: RenderJob) -> str:
     error = frame.stats["convergence"][-1].get("est_depth_error_m")
     error_text = "–" if error is None else f"{error * 1000:.2f} mm"
@@ -431,6 +443,7 @@ the final frame is written to the output folder. Esc cancels"""
             wm.progress_end()
             self._end()
         last_result.update(state="done", files=len(written), out_dir=job.out_dir or "")
+        _show_convergence(frame, written)
         device_report(frame, self.report)
         self.report({'INFO'}, _summary(frame, written, job))
         return {'FINISHED'}
@@ -478,6 +491,7 @@ the final frame is written to the output folder. Esc cancels"""
         if kind == "done":
             frame, written = payload
             last_result.update(state="done", files=len(written), out_dir=self._job.out_dir or "")
+            _show_convergence(frame, written)
             device_report(frame, self.report)
             self.report({'INFO'}, _summary(frame, written, self._job))
             return {'FINISHED'}
@@ -705,7 +719,8 @@ def _relevant(depsgraph) -> bool:
     """Whether an update can change the ToF image: anything but our own result images."""
     for update in depsgraph.updates:
         data = update.id
-        if isinstance(data, bpy.types.Image) and data.name in images.IMAGE_NAMES.values():
+        if isinstance(data, bpy.types.Image) and (data.name in images.IMAGE_NAMES.values()
+                                                  or data.name == images.CONVERGENCE_IMAGE):
             continue
         if isinstance(data, (bpy.types.Scene, bpy.types.WorkSpace, bpy.types.Screen, bpy.types.WindowManager)):
             continue  # tagged along with everything; the objects themselves come as their own updates

@@ -53,6 +53,8 @@ def draw_result(layout, camera_name: str | None = None) -> None:
         width, height = result["resolution"]
         box.label(text=f"Images: {', '.join(operators.images.IMAGE_NAMES.values())} ({width} × {height})",
                   icon='IMAGE_DATA')
+    if result.get("convergence_image"):
+        box.label(text=f"Convergence plot: {result['convergence_image']}", icon='GRAPH')
 
 
 def _settings_layout(panel, context):

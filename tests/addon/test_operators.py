@@ -30,7 +30,7 @@ from addon import images, mapping, operators, properties  # noqa: E402
 
 #: Every file write_frame produces with all formats.
 EXPECTED_FILES = {"frame.exr", "depth_mm.png", "depth.png", "intensity.png", "error.png", "reason.png",
-                  "points.ply", "frame.json"}
+                  "convergence.png", "points.ply", "frame.json"}
 BLENDER_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
@@ -264,6 +264,15 @@ def test_render_background_writes_files_and_images(tof, tmp_path, monkeypatch):
     assert result["state"] == "done" and result["files"] == len(EXPECTED_FILES) and result["spp"] == 4
     assert result["est_depth_error_m"] > 0 and result["seconds"] > 0
     assert operators.active_render_job() is None
+    # The final frame's convergence plot, loaded from the written file.
+    plot = bpy.data.images[images.CONVERGENCE_IMAGE]
+    assert result["convergence_image"] == plot.name == "ToF Convergence"
+    assert tuple(plot.size) == (640, 400) and os.path.samefile(plot.filepath, out / "convergence.png")
+    pixels = images.read_pixels(plot)
+    assert pixels[..., :3].min() < 0.5 < pixels[..., :3].max()     # drawn, not blank
+    # A second render reloads the same image from its new file.
+    assert bpy.ops.tof.render() == {'FINISHED'}
+    assert [i.name for i in bpy.data.images].count("ToF Convergence") == 1
 
 
 def test_progressive_update_step_directly(tof, tmp_path):
@@ -297,6 +306,7 @@ def test_cancel_after_first_pass_writes_nothing(tof, tmp_path, monkeypatch):
     assert len(shown) == 1
     assert not out.exists() or not any(out.iterdir())
     assert operators.last_result["state"] == "cancelled" and operators.active_render_job() is None
+    assert images.CONVERGENCE_IMAGE not in bpy.data.images and "convergence_image" not in operators.last_result
     np.testing.assert_array_equal(snapshot()["ToF Depth"], shown[0]["ToF Depth"])  # keeps the last pass
 
 
@@ -563,9 +573,10 @@ def test_modal_render_and_escape(tof, tmp_path):
     op = _modal_render(context, operators.prepare_render(context, Reports()))
     assert _run_modal(op, context) == {'FINISHED'}
     assert set(os.listdir(tmp_path / "done")) == EXPECTED_FILES
-    assert op.report.of("INFO") and "8 files written" in op.report.of("INFO")[0]
+    assert op.report.of("INFO") and f"{len(EXPECTED_FILES)} files written" in op.report.of("INFO")[0]
     assert operators.active_render_job() is None and operators.last_result["state"] == "done"
     assert tuple(bpy.data.images["ToF Depth"].size) == (32, 24)
+    assert os.path.samefile(bpy.data.images["ToF Convergence"].filepath, tmp_path / "done" / "convergence.png")
 
     camera.data.tof.spp = 1024
     camera.data.tof.output_dir = str(tmp_path / "escaped")
