@@ -183,7 +183,7 @@ def install(monkeypatch) -> None:
     """Make ``device="gpu"`` run on this fake, with the CUDA kernels replaced by their NumPy twins."""
     import sys
 
-    from tofcore import backend, bvh, fresnel, modulation, rng
+    from tofcore import backend, bvh, fresnel, modulation, qmc, rng
     from tofcore.gpu import fused, traversal
 
     module = sys.modules[__name__]
@@ -203,6 +203,11 @@ def install(monkeypatch) -> None:
     def uniform(key, pixel, sample, dim):
         return asarray(rng.uniform(key, asnumpy(pixel), asnumpy(sample), dim))
 
+    def qmc_sample(key, pixel, sample, dim, two):
+        sampler = qmc.sample_2d if two else qmc.sample_1d
+        values = sampler(key, asnumpy(pixel), asnumpy(sample), dim)
+        return tuple(asarray(v) for v in values) if two else asarray(values)
+
     def twin(numpy_function):  # the kernel's NumPy twin, through a host round trip
         def run(*args, **kwargs):
             return asarray(numpy_function(*(asnumpy(a) if isinstance(a, ndarray) else a for a in args), **kwargs))
@@ -211,6 +216,7 @@ def install(monkeypatch) -> None:
     monkeypatch.setattr(traversal, "intersect", intersect)
     monkeypatch.setattr(traversal, "occluded", occluded)
     monkeypatch.setattr(fused, "uniform", uniform)
+    monkeypatch.setattr(fused, "qmc_sample", qmc_sample)
     monkeypatch.setattr(fused, "fresnel_dielectric", twin(fresnel.fresnel_dielectric))
     monkeypatch.setattr(fused, "fresnel_conductor", twin(fresnel.fresnel_conductor))
     monkeypatch.setattr(fused, "square_correlation", twin(modulation.square_correlation))

@@ -183,12 +183,7 @@ def unwrap(cw: CwDecoding, modulation: Modulation, *, tolerance_m: float | None 
                           f"got {n_candidates} for {modulation.frequencies_hz!r}")
     wrapped = cw.wrapped_distance
     xp = namespace(wrapped)
-    f_hz = xp.asarray(modulation.frequencies_hz).reshape((-1,) + (1,) * (wrapped.ndim - 1))
-    total = cw.amplitude + cw.offset
-    weight = np.where(total > 0, (f_hz * cw.amplitude) ** 2 / np.where(total > 0, total, 1.0), 0.0)
-    weight_sum = weight.sum(axis=0)
-    weight = np.where(weight_sum > 0, weight, 1.0)  # no signal anywhere: equal weights (pixel is NO_RETURN)
-    weight = weight / weight.sum(axis=0)
+    weight = unwrap_weights(cw, modulation)
 
     best_r2 = xp.full(wrapped.shape[1:], np.inf)
     best_d = xp.zeros(wrapped.shape[1:])
@@ -205,6 +200,63 @@ def unwrap(cw: CwDecoding, modulation: Modulation, *, tolerance_m: float | None 
     residual = np.sqrt(best_r2)
     return Unwrapped(distance=np.mod(best_d, unambiguous), residual=residual,
                      confidence=np.clip(1.0 - residual / tolerance_m, 0.0, 1.0), failed=residual > tolerance_m)
+
+
+def unwrap_weights(cw: CwDecoding, modulation: Modulation) -> np.ndarray:
+    r"""(F, *shape) normalised inverse-variance weights of the frequencies in :func:`unwrap`.
+
+    :math:`w_i \propto (f_i A_i)^2 / (A_i + B_i)` (eq. 2.43: σ_d ∝ √(A+B) / (f A)), summing to one;
+    equal weights where no frequency has signal.
+    """
+    xp = namespace(cw.amplitude)
+    f_hz = xp.asarray(modulation.frequencies_hz).reshape((-1,) + (1,) * (cw.amplitude.ndim - 1))
+    total = cw.amplitude + cw.offset
+    weight = np.where(total > 0, (f_hz * cw.amplitude) ** 2 / np.where(total > 0, total, 1.0), 0.0)
+    weight_sum = weight.sum(axis=0)
+    weight = np.where(weight_sum > 0, weight, 1.0)  # no signal anywhere: equal weights (pixel is NO_RETURN)
+    return weight / weight.sum(axis=0)
+
+
+def distance_gradient(raw: np.ndarray, modulation: Modulation) -> np.ndarray:
+    r"""(R, *shape) derivative of the decoded distance with respect to each raw image, metres per electron.
+
+    The linearisation of :func:`decode` at ``raw`` — what a small error in the raw images (Monte Carlo
+    noise of a render, sensor noise) does to the distance the camera outputs, for error propagation
+    (``tofcore.render``'s error estimate). It holds where the unwrapping stays on the same wraps.
+
+    Notes
+    -----
+    CW: with :math:`Z_i = \sum_k Q_k e^{i\theta_k}` per frequency (:func:`phase_amplitude_offset`),
+    :math:`\partial\varphi_i/\partial Q_k = (\mathrm{Re}Z_i \sin\theta_k - \mathrm{Im}Z_i \cos\theta_k)
+    / |Z_i|^2`, and the unwrapped distance :math:`\bar D = \sum_i w_i D_i` (:func:`unwrap`, weights held
+    fixed) gives :math:`\partial\bar D/\partial Q_{i,k} = w_i \frac{c}{4\pi f_i}
+    \partial\varphi_i/\partial Q_{i,k}`. Pulsed (eq. 2.36): :math:`d = s\,Q_2/(Q_1+Q_2)`, s = c t0/2:
+    :math:`\partial d/\partial Q_1 = -s Q_2/(Q_1+Q_2)^2`, :math:`\partial d/\partial Q_2 = s Q_1/(Q_1+Q_2)^2`.
+    Zero where a pixel has no signal.
+    """
+    raw = _check_raw(raw, modulation)
+    xp = namespace(raw)
+    grad = xp.zeros(raw.shape)
+    if not modulation.is_cw:
+        total = raw[0] + raw[1]
+        scale = modulation.ambiguity_distances_m()[0] / np.where(total > 0, total, 1.0) ** 2
+        grad[0] = np.where(total > 0, -scale * raw[1], 0.0)
+        grad[1] = np.where(total > 0, scale * raw[0], 0.0)
+        return grad
+    weight = unwrap_weights(decode_cw(raw, modulation), modulation)
+    start = 0
+    for i, (f_hz, n) in enumerate(zip(modulation.frequencies_hz, modulation.phase_steps)):
+        theta = 2.0 * np.pi * np.arange(n) / n
+        cos_k, sin_k = np.round(np.cos(theta), 15), np.round(np.sin(theta), 15)
+        q = raw[start:start + n]
+        real = np.tensordot(xp.asarray(cos_k), q, axes=1)
+        imag = np.tensordot(xp.asarray(sin_k), q, axes=1)
+        norm2 = real * real + imag * imag
+        scale = weight[i] * SPEED_OF_LIGHT_M_S / (4.0 * np.pi * f_hz) / np.where(norm2 > 0, norm2, 1.0)
+        for k in range(n):
+            grad[start + k] = np.where(norm2 > 0, scale * (real * sin_k[k] - imag * cos_k[k]), 0.0)
+        start += n
+    return grad
 
 
 # ------------------------------------------------------------------ pulsed

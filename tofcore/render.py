@@ -20,12 +20,11 @@ Besides the camera's output the frame carries noise-free ground truth: the
 first-hit distance, the direct-only (k = 1) decoded distance and the decoded
 distance for every max path length k = 1..K — all from the one render.
 
-Error against run time: the tracer keeps, per pixel, the variance of the mean
-of every correlation channel. Three extra channels per render — the phasor
-components I and Q of the sensor's highest frequency (or, for a pulsed sensor,
-Q2 and Q1 + Q2) and their sum — give the full 2 × 2 covariance
-(Cov(a, b) = (Var(a + b) − Var a − Var b)/2), and the delta method turns it
-into the standard error of each pixel's distance. The convergence log holds,
+Error against run time: the tracer keeps the correlation sums of R
+independent randomized-QMC replicates per pixel; the spread of the replicates,
+projected through the decoder's linearisation (all frequencies with their
+unwrapping weights, or the pulsed ratio), is the standard error of the depth
+the camera outputs (:func:`depth_standard_error`). The convergence log holds,
 per pass: elapsed seconds, spp, the RMS of that standard error over the
 pixels that see a surface, and the RMS error against a reference distance
 image when one is given.
@@ -54,66 +53,35 @@ from .transport import SPEED_OF_LIGHT_M_S, Transport, trace_progressive
 C = SPEED_OF_LIGHT_M_S
 
 
-@dataclass(frozen=True)
-class _ErrorChannels:
-    """Linear combinations of the raw correlation channels whose covariance gives the depth error."""
-
-    weights_a: np.ndarray  # (J,)
-    weights_b: np.ndarray  # (J,)
-    kind: str              # "phasor" (distance ∝ atan2(b, a)) or "ratio" (distance ∝ a / b)
-    scale_m: float         # metres per radian (phasor) or per unit ratio
-
-
-def _error_channels(modulation) -> _ErrorChannels:
-    """Phasor of the highest frequency (CW) or (Q2, Q1 + Q2) (pulsed) as weights over the raw channels."""
-    n_raw = len(modulation.raw_labels())
-    if modulation.kind == "pulsed":
-        a = np.zeros(n_raw)
-        a[1] = 1.0
-        return _ErrorChannels(a, np.ones(n_raw), "ratio", C * modulation.pulse_width_s / 2)
-    steps = modulation.phase_steps
-    first = int(np.argmax(modulation.frequencies_hz))
-    start = int(sum(steps[:first]))
-    n = steps[first]
-    a, b = np.zeros(n_raw), np.zeros(n_raw)
-    angles = 2 * np.pi * np.arange(n) / n
-    a[start:start + n] = np.cos(angles)
-    b[start:start + n] = np.sin(angles)
-    return _ErrorChannels(a, b, "phasor", C / (4 * np.pi * modulation.frequencies_hz[first]))
-
-
-def depth_standard_error(transport: Transport, channels: _ErrorChannels, n_raw: int,
-                         gate_duty: np.ndarray) -> np.ndarray:
-    r"""(H, W) Monte Carlo standard error (m) of each pixel's distance by the delta method.
+def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray:
+    r"""(H, W) Monte Carlo standard error (m) of each pixel's output depth, from the independent replicates.
 
     Notes
     -----
-    a, b are the error channels plus the ambient charge their raw images collect
-    (:math:`a' = a + \alpha A`, α = Σ_j w_{a,j} δ_j with δ_j the gate duty; likewise b): ambient light
-    cancels in a CW phasor (α = β = 0) but not in the pulsed ratio. Var/Cov come from the tracer's
-    per-sample squares; the covariance of the ambient estimate with the LED channels is neglected.
-    phasor: :math:`\sigma_\phi^2 = (b^2 \mathrm{Var}\,a + a^2 \mathrm{Var}\,b - 2ab\,\mathrm{Cov})/(a^2+b^2)^2`;
-    ratio r = a/b: :math:`\sigma_r^2 = (\mathrm{Var}\,a - 2r\,\mathrm{Cov} + r^2 \mathrm{Var}\,b)/b^2`.
-    NaN where a pixel has no signal or fewer than two samples.
+    The tracer keeps the channel sums of R independent randomized-QMC replicates per pixel
+    (:mod:`tofcore.qmc`). Each replicate's mean gives raw images :math:`Q^{(r)}` (ambient included,
+    :func:`raw_images`); the decoder's linearisation :math:`g = \partial d/\partial Q`
+    (:func:`tofcore.decode.distance_gradient`: all frequencies and their unwrapping weights, or the
+    pulsed ratio) projects each replicate's deviation onto the decoded distance,
+
+    .. math:: \hat\sigma_d^2 = \frac{1}{R(R-1)} \sum_r \big(g \cdot (Q^{(r)} - \bar Q)\big)^2,
+
+    the variance of the mean of R independent estimates. For a z-depth sensor σ is scaled by the
+    pixel ray's z component (z = d·ω_z). NaN where a pixel has no signal or a replicate no sample yet.
+    Scattering and sensor noise are not part of it: this is the render's own noise.
     """
-    corr = transport.correlation()
-    var = transport.variance_of_mean()  # rows: signal, correlations..., ambient
-    alpha = float(channels.weights_a @ gate_duty)
-    beta = float(channels.weights_b @ gate_duty)
-    ambient, var_ambient = transport.ambient(), var[-1]
-    a, b = corr[n_raw] + alpha * ambient, corr[n_raw + 1] + beta * ambient
-    var_a, var_b, var_sum = var[1 + n_raw], var[2 + n_raw], var[3 + n_raw]
-    cov = 0.5 * (var_sum - var_a - var_b) + alpha * beta * var_ambient
-    var_a = var_a + alpha**2 * var_ambient
-    var_b = var_b + beta**2 * var_ambient
-    with np.errstate(invalid="ignore", divide="ignore"):
-        if channels.kind == "phasor":
-            norm2 = a * a + b * b
-            var_x = (b * b * var_a + a * a * var_b - 2 * a * b * cov) / (norm2 * norm2)
-        else:
-            r = a / b
-            var_x = (var_a - 2 * r * cov + r * r * var_b) / (b * b)
-    return np.sqrt(np.maximum(var_x, 0.0)) * channels.scale_m
+    means, counts = transport.replicate_means()         # (R, J+2, H, W), (R, H, W)
+    replicates = means.shape[0]
+    raw = namespace(means).stack([raw_images(m[1:1 + n_raw], m[-1], sensor) for m in means])
+    centre = raw.mean(axis=0)
+    grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation)
+    deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
+    var = (deviation**2).sum(axis=0) / (replicates * (replicates - 1))
+    ok = (counts.min(axis=0) >= 1) & (np.abs(grad).sum(axis=0) > 0)
+    sigma = np.where(ok, np.sqrt(var), np.nan)
+    if sensor.depth_output == "z":
+        sigma = sigma * namespace(sigma).asarray(np.abs(sensor.camera.pixel_center_directions()[..., 2]))
+    return sigma
 
 
 def raw_images(correlation_means: np.ndarray, ambient_mean: np.ndarray, sensor) -> np.ndarray:
@@ -221,8 +189,6 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
     plan = make_plan(scene, sensor, max_depth=max_depth, ambient=ambient)
     correlations = list(mod.correlations())
     n_raw = len(correlations)
-    channels = _error_channels(mod)
-    extra = np.stack([channels.weights_a, channels.weights_b, channels.weights_a + channels.weights_b])
     if reference_distance is not None:
         reference_distance = np.asarray(reference_distance, dtype=np.float64)
         if reference_distance.shape != (sensor.camera.height, sensor.camera.width):
@@ -232,14 +198,14 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
     log: list[dict] = []
     start = time.perf_counter()
     passes = trace_progressive(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
-                               correlations=correlations, derived_correlations=extra, ambient=ambient if plan.ambient else None,
+                               correlations=correlations, ambient=ambient if plan.ambient else None,
                                spp=spp, max_depth=max_depth, seed=seed, workers=workers, chunk_size=chunk_size,
                                cancel=cancel, device=device,
                                progressive=every_pass or time_budget_s is not None or target_error_m is not None)
     for transport in passes:
         elapsed = time.perf_counter() - start
         samples = int(transport.sample_count[0])
-        sigma = backend.to_host(depth_standard_error(transport, channels, n_raw, mod.gate_duty()))
+        sigma = backend.to_host(depth_standard_error(transport, sensor, n_raw))
         seen = np.isfinite(transport.first_hit.distance_m) & np.isfinite(sigma)
         row = {"pass": transport.stats.passes, "seconds": elapsed, "spp": samples,
                "est_depth_error_m": _rms(sigma[seen]), "rays": transport.stats.rays}

@@ -43,6 +43,19 @@ def _splitmix(x: np.ndarray) -> np.ndarray:
     return x ^ (x >> _S31)
 
 
+def bits(key: np.uint64, pixel, sample, dim: int):
+    """64 random bits (uint64), one per (pixel, sample) pair, for dimension ``dim``: the hash of the coordinates.
+
+    Array code only (NumPy or CuPy); :func:`uniform` and :mod:`tofcore.qmc` take their numbers from it.
+    """
+    with np.errstate(over="ignore"):
+        x = (key
+             ^ (pixel.astype(np.uint64) * _MIX_PIXEL)
+             ^ (sample.astype(np.uint64) * _MIX_SAMPLE)
+             ^ (np.uint64(dim) * _MIX_DIM))
+        return _splitmix(_splitmix(x))
+
+
 def uniform(key: np.uint64, pixel: np.ndarray, sample: np.ndarray, dim: int) -> np.ndarray:
     """Uniform floats in [0, 1), one per (pixel, sample) pair, for dimension ``dim``.
 
@@ -60,10 +73,4 @@ def uniform(key: np.uint64, pixel: np.ndarray, sample: np.ndarray, dim: int) -> 
     if is_device_array(pixel):
         from .gpu import fused
         return fused.uniform(key, pixel, sample, dim)
-    with np.errstate(over="ignore"):
-        x = (key
-             ^ (pixel.astype(np.uint64) * _MIX_PIXEL)
-             ^ (sample.astype(np.uint64) * _MIX_SAMPLE)
-             ^ (np.uint64(dim) * _MIX_DIM))
-        x = _splitmix(_splitmix(x))
-    return (x >> _S11).astype(np.float64) * (1.0 / 9007199254740992.0)
+    return (bits(key, pixel, sample, dim) >> _S11).astype(np.float64) * (1.0 / 9007199254740992.0)

@@ -20,9 +20,15 @@ bounces (thesis eq. 2.31 with eq. 2.8):
 
 .. math:: w = \\beta_k \\, f(x_k, \\omega_o, \\omega_{LED}) \\, |\\cos\\theta_{x_k}| \\, I(\\theta_{LED}) / d^2
 
-Determinism: random numbers are hashes of (seed, pixel, sample, dimension)
-(:mod:`tofcore.rng`); every chunk holds whole pixels and sums them in sample
-order, so the result is the same bit for bit whatever the chunk size.
+Sampling: every decision of a path (pixel and lens position, each bounce's lobe
+and direction) takes its uniforms from Owen-scrambled Sobol' points, per pixel
+and per pair of dimensions, in independent replicates (:mod:`tofcore.qmc`):
+randomized quasi-Monte Carlo, unbiased, with an honest error estimate from the
+spread of the replicates (:meth:`Transport.variance_of_mean`).
+
+Determinism: the samples are functions of (seed, pixel, sample, dimension)
+(:mod:`tofcore.rng`, :mod:`tofcore.qmc`); every chunk holds whole pixels and sums
+them in sample order, so the result is the same bit for bit whatever the chunk size.
 Memory is bounded by the chunk size (rays in flight), not by spp.
 """
 
@@ -37,7 +43,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import backend, rng
+from . import backend, qmc, rng
 from .ambient import Ambient
 from .bsdf import eval_bsdf, sample_bsdf
 from .camera import Camera
@@ -53,13 +59,18 @@ SPEED_OF_LIGHT_M_S = 299_792_458.0
 Correlation = Callable[[np.ndarray], np.ndarray]
 """g_j(τ): delay τ in seconds (float64 array) → correlation value per contribution (same shape)."""
 
-# Random dimensions: each decision of a path owns one.
-_DIM_PIXEL_U, _DIM_PIXEL_V, _DIM_LENS_U, _DIM_LENS_V = 0, 1, 2, 3
-_DIMS_PER_BOUNCE = 3  # lobe choice, direction u1, direction u2
+# Sample dimensions: each decision of a path owns one (a pair of uniforms, or one).
+_DIM_PIXEL, _DIM_LENS = 0, 1  # 2-D: position in the pixel, on the lens
 
 
-def _bounce_dim(vertex: int, which: int) -> int:
-    return 4 + _DIMS_PER_BOUNCE * (vertex - 1) + which
+def _lobe_dim(vertex: int) -> int:
+    """1-D: the lobe chosen at surface vertex ``vertex`` (1 = first hit)."""
+    return 2 * vertex
+
+
+def _direction_dim(vertex: int) -> int:
+    """2-D: the direction sampled at surface vertex ``vertex``."""
+    return 2 * vertex + 1
 
 
 @dataclass(frozen=True)
@@ -115,7 +126,8 @@ class Transport:
     """Accumulated light transport of one frame; sums, with means and errors as methods.
 
     Sums are over samples; divide by ``sample_count`` (done by the accessors).
-    Channels of the per-sample squares: 0 = signal Σw, 1..J = correlations, J+1 = ambient.
+    Channels of the replicate sums: 0 = signal Σw, 1..J = correlations, J+1 = ambient; replicate r holds
+    the samples i ≡ r (mod R) of each pixel (:mod:`tofcore.qmc`).
     """
 
     width: int
@@ -126,7 +138,7 @@ class Transport:
     signal_sum: np.ndarray        # (K, P) float64: Σ w per bounce bucket k = 1..K
     correlation_sum: np.ndarray   # (K, J, P) float64: Σ w·g_j(L/c)
     ambient_sum: np.ndarray       # (P,) float64: Σ ambient radiance (unmodulated)
-    square_sum: np.ndarray        # (J+2, P) float64: Σ over samples of (per-sample channel total)²
+    replicate_sum: np.ndarray     # (R, J+2, P) float64: Σ of the per-sample channel totals of replicate r
     first_hit: FirstHit
     transient_sum: np.ndarray | None = None  # (P, B) float64: Σ w per path-length bin
     transient_bin_m: float | None = None
@@ -166,19 +178,35 @@ class Transport:
             mean = self.transient_sum / self.sample_count[:, None]
         return mean.reshape(self.height, self.width, -1)
 
-    def variance_of_mean(self) -> np.ndarray:
-        """(J+2, H, W) variance of the per-pixel mean of each channel (signal, correlations…, ambient).
-
-        From the per-sample totals: Var[mean] = (E[x²] − E[x]²) / (n − 1); NaN where n < 2.
-        """
-        totals = np.concatenate([self.signal_sum.sum(axis=0)[None], self.correlation_sum.sum(axis=0),
-                                 self.ambient_sum[None]])
-        n = self.sample_count.astype(np.float64)
+    def replicate_means(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per-replicate means (R, J+2, H, W) of the channels (signal, correlations…, ambient) and the
+        (R, H, W) sample counts behind them; NaN where a replicate has no sample yet."""
+        n = self.replicate_counts()
         with np.errstate(invalid="ignore", divide="ignore"):
-            mean = totals / n
-            var = np.maximum(self.square_sum / n - mean**2, 0.0) / (n - 1)
-        var[:, n < 2] = np.nan
-        return var.reshape(-1, self.height, self.width)
+            mean = self.replicate_sum / n[:, None, :]
+        return (mean.reshape(mean.shape[:2] + (self.height, self.width)),
+                n.reshape(-1, self.height, self.width))
+
+    def replicate_counts(self) -> np.ndarray:
+        """(R, P) samples of each replicate per pixel: samples i < n with i ≡ r (mod R)."""
+        xp = namespace(self.sample_count)
+        r = xp.arange(qmc.REPLICATES)[:, None]
+        return (self.sample_count[None, :] - r + qmc.REPLICATES - 1) // qmc.REPLICATES
+
+    def variance_of_mean(self) -> np.ndarray:
+        r"""(J+2, H, W) variance of the per-pixel mean of each channel (signal, correlations…, ambient).
+
+        From the spread of the R independent replicates (:mod:`tofcore.qmc`): with replicate means
+        m_r, :math:`\widehat{\mathrm{Var}}[\bar m] = \sum_r (m_r - \bar m_R)^2 / (R (R - 1))`, the
+        replicates weighted equally (their counts differ by at most one sample); NaN until every
+        replicate has a sample.
+        """
+        means, n = self.replicate_means()
+        r = means.shape[0]
+        with np.errstate(invalid="ignore"):
+            centred = means - means.mean(axis=0)
+            var = (centred**2).sum(axis=0) / (r * (r - 1))
+        return np.where((n.min(axis=0) >= 1)[None], var, np.nan)
 
     def _k(self, max_k: int | None) -> int:
         if max_k is None:
@@ -228,11 +256,11 @@ class _Context:
     leds: tuple[LED, ...]
     skip_first_shadow: np.ndarray  # (L,) bool: LED at the centre of a pinhole lens
     correlations: tuple[Correlation, ...]
-    derived: object | None      # (D, J) weights of the derived channels over the g_j, device array
-    n_channels: int             # J + D correlation channels summed per pixel
+    n_channels: int             # J correlation channels summed per pixel
     ambient: Ambient | None
     max_depth: int
     key: np.uint64
+    sampler: str                # "sobol" or "independent" (tofcore.qmc.SAMPLERS)
     offset_scale: float
     transient_bins: int
     transient_bin_m: float | None
@@ -249,13 +277,13 @@ def trace(scene: Scene, camera: Camera, leds: Sequence[LED], **kwargs) -> Transp
 def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       world_from_sensor: np.ndarray | None = None,
                       correlations: Sequence[Correlation] = (),
-                      derived_correlations: np.ndarray | None = None,
                       ambient: Ambient | None = None,
                       spp: int = 16, max_depth: int = 5, seed: int = 0,
                       chunk_size: int | None = None, workers: int | None = None,
                       transient_bin_m: float | None = None, transient_max_m: float | None = None,
                       cancel: Callable[[], bool] | None = None,
-                      device: str | backend.Device = "cpu", progressive: bool = True) -> Iterator[Transport]:
+                      device: str | backend.Device = "cpu", progressive: bool = True,
+                      sampler: str = "sobol") -> Iterator[Transport]:
     """Trace in progressive passes, yielding the accumulated :class:`Transport` after each.
 
     Parameters
@@ -263,9 +291,6 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     scene, camera, leds : what to render; LED positions are in the sensor frame.
     world_from_sensor : 4×4 pose (sensor frame = OpenCV: x right, y down, z forward); identity by default.
     correlations : g_j(τ), τ in seconds, one per sensor bucket/phase image.
-    derived_correlations : optional (D, J) weights; channel J + d sums Σ_j W[d, j] w g_j(τ) (e.g. the
-        phasor of one frequency for the error estimate). Computed from the J values already evaluated
-        (one matrix product), not by evaluating the g_j again.
     ambient : background radiance; ``None`` or black skips all ambient work.
     spp : samples per pixel in total; max_depth : surface vertices per path (1 = direct only).
     seed : non-negative int; the same seed gives the same frame for any ``chunk_size``.
@@ -276,6 +301,8 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     transient_bin_m, transient_max_m : optional histogram of w over path length (bin width, range), metres.
     cancel : polled before every chunk; when it returns True, :class:`~tofcore.errors.Cancelled` is raised.
     progressive : passes of 1, 1, 2, 4, … samples (True) or of 16 (False); see :func:`pass_schedule`.
+    sampler : ``"sobol"`` (randomized QMC, :mod:`tofcore.qmc`) or ``"independent"`` (plain uniforms, for
+        comparisons). Both are unbiased and keep the R replicates of the error estimate.
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy) or ``"auto", or a resolved :class:`tofcore.backend.Device`.
         On the GPU the accumulators of the yielded :class:`Transport` are CuPy arrays (``first_hit`` is
         always NumPy); the same seed gives the same sums within float rounding (``tests/tofcore/test_gpu.py``).
@@ -285,7 +312,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     dev = backend.select_device(device)
     xp = dev.xp
     ctx = _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_depth, seed,
-                   transient_bin_m, transient_max_m, dev, derived_correlations)
+                   transient_bin_m, transient_max_m, dev, sampler)
     if not isinstance(spp, (int, np.integer)) or spp < 1:
         raise ConfigError(f"trace: spp must be an integer >= 1, got {spp!r}")
     if chunk_size is None:
@@ -305,7 +332,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         width=camera.width, height=camera.height, max_depth=max_depth, n_correlations=n_corr,
         sample_count=xp.zeros(n_pix, np.int64),
         signal_sum=xp.zeros((max_depth, n_pix)), correlation_sum=xp.zeros((max_depth, n_corr, n_pix)),
-        ambient_sum=xp.zeros(n_pix), square_sum=xp.zeros((n_corr + 2, n_pix)),
+        ambient_sum=xp.zeros(n_pix), replicate_sum=xp.zeros((qmc.REPLICATES, n_corr + 2, n_pix)),
         first_hit=_first_hit(ctx, stats),
         transient_sum=xp.zeros((n_pix, ctx.transient_bins)) if ctx.transient_bins else None,
         transient_bin_m=ctx.transient_bin_m, stats=stats)
@@ -331,7 +358,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
 
 
 def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_depth, seed,
-             transient_bin_m, transient_max_m, device: backend.Device, derived=None) -> _Context:
+             transient_bin_m, transient_max_m, device: backend.Device, sampler: str = "sobol") -> _Context:
     if not isinstance(scene, Scene):
         raise ConfigError(f"trace: scene must be a tofcore.Scene, got {type(scene).__name__}")
     if not isinstance(camera, Camera):
@@ -339,6 +366,8 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
     leds = tuple(leds)
     if not leds or not all(isinstance(x, LED) for x in leds):
         raise ConfigError(f"trace: leds must be a non-empty sequence of tofcore.LED, got {leds!r}")
+    if sampler not in qmc.SAMPLERS:
+        raise ConfigError(f"trace: sampler must be one of {list(qmc.SAMPLERS)}, got {sampler!r}")
     if not isinstance(max_depth, (int, np.integer)) or max_depth < 1:
         raise ConfigError(f"trace: max_depth must be an integer >= 1, got {max_depth!r}")
     pose = np.eye(4) if world_from_sensor is None else np.asarray(world_from_sensor, dtype=np.float64)
@@ -353,11 +382,6 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
     for j, g in enumerate(correlations):
         if not callable(g):
             raise ConfigError(f"trace: correlations[{j}] must be callable g(tau_s), got {type(g).__name__}")
-    if derived is not None:
-        derived = np.asarray(derived, np.float64)
-        if derived.ndim != 2 or derived.shape[1] != len(correlations) or not np.isfinite(derived).all():
-            raise ConfigError(f"trace: derived_correlations must be a finite (D, {len(correlations)}) array, "
-                              f"got shape {derived.shape}")
     bins = 0
     if transient_bin_m is not None:
         if not transient_bin_m > 0 or not transient_max_m or not transient_max_m > transient_bin_m:
@@ -374,10 +398,9 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
         rotation=xp.asarray(rot), lens_center=xp.asarray(pose[:3, 3]),
         led_positions=xp.asarray(led_world), led_axis=xp.asarray(rot[:, 2]), leds=leds,
         skip_first_shadow=leds_at_pinhole(camera, leds),
-        correlations=correlations, derived=None if derived is None else xp.asarray(derived),
-        n_channels=len(correlations) + (0 if derived is None else len(derived)),
+        correlations=correlations, n_channels=len(correlations),
         ambient=None if ambient is None or ambient.is_black else ambient,
-        max_depth=int(max_depth), key=rng.seed_key(seed),
+        max_depth=int(max_depth), key=rng.seed_key(seed), sampler=sampler,
         offset_scale=_OFFSET_RELATIVE * max(extent, 1e-3),
         transient_bins=bins, transient_bin_m=transient_bin_m)
 
@@ -472,9 +495,9 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
 
     cam = ctx.camera
     rot = ctx.rotation
-    o_s, d_s = cam.generate_rays(
-        pixel, rng.uniform(ctx.key, pixel, sample, _DIM_PIXEL_U), rng.uniform(ctx.key, pixel, sample, _DIM_PIXEL_V),
-        rng.uniform(ctx.key, pixel, sample, _DIM_LENS_U), rng.uniform(ctx.key, pixel, sample, _DIM_LENS_V))
+    pixel_u, pixel_v = qmc.sample_2d(ctx.key, pixel, sample, _DIM_PIXEL, ctx.sampler)
+    lens_u, lens_v = qmc.sample_2d(ctx.key, pixel, sample, _DIM_LENS, ctx.sampler)
+    o_s, d_s = cam.generate_rays(pixel, pixel_u, pixel_v, lens_u, lens_v)
     origin = o_s @ rot.T + ctx.lens_center                      # ray origins (offset off the surface after bounce 1)
     direction = d_s @ rot.T                                     # unit ray directions, world frame
     prev_point = origin                                         # true position of the previous vertex (lens point first)
@@ -527,10 +550,9 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
         if depth == ctx.max_depth:
             break
         # Sample the BSDF for the next direction.
-        bs = sample_bsdf(surf.params, wo,
-                         rng.uniform(ctx.key, pixel, sample, _bounce_dim(depth, 0)),
-                         rng.uniform(ctx.key, pixel, sample, _bounce_dim(depth, 1)),
-                         rng.uniform(ctx.key, pixel, sample, _bounce_dim(depth, 2)))
+        u1, u2 = qmc.sample_2d(ctx.key, pixel, sample, _direction_dim(depth), ctx.sampler)
+        u_lobe = qmc.sample_1d(ctx.key, pixel, sample, _lobe_dim(depth), ctx.sampler)
+        bs = sample_bsdf(surf.params, wo, u_lobe, u1, u2)
         new_dir = surf.to_world(bs.wi)
         # A direction below the geometric surface would leak through it (shading normals): end the path.
         alive = (bs.weight > 0) & (dot(new_dir, surf.geometric_normal) > 0)
@@ -545,19 +567,19 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
 
     all_slots = xp.arange(path_total.shape[1])
     local = all_slots // n_samples
-    n_ch = n_corr + 2
-    bins = (xp.arange(n_ch)[:, None] * n_pix + local).ravel()
-    sq = scatter_sum(bins, (path_total ** 2).ravel(), n_ch * n_pix).reshape(n_ch, n_pix)
-    out.square_sum[:, p0:p1] += sq
+    replicate = (first_sample + all_slots % n_samples) % qmc.REPLICATES
+    n_ch, n_rep = n_corr + 2, qmc.REPLICATES
+    bins = ((replicate * n_ch)[None, :] * n_pix + xp.arange(n_ch)[:, None] * n_pix + local).ravel()
+    out.replicate_sum[:, :, p0:p1] += scatter_sum(bins, path_total.ravel(),
+                                                  n_rep * n_ch * n_pix).reshape(n_rep, n_ch, n_pix)
     if ctx.ambient is not None:
         out.ambient_sum[p0:p1] += scatter_sum(local, path_total[-1], n_pix)
     return stats
 
 
 def _channels(ctx: _Context, tau):
-    """(J + D, N) correlation channels of delays τ (s): the g_j(τ), then the derived combinations."""
-    g = namespace(tau).stack([g_j(tau) for g_j in ctx.correlations])
-    return g if ctx.derived is None else namespace(tau).concatenate([g, ctx.derived @ g])
+    """(J, N) correlation channels g_j(τ) of delays τ (s)."""
+    return namespace(tau).stack([g_j(tau) for g_j in ctx.correlations])
 
 
 def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndarray, wo: np.ndarray,

@@ -50,6 +50,75 @@ def uniform(key, pixel, sample, dim: int):
                                cp.uint64(int(key)), cp.uint64(dim_mix))
 
 
+_QMC_BODY = """
+    long long replicate = sample % REPLICATES;
+    unsigned int j = (unsigned int)(sample / REPLICATES);
+    unsigned long long h[2];
+    for (int which = 0; which < 2; ++which) {
+        unsigned long long x = key ^ ((unsigned long long)pixel * MIX_PIXEL)
+                                   ^ ((unsigned long long)replicate * MIX_SAMPLE) ^ dim_mix[which];
+        for (int round = 0; round < 2; ++round) {
+            x += GOLDEN;
+            x = (x ^ (x >> 30)) * M1;
+            x = (x ^ (x >> 27)) * M2;
+            x = x ^ (x >> 31);
+        }
+        h[which] = x;
+    }
+    unsigned int s_index = (unsigned int)(h[0] & 0xFFFFFFFFULL);
+    unsigned int s_x = (unsigned int)(h[0] >> 32);
+    unsigned int s_y = (unsigned int)(h[1] & 0xFFFFFFFFULL);
+    unsigned int index = owen(j, s_index);
+"""
+
+_QMC_PREAMBLE = """
+__device__ unsigned int owen(unsigned int x, unsigned int seed) {
+    x = __brev(x);
+    x += seed;
+    x ^= x * 0x6c50b47cu;
+    x ^= x * 0xb82f1e52u;
+    x ^= x * 0xc7afe638u;
+    x ^= x * 0x8d22f6e6u;
+    return __brev(x);
+}
+"""
+
+
+@functools.lru_cache(maxsize=None)
+def _qmc_kernel(cp, two: bool):
+    from .. import qmc
+    c = {k: f"{int(getattr(_rng, k)):#x}ULL" for k in ("_GOLDEN", "_MIX_PIXEL", "_MIX_SAMPLE", "_M1", "_M2")}
+    body = _QMC_BODY.replace("REPLICATES", f"{qmc.REPLICATES}LL")
+    for name in ("GOLDEN", "MIX_PIXEL", "MIX_SAMPLE", "M1", "M2"):
+        body = body.replace(name, c["_" + name])
+    if two:
+        body = body.replace("dim_mix[which]", "(which ? dim_mix_y : dim_mix_x)") + """
+        unsigned int x = __brev(index), y = 0, m = 1;
+        for (int b = 0; index != 0u; ++b, index >>= 1) {
+            if (index & 1u) y ^= m << (31 - b);
+            m ^= m << 1;
+        }
+        u = owen(x, s_x) * (1.0 / 4294967296.0);
+        v = owen(y, s_y) * (1.0 / 4294967296.0);
+        """
+        return cp.ElementwiseKernel("int64 pixel, int64 sample, uint64 key, uint64 dim_mix_x, uint64 dim_mix_y",
+                                    "float64 u, float64 v", body, "tofcore_qmc_2d", preamble=_QMC_PREAMBLE)
+    body = body.replace("dim_mix[which]", "(which ? dim_mix_y : dim_mix_x)") + """
+        u = owen(__brev(index), s_x) * (1.0 / 4294967296.0);
+        """
+    return cp.ElementwiseKernel("int64 pixel, int64 sample, uint64 key, uint64 dim_mix_x, uint64 dim_mix_y",
+                                "float64 u", body, "tofcore_qmc_1d", preamble=_QMC_PREAMBLE)
+
+
+def qmc_sample(key, pixel, sample, dim: int, two: bool):
+    """:func:`tofcore.qmc.sample_2d` (``two``) or :func:`tofcore.qmc.sample_1d` for CuPy arrays, bit for bit."""
+    from .. import qmc
+    cp = backend.namespace(pixel, sample)
+    mixes = [cp.uint64((int(d) * int(_rng._MIX_DIM)) & _MASK64) for d in (dim, dim + qmc.SEED_DIM_OFFSET)]
+    args = (pixel.astype(cp.int64, copy=False), sample.astype(cp.int64, copy=False), cp.uint64(int(key)), *mixes)
+    return _qmc_kernel(cp, two)(*args)
+
+
 # Floating-point kernels compile without FMA contraction and spell out every operation in the order of
 # the NumPy twin, so they round identically (IEEE double +, −, ×, ÷ and sqrt are correctly rounded).
 _NO_FMA = ("--fmad=false",)
