@@ -28,6 +28,9 @@ field                  unit            meaning
                                        (noise-free): the §6.3.1 study from one render
 ``ray_directions``     1               (H, W, 3) unit pixel-centre ray directions, sensor frame
 ``object_id``          –               (H, W) int32 first-hit object, −1 where none
+``render_error``       m               (H, W) estimated Monte Carlo standard error of ``depth`` (the
+                                       render's own noise, before sensor noise), NaN where unknown
+``samples``            –               (H, W) int samples traced per pixel (adaptive sampling varies it)
 ``stats``              –               dict: time, rays, spp, plan, convergence log, …
 =====================  ==============  ==========================================================
 """
@@ -73,6 +76,8 @@ class Frame:
     object_id: np.ndarray
     depth_output: str = "radial"
     world_from_sensor: np.ndarray = field(default_factory=lambda: np.eye(4))
+    render_error: np.ndarray | None = None
+    samples: np.ndarray | None = None
     stats: dict = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
 

@@ -48,7 +48,8 @@ from .errors import ConfigError
 from .frame import Frame
 from .plan import Plan, make_plan
 from .scene import Scene
-from .transport import SPEED_OF_LIGHT_M_S, Transport, trace_progressive
+from .adaptive import allocate_samples
+from .transport import SPEED_OF_LIGHT_M_S, Transport, pass_schedule, trace_progressive
 
 C = SPEED_OF_LIGHT_M_S
 
@@ -117,7 +118,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                        reference_distance: np.ndarray | None = None,
                        progress: Callable[[dict], None] | None = None, cancel: Callable[[], bool] | None = None,
                        workers: int | None = None, chunk_size: int | None = None,
-                       every_pass: bool = True, device: str | backend.Device = "cpu") -> Iterator[Frame]:
+                       every_pass: bool = True, device: str | backend.Device = "cpu",
+                       adaptive: bool = True, sampler: str = "sobol") -> Iterator[Frame]:
     """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
 
     The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
@@ -127,7 +129,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     scene : the geometry (:class:`~tofcore.scene.Scene`).
     sensor : a :class:`~tofcore.sensor.Sensor` (e.g. ``tofcore.load_preset("kinect_v2")``).
     pose : 4×4 ``world_from_sensor`` (OpenCV sensor frame); default: the scene's suggested pose, else identity.
-    spp : most samples per pixel; fewer when a target error or time budget stops the render first.
+    spp : most samples per pixel (the mean over the pixels); fewer when a target error or time budget stops
+        the render first.
     max_depth : surface vertices per path (1 = direct light only).
     seed : non-negative int; the same seed gives the same frame (tracing, then sensor noise).
     time_budget_s : stop before a pass that would end after this many seconds of tracing.
@@ -140,6 +143,9 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     workers, chunk_size : passed to the tracer.
     every_pass : build and yield a frame after every pass (False: only the final one, which saves
         decoding the intermediate passes).
+    adaptive : after a uniform pilot of 16 spp, give each pass's samples to the pixels whose estimated
+        depth error is largest (:mod:`tofcore.adaptive`); False: every pixel gets ``spp``.
+    sampler : ``"sobol"`` (randomized QMC, default) or ``"independent"`` (:mod:`tofcore.qmc`).
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering and decoding on the GPU;
         the random sensor noise is drawn on the CPU so that both devices give the same frame) or
         ``"auto"`` (the GPU when usable, else the CPU). The frame's arrays are NumPy either way;
@@ -150,34 +156,28 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     """
     _check_settings(spp, time_budget_s, target_error_m)
     dev = backend.select_device(device)
+    settings = dict(spp=spp, max_depth=max_depth, seed=seed, time_budget_s=time_budget_s,
+                    target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,
+                    progress=progress, cancel=cancel, workers=workers, every_pass=every_pass,
+                    adaptive=adaptive, sampler=sampler)
     if not dev.is_gpu:
-        yield from _render_passes(scene, sensor, pose, spp=spp, max_depth=max_depth, seed=seed,
-                                  time_budget_s=time_budget_s, target_error_m=target_error_m, ambient=ambient,
-                                  reference_distance=reference_distance, progress=progress, cancel=cancel,
-                                  workers=workers, chunk_size=chunk_size, every_pass=every_pass, device=dev)
+        yield from _render_passes(scene, sensor, pose, chunk_size=chunk_size, device=dev, **settings)
         return
     started = False
     try:
         with gpu_errors():
-            for frame in _render_passes(scene, sensor, pose, spp=spp, max_depth=max_depth, seed=seed,
-                                        time_budget_s=time_budget_s, target_error_m=target_error_m,
-                                        ambient=ambient, reference_distance=reference_distance,
-                                        progress=progress, cancel=cancel, workers=workers,
-                                        chunk_size=chunk_size, every_pass=every_pass, device=dev):
+            for frame in _render_passes(scene, sensor, pose, chunk_size=chunk_size, device=dev, **settings):
                 started = True
                 yield frame
     except backend.GpuUnavailable as exc:
         if dev.requested != "auto" or started:
             raise
-        yield from _render_passes(scene, sensor, pose, spp=spp, max_depth=max_depth, seed=seed,
-                                  time_budget_s=time_budget_s, target_error_m=target_error_m, ambient=ambient,
-                                  reference_distance=reference_distance, progress=progress, cancel=cancel,
-                                  workers=workers, chunk_size=None, every_pass=every_pass,
-                                  device=backend.cpu_device("auto", str(exc)))
+        yield from _render_passes(scene, sensor, pose, chunk_size=None,
+                                  device=backend.cpu_device("auto", str(exc)), **settings)
 
 
 def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_budget_s, target_error_m, ambient,
-                   reference_distance, progress, cancel, workers, chunk_size, every_pass,
+                   reference_distance, progress, cancel, workers, chunk_size, every_pass, adaptive, sampler,
                    device: backend.Device) -> Iterator[Frame]:
     """:func:`render_progressive` on one resolved device."""
     if sensor.noise.model == "li" and sensor.modulation.kind == "pulsed":
@@ -196,15 +196,24 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
                               f"got {reference_distance.shape}")
 
     log: list[dict] = []
+    sigma = None  # the latest per-pixel depth error estimate, which the next pass's allocation reads
+
+    def allocate(transport: Transport, samples_per_pixel: int):
+        counts = backend.to_host(transport.sample_count)
+        return None if sigma is None else allocate_samples(sigma, counts, samples_per_pixel)
+
+    progressive = every_pass or time_budget_s is not None or target_error_m is not None
+    n_passes = len(pass_schedule(spp, progressive))
     start = time.perf_counter()
     passes = trace_progressive(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
                                correlations=correlations, ambient=ambient if plan.ambient else None,
                                spp=spp, max_depth=max_depth, seed=seed, workers=workers, chunk_size=chunk_size,
-                               cancel=cancel, device=device,
-                               progressive=every_pass or time_budget_s is not None or target_error_m is not None)
+                               cancel=cancel, device=device, progressive=progressive, sampler=sampler,
+                               allocate=allocate if adaptive else None)
     for transport in passes:
         elapsed = time.perf_counter() - start
-        samples = int(transport.sample_count[0])
+        counts = backend.to_host(transport.sample_count)
+        samples = int(round(counts.mean()))
         sigma = backend.to_host(depth_standard_error(transport, sensor, n_raw))
         seen = np.isfinite(transport.first_hit.distance_m) & np.isfinite(sigma)
         row = {"pass": transport.stats.passes, "seconds": elapsed, "spp": samples,
@@ -216,7 +225,7 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
         log.append(row)
         if progress is not None:
             progress(dict(row, spp_max=spp))
-        done = samples >= spp
+        done = transport.stats.passes >= n_passes
         if target_error_m is not None and row["est_depth_error_m"] is not None \
                 and row["est_depth_error_m"] <= target_error_m:
             done = True
@@ -226,11 +235,16 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
         if not (done or every_pass):
             continue
         frame = _frame(transport, sensor, pose, plan, seed, n_raw)
+        frame.render_error = sigma.astype(np.float32)
+        frame.samples = counts.reshape(sensor.camera.height, sensor.camera.width).astype(np.int32)
         frame.stats.update({
             "final": done, "trace_seconds": elapsed, "seconds": time.perf_counter() - start, "spp": samples,
             "spp_max": spp, "max_depth": max_depth, "seed": seed, "time_budget_s": time_budget_s,
             "target_error_m": target_error_m, "plan": plan.as_dict(), "convergence": list(log),
             "transport": transport.stats.as_dict(), "device": device.as_dict(),
+            "sampler": sampler, "adaptive": adaptive,
+            "samples_per_pixel": {"min": int(counts.min()), "median": float(np.median(counts)),
+                                  "max": int(counts.max())},
         })
         yield frame
         if done:

@@ -283,7 +283,8 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       transient_bin_m: float | None = None, transient_max_m: float | None = None,
                       cancel: Callable[[], bool] | None = None,
                       device: str | backend.Device = "cpu", progressive: bool = True,
-                      sampler: str = "sobol") -> Iterator[Transport]:
+                      sampler: str = "sobol",
+                      allocate: Callable[[Transport, int], np.ndarray | None] | None = None) -> Iterator[Transport]:
     """Trace in progressive passes, yielding the accumulated :class:`Transport` after each.
 
     Parameters
@@ -303,6 +304,11 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     progressive : passes of 1, 1, 2, 4, … samples (True) or of 16 (False); see :func:`pass_schedule`.
     sampler : ``"sobol"`` (randomized QMC, :mod:`tofcore.qmc`) or ``"independent"`` (plain uniforms, for
         comparisons). Both are unbiased and keep the R replicates of the error estimate.
+    allocate : adaptive sampling: called before every pass with the accumulated transport and the pass's
+        mean samples per pixel n; returns (P,) int samples per pixel for this pass (summing to about n·P,
+        e.g. :func:`tofcore.adaptive.allocate_samples`) or None for n everywhere. Each pixel's samples
+        keep their indices 0, 1, 2, … whatever the allocation, so a pixel's estimate is the same
+        function of its own samples as without it. ``spp`` then counts the mean over the pixels.
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy) or ``"auto", or a resolved :class:`tofcore.backend.Device`.
         On the GPU the accumulators of the yielded :class:`Transport` are CuPy arrays (``first_hit`` is
         always NumPy); the same seed gives the same sums within float rounding (``tests/tofcore/test_gpu.py``).
@@ -336,25 +342,45 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         first_hit=_first_hit(ctx, stats),
         transient_sum=xp.zeros((n_pix, ctx.transient_bins)) if ctx.transient_bins else None,
         transient_bin_m=ctx.transient_bin_m, stats=stats)
-    first_sample = 0
+    done = np.zeros(n_pix, np.int64)  # host copy of transport.sample_count
     with ThreadPoolExecutor(max_workers=workers) as pool:
         for n_samples in pass_schedule(int(spp), progressive):
-            pixels_per_chunk = max(1, chunk_size // n_samples)
-            chunks = [(p0, min(n_pix, p0 + pixels_per_chunk)) for p0 in range(0, n_pix, pixels_per_chunk)]
-            run = functools.partial(_trace_chunk, ctx, transport, first_sample=first_sample, n_samples=n_samples)
+            counts = None if allocate is None else allocate(transport, n_samples)
+            counts = np.full(n_pix, n_samples, np.int64) if counts is None else _checked_counts(counts, n_pix)
+            run = functools.partial(_trace_chunk, ctx, transport, first=xp.asarray(done), counts=xp.asarray(counts))
 
             def job(chunk: tuple[int, int]) -> TraceStats | None:
                 return None if cancel is not None and cancel() else run(*chunk)
 
-            for chunk_stats in pool.map(job, chunks):
+            for chunk_stats in pool.map(job, _chunks(counts, chunk_size)):
                 if chunk_stats is None:
                     raise Cancelled("trace: cancelled")
                 stats.add(chunk_stats)
-            transport.sample_count += n_samples
-            first_sample += n_samples
+            done += counts
+            transport.sample_count += xp.asarray(counts)
             stats.passes += 1
             stats.seconds = time.perf_counter() - start
             yield transport
+
+
+def _checked_counts(counts, n_pix: int) -> np.ndarray:
+    counts = np.asarray(backend.to_host(counts))
+    if counts.shape != (n_pix,) or not np.issubdtype(counts.dtype, np.integer) or (counts < 0).any():
+        raise ConfigError(f"trace: allocate must return ({n_pix},) non-negative integers, "
+                          f"got shape {counts.shape} of {counts.dtype}")
+    return counts.astype(np.int64)
+
+
+def _chunks(counts: np.ndarray, chunk_size: int) -> list[tuple[int, int]]:
+    """Pixel ranges [p0, p1) of about ``chunk_size`` paths each (whole pixels; at least one pixel)."""
+    ends = np.cumsum(counts)
+    chunks, p0 = [], 0
+    while p0 < len(counts):
+        before = ends[p0 - 1] if p0 else 0
+        p1 = max(p0 + 1, int(np.searchsorted(ends, before + chunk_size, side="right")))
+        chunks.append((p0, min(p1, len(counts))))
+        p0 = p1
+    return chunks
 
 
 def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_depth, seed,
@@ -471,9 +497,8 @@ def _first_hit(ctx: _Context, stats: TraceStats) -> FirstHit:
                     object_id=host(obj).reshape(shape), direction=host(d).astype(np.float32).reshape(shape + (3,)))
 
 
-def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sample: int, n_samples: int
-                 ) -> TraceStats:
-    """Trace samples [first_sample, first_sample + n_samples) of pixels [p0, p1) into ``out``.
+def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, counts) -> TraceStats:
+    """Trace samples [first[p], first[p] + counts[p]) of every pixel p in [p0, p1) into ``out``.
 
     Writes only the pixels [p0, p1) of ``out``, so chunks can run in parallel threads.
     Returns the chunk's ray counters.
@@ -483,10 +508,13 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
     xp = ctx.device.xp
     stats = TraceStats()
     # Path state, one entry per live path (compacted after every bounce):
-    slot = xp.arange(n_pix * n_samples)                         # index of the path within the chunk
-    local_pixel = slot // n_samples                             # pixel within the chunk; paths ordered (pixel, sample)
+    n_paths = int(counts[p0:p1].sum())
+    slot = xp.arange(n_paths)                                   # index of the path within the chunk
+    local_pixel = xp.repeat(xp.arange(n_pix), counts[p0:p1])    # pixel within the chunk; paths ordered (pixel, sample)
     pixel = p0 + local_pixel                                    # flat pixel index in the frame
-    sample = first_sample + slot % n_samples                    # sample index of the pixel
+    rank = slot - (xp.cumsum(counts[p0:p1]) - counts[p0:p1])[local_pixel]
+    sample = first[p0:p1][local_pixel] + rank                   # sample index of the pixel
+    slot_pixel, slot_replicate = local_pixel, sample % qmc.REPLICATES  # per slot, for the replicate sums
     throughput = xp.ones(len(slot))                             # β: Π f cosθ / pdf so far
     path_length = xp.zeros(len(slot))                           # metres travelled from the lens, float64
     prev_prim = xp.full(len(slot), -1, np.int32)                # triangle the ray leaves (never hit again)
@@ -565,15 +593,12 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first_sampl
         if len(slot) == 0:
             break
 
-    all_slots = xp.arange(path_total.shape[1])
-    local = all_slots // n_samples
-    replicate = (first_sample + all_slots % n_samples) % qmc.REPLICATES
     n_ch, n_rep = n_corr + 2, qmc.REPLICATES
-    bins = ((replicate * n_ch)[None, :] * n_pix + xp.arange(n_ch)[:, None] * n_pix + local).ravel()
+    bins = ((slot_replicate * n_ch)[None, :] * n_pix + xp.arange(n_ch)[:, None] * n_pix + slot_pixel).ravel()
     out.replicate_sum[:, :, p0:p1] += scatter_sum(bins, path_total.ravel(),
                                                   n_rep * n_ch * n_pix).reshape(n_rep, n_ch, n_pix)
     if ctx.ambient is not None:
-        out.ambient_sum[p0:p1] += scatter_sum(local, path_total[-1], n_pix)
+        out.ambient_sum[p0:p1] += scatter_sum(slot_pixel, path_total[-1], n_pix)
     return stats
 
 

@@ -77,9 +77,9 @@ _EXR_IMAGES = ("depth", "distance", "amplitude", "intensity", "offset", "confide
                "gt_distance", "gt_depth", "direct_distance", "object_id")
 
 UNITS = {
-    "depth": "m", "distance": "m", "gt_distance": "m", "gt_depth": "m", "direct_distance": "m",
+    "depth": "m", "distance": "m", "render_error": "m", "gt_distance": "m", "gt_depth": "m", "direct_distance": "m",
     "distance_k<k>": "m", "amplitude": "e-", "offset": "e-", "intensity": "e-", "raw.<label>": "e-",
-    "confidence": "1", "valid": "0/1", "reason": "Reason code", "object_id": "object index, -1 none",
+    "samples": "samples per pixel", "confidence": "1", "valid": "0/1", "reason": "Reason code", "object_id": "object index, -1 none",
     "depth_mm.png": "mm", "points.ply": "m, sensor frame (x right, y down, z forward)",
 }
 
@@ -210,6 +210,8 @@ def _exr_channels(frame: Frame) -> dict[str, np.ndarray]:
     images = {name: getattr(frame, name) for name in _EXR_IMAGES}
     images.update({f"raw.{label}": raw for label, raw in zip(frame.raw_labels, frame.raw)})
     images.update({f"distance_k{k}": d for k, d in enumerate(frame.distance_per_k, start=1)})
+    images.update({name: getattr(frame, name) for name in ("render_error", "samples")
+                   if getattr(frame, name) is not None})
     for name, image in images.items():
         if np.shape(image) != (frame.height, frame.width):
             raise ValueError(f"write_frame: {name} must have shape {(frame.height, frame.width)}, "
