@@ -168,6 +168,10 @@ class SurfaceParams:
         object.__setattr__(self, "_has_metal", has_metal)
         object.__setattr__(self, "_all_metal", all_metal)
 
+    def take(self, index) -> SurfaceParams:
+        """The parameters of the points ``index`` (integer array)."""
+        return SurfaceParams(**{f.name: getattr(self, f.name)[index] for f in fields(self)})
+
 
 @dataclass(frozen=True)
 class BsdfSample:

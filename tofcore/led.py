@@ -21,6 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .backend import namespace
+from .sampling import sample_cosine_hemisphere
 from .errors import ConfigError
 
 KINDS = ("point", "lambertian")
@@ -57,3 +58,30 @@ class LED:
         if self.kind == "point":
             return namespace(cos_axis).full(np.shape(cos_axis), float(self.intensity_w_sr))
         return self.intensity_w_sr * np.maximum(cos_axis, 0.0)
+
+    @property
+    def power_w(self) -> float:
+        """Radiant power Φ = ∫ I dω in W: 4π I0 (point), π I0 (Lambertian)."""
+        return float(self.intensity_w_sr) * (4.0 * np.pi if self.kind == "point" else np.pi)
+
+    def emission_pdf(self, cos_axis: np.ndarray) -> np.ndarray:
+        """Solid-angle density (1/sr) of :meth:`sample_emission` towards directions with cos θ = ``cos_axis``.
+
+        Proportional to I(θ): 1/(4π) (point), max(0, cos θ)/π (Lambertian), so I/p = Φ (:attr:`power_w`).
+        """
+        if self.kind == "point":
+            return namespace(cos_axis).full(np.shape(cos_axis), 1.0 / (4.0 * np.pi))
+        return np.maximum(cos_axis, 0.0) / np.pi
+
+    def sample_emission(self, u1: np.ndarray, u2: np.ndarray) -> np.ndarray:
+        """(N, 3) emission directions in the LED frame (+z = optical axis), distributed as I(θ) (pdf above).
+
+        Point: uniform on the sphere, z = 1 − 2u₁, φ = 2πu₂. Lambertian: cosine-weighted about +z
+        (:func:`tofcore.sampling.sample_cosine_hemisphere`).
+        """
+        if self.kind == "lambertian":
+            return sample_cosine_hemisphere(u1, u2)
+        z = 1.0 - 2.0 * u1
+        r = np.sqrt(np.maximum(1.0 - z * z, 0.0))
+        phi = 2.0 * np.pi * u2
+        return namespace(z).stack([r * np.cos(phi), r * np.sin(phi), z], axis=-1)

@@ -119,7 +119,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                        progress: Callable[[dict], None] | None = None, cancel: Callable[[], bool] | None = None,
                        workers: int | None = None, chunk_size: int | None = None,
                        every_pass: bool = True, device: str | backend.Device = "cpu",
-                       adaptive: bool = True, sampler: str = "sobol") -> Iterator[Frame]:
+                       adaptive: bool = True, sampler: str = "sobol", light_paths: bool = True) -> Iterator[Frame]:
     """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
 
     The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
@@ -146,6 +146,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     adaptive : after a uniform pilot of 16 spp, give each pass's samples to the pixels whose estimated
         depth error is largest (:mod:`tofcore.adaptive`); False: every pixel gets ``spp``.
     sampler : ``"sobol"`` (randomized QMC, default) or ``"independent"`` (:mod:`tofcore.qmc`).
+    light_paths : connect the camera paths to light vertices with MIS (:mod:`tofcore.light_paths`).
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering and decoding on the GPU;
         the random sensor noise is drawn on the CPU so that both devices give the same frame) or
         ``"auto"`` (the GPU when usable, else the CPU). The frame's arrays are NumPy either way;
@@ -159,7 +160,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     settings = dict(spp=spp, max_depth=max_depth, seed=seed, time_budget_s=time_budget_s,
                     target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,
                     progress=progress, cancel=cancel, workers=workers, every_pass=every_pass,
-                    adaptive=adaptive, sampler=sampler)
+                    adaptive=adaptive, sampler=sampler, light_paths=light_paths)
     if not dev.is_gpu:
         yield from _render_passes(scene, sensor, pose, chunk_size=chunk_size, device=dev, **settings)
         return
@@ -178,7 +179,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
 
 def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_budget_s, target_error_m, ambient,
                    reference_distance, progress, cancel, workers, chunk_size, every_pass, adaptive, sampler,
-                   device: backend.Device) -> Iterator[Frame]:
+                   light_paths, device: backend.Device) -> Iterator[Frame]:
     """:func:`render_progressive` on one resolved device."""
     if sensor.noise.model == "li" and sensor.modulation.kind == "pulsed":
         raise ConfigError(f"render: sensor {sensor.name!r}: noise model 'li' (eq. 2.43) needs a continuous-wave "
@@ -208,7 +209,7 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
     passes = trace_progressive(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
                                correlations=correlations, ambient=ambient if plan.ambient else None,
                                spp=spp, max_depth=max_depth, seed=seed, workers=workers, chunk_size=chunk_size,
-                               cancel=cancel, device=device, progressive=progressive, sampler=sampler,
+                               cancel=cancel, device=device, progressive=progressive, sampler=sampler, light_paths=light_paths,
                                allocate=allocate if adaptive else None)
     for transport in passes:
         elapsed = time.perf_counter() - start
@@ -242,7 +243,7 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
             "spp_max": spp, "max_depth": max_depth, "seed": seed, "time_budget_s": time_budget_s,
             "target_error_m": target_error_m, "plan": plan.as_dict(), "convergence": list(log),
             "transport": transport.stats.as_dict(), "device": device.as_dict(),
-            "sampler": sampler, "adaptive": adaptive,
+            "sampler": sampler, "adaptive": adaptive, "light_paths": light_paths,
             "samples_per_pixel": {"min": int(counts.min()), "median": float(np.median(counts)),
                                   "max": int(counts.max())},
         })

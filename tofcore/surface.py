@@ -44,6 +44,12 @@ class Surface:
         """World directions (N, 3) into the shading frame."""
         return np.stack([dot(w, self.tangent), dot(w, self.bitangent), dot(w, self.shading_normal)], axis=1)
 
+    def take(self, index: np.ndarray) -> Surface:
+        """The hit points ``index`` (integer array) as a Surface of their own."""
+        return Surface(position=self.position[index], geometric_normal=self.geometric_normal[index],
+                       tangent=self.tangent[index], bitangent=self.bitangent[index],
+                       shading_normal=self.shading_normal[index], params=self.params.take(index))
+
     def to_world(self, w: np.ndarray) -> np.ndarray:
         """Shading-frame directions (N, 3) into the world frame."""
         return (w[:, 0:1] * self.tangent + w[:, 1:2] * self.bitangent + w[:, 2:3] * self.shading_normal)

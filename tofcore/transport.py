@@ -49,6 +49,7 @@ from .bsdf import eval_bsdf, sample_bsdf
 from .camera import Camera
 from .errors import Cancelled, ConfigError
 from .led import LED
+from .light_paths import bsdf_strategy_weight, connect, led_probabilities, trace_light_vertices
 from .plan import leds_at_pinhole
 from .scene import Scene
 from .backend import namespace, scatter_sum
@@ -97,6 +98,7 @@ class TraceStats:
     shadow_rays: int = 0
     seconds: float = 0.0
     passes: int = 0
+    light_rays: int = 0           # rays from the LEDs to their first hit (light vertices)
     skipped_shadow_rays: int = 0  # first-hit shadow rays known to be unoccluded (LED at a pinhole)
     camera_seconds: float = 0.0   # thread-seconds inside the BVH for each kind of ray
     bounce_seconds: float = 0.0
@@ -104,16 +106,17 @@ class TraceStats:
 
     @property
     def rays(self) -> int:
-        return self.camera_rays + self.bounce_rays + self.shadow_rays
+        return self.camera_rays + self.bounce_rays + self.shadow_rays + self.light_rays
 
     def add(self, other: TraceStats) -> None:
         """Add the ray counters and BVH times of a chunk (not ``seconds`` or ``passes``)."""
-        for key in ("camera_rays", "bounce_rays", "shadow_rays", "skipped_shadow_rays",
+        for key in ("camera_rays", "bounce_rays", "shadow_rays", "light_rays", "skipped_shadow_rays",
                     "camera_seconds", "bounce_seconds", "shadow_seconds"):
             setattr(self, key, getattr(self, key) + getattr(other, key))
 
     def as_dict(self) -> dict:
         return {"camera_rays": self.camera_rays, "bounce_rays": self.bounce_rays, "shadow_rays": self.shadow_rays,
+                "light_rays": self.light_rays,
                 "rays": self.rays, "seconds": self.seconds, "passes": self.passes,
                 "skipped_shadow_rays": self.skipped_shadow_rays,
                 "camera_seconds": self.camera_seconds, "bounce_seconds": self.bounce_seconds,
@@ -261,6 +264,8 @@ class _Context:
     max_depth: int
     key: np.uint64
     sampler: str                # "sobol" or "independent" (tofcore.qmc.SAMPLERS)
+    light_paths: bool           # connect camera vertices to light vertices (tofcore.light_paths)
+    led_probability: np.ndarray  # (L,) host: probability of each LED emitting the light vertex
     offset_scale: float
     transient_bins: int
     transient_bin_m: float | None
@@ -283,7 +288,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       transient_bin_m: float | None = None, transient_max_m: float | None = None,
                       cancel: Callable[[], bool] | None = None,
                       device: str | backend.Device = "cpu", progressive: bool = True,
-                      sampler: str = "sobol",
+                      sampler: str = "sobol", light_paths: bool = True,
                       allocate: Callable[[Transport, int], np.ndarray | None] | None = None) -> Iterator[Transport]:
     """Trace in progressive passes, yielding the accumulated :class:`Transport` after each.
 
@@ -304,6 +309,9 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     progressive : passes of 1, 1, 2, 4, … samples (True) or of 16 (False); see :func:`pass_schedule`.
     sampler : ``"sobol"`` (randomized QMC, :mod:`tofcore.qmc`) or ``"independent"`` (plain uniforms, for
         comparisons). Both are unbiased and keep the R replicates of the error estimate.
+    light_paths : connect every camera vertex to one light vertex per sample (an LED's first hit), both
+        strategies weighted by multiple importance sampling (:mod:`tofcore.light_paths`). Unbiased
+        either way; it removes the fireflies of surfaces close to an LED. Needs ``max_depth`` ≥ 2.
     allocate : adaptive sampling: called before every pass with the accumulated transport and the pass's
         mean samples per pixel n; returns (P,) int samples per pixel for this pass (summing to about n·P,
         e.g. :func:`tofcore.adaptive.allocate_samples`) or None for n everywhere. Each pixel's samples
@@ -318,7 +326,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     dev = backend.select_device(device)
     xp = dev.xp
     ctx = _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_depth, seed,
-                   transient_bin_m, transient_max_m, dev, sampler)
+                   transient_bin_m, transient_max_m, dev, sampler, light_paths)
     if not isinstance(spp, (int, np.integer)) or spp < 1:
         raise ConfigError(f"trace: spp must be an integer >= 1, got {spp!r}")
     if chunk_size is None:
@@ -384,7 +392,8 @@ def _chunks(counts: np.ndarray, chunk_size: int) -> list[tuple[int, int]]:
 
 
 def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_depth, seed,
-             transient_bin_m, transient_max_m, device: backend.Device, sampler: str = "sobol") -> _Context:
+             transient_bin_m, transient_max_m, device: backend.Device, sampler: str = "sobol",
+             light_paths: bool = True) -> _Context:
     if not isinstance(scene, Scene):
         raise ConfigError(f"trace: scene must be a tofcore.Scene, got {type(scene).__name__}")
     if not isinstance(camera, Camera):
@@ -427,6 +436,8 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
         correlations=correlations, n_channels=len(correlations),
         ambient=None if ambient is None or ambient.is_black else ambient,
         max_depth=int(max_depth), key=rng.seed_key(seed), sampler=sampler,
+        light_paths=bool(light_paths) and max_depth >= 2 and led_probabilities(leds).sum() > 0,
+        led_probability=led_probabilities(leds),
         offset_scale=_OFFSET_RELATIVE * max(extent, 1e-3),
         transient_bins=bins, transient_bin_m=transient_bin_m)
 
@@ -518,8 +529,11 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
     throughput = xp.ones(len(slot))                             # β: Π f cosθ / pdf so far
     path_length = xp.zeros(len(slot))                           # metres travelled from the lens, float64
     prev_prim = xp.full(len(slot), -1, np.int32)                # triangle the ray leaves (never hit again)
-    # Per-path totals over all bounces, for the per-sample variance: signal, correlations..., ambient.
+    prev_pdf = xp.zeros(len(slot))                              # solid-angle pdf of the bounce that led here
+    prev_delta = xp.zeros(len(slot), dtype=bool)                # ... and whether it was a mirror (delta) lobe
+    # Per-path totals over all bounces, for the replicate sums: signal, correlations..., ambient.
     path_total = xp.zeros((n_corr + 2, len(slot)))
+    light = trace_light_vertices(ctx, stats, pixel, sample) if ctx.light_paths else None  # indexed by slot
 
     cam = ctx.camera
     rot = ctx.rotation
@@ -548,35 +562,42 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
         keep = np.flatnonzero(hit)
         slot, local_pixel, pixel, sample = slot[keep], local_pixel[keep], pixel[keep], sample[keep]
         throughput, path_length = throughput[keep], path_length[keep]
+        prev_pdf, prev_delta = prev_pdf[keep], prev_delta[keep]
         origin, direction, prev_point, prim = origin[keep], direction[keep], prev_point[keep], hits.prim[keep]
         if len(slot) == 0:
             break
         surf = surface_at(ctx.scene, ctx.table, prim, hits.u[keep], hits.v[keep], origin, direction)
-        path_length = path_length + np.linalg.norm(surf.position - prev_point, axis=1)
+        segment = np.linalg.norm(surf.position - prev_point, axis=1)
+        path_length = path_length + segment
         wo = surf.to_local(-direction)
         spawn = surf.position + surf.geometric_normal * ctx.offset_scale
+        # Area density at this vertex of having sampled it from the previous one (MIS with light vertices).
+        bsdf_area_pdf = (prev_pdf * dot(-direction, surf.geometric_normal) / segment**2
+                         if ctx.light_paths and depth >= 2 else None)
 
         # Next-event estimation to every LED, summed per path in LED order.
         w_sum = xp.zeros(len(slot))
         wg_sum = xp.zeros((n_corr, len(slot)))
         for i, led in enumerate(ctx.leds):
-            w, led_distance = _connect_led(ctx, stats, surf, spawn, wo, prim, throughput, i, led, depth)
+            w, led_distance = _connect_led(ctx, stats, surf, spawn, wo, prim, throughput, i, led, depth,
+                                           bsdf_area_pdf, prev_delta)
             total_length = path_length + led_distance
             if ctx.transient_bins:
                 _add_transient(ctx, out, p0, p1, local_pixel, w, total_length)
             w_sum += w
             if n_corr:
                 wg_sum += w * _channels(ctx, total_length / SPEED_OF_LIGHT_M_S)
-        k = depth - 1
-        out.signal_sum[k, p0:p1] += scatter_sum(local_pixel, w_sum, n_pix)
-        if n_corr:  # all channels in one scatter: channel c of pixel p goes to bin c·n_pix + p
-            bins = (xp.arange(n_corr)[:, None] * n_pix + local_pixel).ravel()
-            out.correlation_sum[k, :, p0:p1] += scatter_sum(bins, wg_sum.ravel(), n_corr * n_pix).reshape(n_corr, n_pix)
-        path_total[0, slot] += w_sum
-        path_total[1:n_corr + 1, slot] += wg_sum
+        _accumulate(ctx, out, p0, p1, depth - 1, local_pixel, slot, w_sum, wg_sum, path_total)
 
         if depth == ctx.max_depth:
             break
+        if light is not None:  # this vertex → the sample's light vertex → its LED: depth + 1 surface vertices
+            w, extra = connect(ctx, stats, light, slot, surf, spawn, wo, prim, throughput)
+            total_length = path_length + extra
+            if ctx.transient_bins:
+                _add_transient(ctx, out, p0, p1, local_pixel, w, total_length)
+            wg = w * _channels(ctx, total_length / SPEED_OF_LIGHT_M_S) if n_corr else None
+            _accumulate(ctx, out, p0, p1, depth, local_pixel, slot, w, wg, path_total)
         # Sample the BSDF for the next direction.
         u1, u2 = qmc.sample_2d(ctx.key, pixel, sample, _direction_dim(depth), ctx.sampler)
         u_lobe = qmc.sample_1d(ctx.key, pixel, sample, _lobe_dim(depth), ctx.sampler)
@@ -587,6 +608,7 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
         keep = np.flatnonzero(alive)
         slot, local_pixel, pixel, sample = slot[keep], local_pixel[keep], pixel[keep], sample[keep]
         throughput = throughput[keep] * bs.weight[keep]
+        prev_pdf, prev_delta = bs.pdf[keep], bs.is_delta[keep]
         path_length, prev_prim = path_length[keep], prim[keep]
         prev_point, origin = surf.position[keep], spawn[keep]
         direction = new_dir[keep] / np.linalg.norm(new_dir[keep], axis=1, keepdims=True)
@@ -602,15 +624,31 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
     return stats
 
 
+def _accumulate(ctx: _Context, out: Transport, p0: int, p1: int, k: int, local_pixel, slot, w, wg,
+                path_total) -> None:
+    """Add contributions (weights w, correlation products wg (J, N)) of bounce bucket k + 1 to the pixels
+    and to the paths' totals."""
+    n_pix, n_corr = p1 - p0, ctx.n_channels
+    out.signal_sum[k, p0:p1] += scatter_sum(local_pixel, w, n_pix)
+    path_total[0, slot] += w
+    if n_corr:  # all channels in one scatter: channel c of pixel p goes to bin c·n_pix + p
+        bins = (namespace(w).arange(n_corr)[:, None] * n_pix + local_pixel).ravel()
+        out.correlation_sum[k, :, p0:p1] += scatter_sum(bins, wg.ravel(), n_corr * n_pix).reshape(n_corr, n_pix)
+        path_total[1:n_corr + 1, slot] += wg
+
+
 def _channels(ctx: _Context, tau):
     """(J, N) correlation channels g_j(τ) of delays τ (s)."""
     return namespace(tau).stack([g_j(tau) for g_j in ctx.correlations])
 
 
 def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndarray, wo: np.ndarray,
-                 prim: np.ndarray, throughput: np.ndarray, i: int, led: LED, depth: int
-                 ) -> tuple[np.ndarray, np.ndarray]:
-    """Next-event estimate to LED ``i``: (weight w per path, distance hit point → LED)."""
+                 prim: np.ndarray, throughput: np.ndarray, i: int, led: LED, depth: int,
+                 bsdf_area_pdf=None, prev_delta=None) -> tuple[np.ndarray, np.ndarray]:
+    """Next-event estimate to LED ``i``: (weight w per path, distance hit point → LED).
+
+    With ``bsdf_area_pdf`` (light vertices on), w carries strategy A's MIS weight
+    (:func:`tofcore.light_paths.bsdf_strategy_weight`)."""
     to_led = ctx.led_positions[i] - surf.position
     dist = np.linalg.norm(to_led, axis=1)
     wi_world = to_led / dist[:, None]
@@ -620,6 +658,9 @@ def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndar
     f = eval_bsdf(surf.params, wo, surf.to_local(wi_world))
     w = throughput * f * np.maximum(cos_shading, 0.0) * intensity / dist**2
     w = np.where(cos_geo > 0, w, 0.0)
+    if bsdf_area_pdf is not None:
+        w = w * bsdf_strategy_weight(bsdf_area_pdf, prev_delta, led, float(ctx.led_probability[i]),
+                                     -wi_world @ ctx.led_axis, cos_geo, dist)
     test = np.flatnonzero(w > 0)
     if depth == 1 and ctx.skip_first_shadow[i]:
         stats.skipped_shadow_rays += len(test)
