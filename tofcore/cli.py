@@ -90,7 +90,8 @@ def cmd_render(args: argparse.Namespace) -> int:
                                                   else ""))
     frame = render(scene, sensor, spp=args.spp, max_depth=args.max_depth, seed=args.seed,
                    time_budget_s=args.time_budget, target_error_m=args.target_error, ambient=ambient,
-                   progress=_progress_bar(args.quiet), device=device)
+                   progress=_progress_bar(args.quiet), device=device, sampler=args.sampler,
+                   adaptive=args.adaptive, light_paths=args.light_paths)
     if not args.quiet:
         sys.stderr.write("\n")
     files = write_frame(frame, args.out, formats=formats)
@@ -138,6 +139,13 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--formats", default="exr,png,ply,json", help="comma list of exr, png, ply, json")
     r.add_argument("--device", choices=("cpu", "gpu", "auto"), default="auto",
                    help="cpu (NumPy), gpu (CuPy on an NVIDIA GPU) or auto (the GPU when usable)")
+    r.add_argument("--sampler", choices=("sobol", "independent"), default="sobol",
+                   help="sobol: randomized quasi-Monte Carlo; independent: plain Monte Carlo (for comparisons)")
+    r.add_argument("--no-adaptive", dest="adaptive", action="store_false",
+                   help="every pixel gets the same samples (default: after 16 spp, samples go where the "
+                        "estimated depth error is largest)")
+    r.add_argument("--no-light-paths", dest="light_paths", action="store_false",
+                   help="next-event estimation only (default: also connect to LED-lit points, with MIS)")
     r.add_argument("--verbose", action="store_true", help="print the scene, sensor, render plan and device")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     r.set_defaults(func=cmd_render)

@@ -1,4 +1,4 @@
-"""RMS depth error against wall time, tofcore beside mitransient, on the same scenes (issue 6, item 3).
+"""RMS depth error against wall time, tofcore beside mitransient, on the same scenes (issues 6 and 10).
 
 One command (bench venv, see README.md here)::
 
@@ -15,15 +15,22 @@ c/(4πf) · arg(P · conj P_ref), so phase wrapping does not matter.
   measured runs), averaged. Its own per-pixel variance (spread of the batches / K) is subtracted from
   the mean squared error of every measured image (E[(x − r)²] = MSE(x) + Var(r) for an independent
   unbiased r), so a reference that is not fully converged does not put a floor under the curves.
-  Both the raw and the corrected RMS are written.
+  Both the raw and the corrected RMS are written. ``--tofcore-ref scene:spp`` uses a tofcore render
+  instead (light vertices, seed apart, its variance from its replicates) where mitransient's own
+  reference cannot converge in useful time (the room's fireflies); the JSON records how that
+  reference agrees with mitransient's (z-scores of the phasor differences).
 * tofcore: ``trace_progressive`` (passes of 1, 1, 2, 4, 8, 16, 16, … spp); after every pass the
-  wall time since the call (minus the time this script spends evaluating) and the error.
+  wall time since the call (minus the time this script spends evaluating) and the error. Two
+  variants: ``tofcore`` — the estimator of issue 10 (scrambled Sobol' replicates, light vertices with
+  MIS, adaptive sampling driven by the replicates' 80 MHz depth error) — and ``tofcore-mc``, plain
+  Monte Carlo (independent uniforms, next-event estimation only, uniform spp), as before issue 10.
 * mitransient: separate renders at 16, 64, 256, 1024, … spp (above 1024 spp as 1024-spp batches,
   seeds 0, 1, …), each timed after a warm-up render of the same size (the JIT kernels are cached;
   the cold first-call times are in the JSON).
 
-Both use all cores (tofcore: 2 worker threads; Dr.Jit: its thread pool). Time to 1 mm: where a
-curve crosses it, else the fit error = a · t^(−1/2) over the second half of the curve, extrapolated.
+Both use all cores (tofcore: 2 worker threads; Dr.Jit: its thread pool). Time to 5 mm and to 1 mm,
+per renderer from its own curve: where it crosses, else extrapolated from its last point with
+error ∝ t^(−1/2) (optimistic for curves that fall more slowly, such as mitransient's in the room).
 Writes ``error_vs_time.json`` and ``error_vs_time.png``.
 """
 
@@ -43,6 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import common as cc  # noqa: E402
 
 import tofcore  # noqa: E402
+import tofcore.adaptive  # noqa: E402
 
 FREQS = (16e6, 80e6, 120e6)
 MAIN = 1   # index of the plotted frequency (80 MHz)
@@ -78,22 +86,58 @@ def reference(r: cc.MitransientRenderer, batches: int, log) -> tuple[np.ndarray,
     return ref, var, seconds
 
 
-def run_tofcore(s: cc.Setup, spp: int, ref, ref_var, mask, log) -> list[dict]:
+VARIANTS = {"tofcore": dict(sampler="sobol", light_paths=True, adaptive=True),
+            "tofcore-mc": dict(sampler="independent", light_paths=False, adaptive=False)}
+
+
+def depth_sigma(t, f_hz: float) -> np.ndarray:
+    """(H, W) standard error (m) of the depth of one frequency from the tracer's replicates (delta method)."""
+    means, counts = t.replicate_means()
+    i = FREQS.index(f_hz)
+    p = means[:, 1 + 2 * i] + 1j * means[:, 2 + 2 * i]               # (R, H, W) replicate phasors
+    centre = p.mean(axis=0)
+    dphi = np.angle(p * np.conj(centre)[None])
+    r = p.shape[0]
+    var = (dphi ** 2).sum(axis=0) / (r * (r - 1))
+    sigma = cc.C / (4 * np.pi * f_hz) * np.sqrt(var)
+    return np.where((counts.min(axis=0) >= 1) & (np.abs(centre) > 0), sigma, np.nan)
+
+
+def run_tofcore(s: cc.Setup, spp: int, ref, ref_var, mask, log, variant: str = "tofcore") -> list[dict]:
+    settings = VARIANTS[variant]
+
+    def allocate(t, n):
+        return tofcore.adaptive.allocate_samples(depth_sigma(t, FREQS[MAIN]), t.sample_count, n)
+
     rows, spent_eval = [], 0.0
     t0 = time.perf_counter()
     for t in tofcore.trace_progressive(s.scene, s.camera, [s.led], world_from_sensor=s.pose,
-                                       correlations=cc.sine_correlations(FREQS), spp=spp, max_depth=5, seed=7):
+                                       correlations=cc.sine_correlations(FREQS), spp=spp, max_depth=5, seed=7,
+                                       sampler=settings["sampler"], light_paths=settings["light_paths"],
+                                       allocate=allocate if settings["adaptive"] else None):
         now = time.perf_counter()
         e0 = now
         p = cc.phasors_from_correlation(t.correlation())
-        row = {"seconds": now - t0 - spent_eval, "spp": int(t.sample_count[0]), "rays": int(t.stats.rays),
+        row = {"seconds": now - t0 - spent_eval, "spp": float(t.sample_count.mean()), "rays": int(t.stats.rays),
                "errors": errors(p, ref, ref_var, mask)}
         rows.append(row)
         spent_eval += time.perf_counter() - e0
         q = row["errors"][f"{FREQS[MAIN] / 1e6:.0f}MHz"]
-        log(f"{s.name}: tofcore {row['spp']} spp {row['seconds']:.1f} s: RMS {q['rms_m'] * 1e3:.2f} mm "
+        log(f"{s.name}: {variant} {row['spp']:.0f} spp {row['seconds']:.1f} s: RMS {q['rms_m'] * 1e3:.2f} mm "
             f"(raw {q['rms_raw_m'] * 1e3:.2f})")
     return rows
+
+
+def tofcore_reference(s: cc.Setup, spp: int, log) -> tuple[np.ndarray, np.ndarray, float]:
+    """A tofcore reference (light vertices, QMC, uniform spp, seed apart): phasors and per-pixel distance variance."""
+    t0 = time.perf_counter()
+    t = tofcore.trace(s.scene, s.camera, [s.led], world_from_sensor=s.pose, correlations=cc.sine_correlations(FREQS),
+                      spp=spp, max_depth=5, seed=123_456, progressive=False, light_paths=True)
+    seconds = time.perf_counter() - t0
+    log(f"{s.name}: tofcore reference {spp} spp in {seconds:.0f} s")
+    ref = cc.phasors_from_correlation(t.correlation())
+    var = np.stack([depth_sigma(t, f) ** 2 for f in FREQS])
+    return ref, np.nan_to_num(var), seconds
 
 
 def run_mitransient(r: cc.MitransientRenderer, spps, ref, ref_var, mask, log) -> tuple[list[dict], dict]:
@@ -117,6 +161,10 @@ def run_mitransient(r: cc.MitransientRenderer, spps, ref, ref_var, mask, log) ->
     return rows, cold
 
 
+TARGETS_M = (5e-3, 1e-3)
+RENDERERS = ("tofcore", "tofcore-mc", "mitransient")
+
+
 def _crossing(x: np.ndarray, e: np.ndarray, target: float) -> float | None:
     """x where e first falls to target, interpolated in log-log; None if it never does."""
     below = np.flatnonzero(e <= target)
@@ -129,41 +177,32 @@ def _crossing(x: np.ndarray, e: np.ndarray, target: float) -> float | None:
                                   [np.log(x[i]), np.log(x[i - 1])])))
 
 
-def time_to(res: dict, key: str, target_m: float = 1e-3) -> dict:
-    """Wall time at which each renderer's RMS error reaches target.
+def time_to(res: dict, key: str, target_m: float) -> dict:
+    """Wall time at which each renderer's RMS error reaches ``target_m``, from its own curve.
 
-    Both renderers use the same estimator (same error at the same spp, see the error-vs-spp panel),
-    so the spp needed is taken from whichever curve reaches the target, else extrapolated with
-    e ∝ spp^(−1/2) from the point with the most spp of either renderer. A renderer whose own curve
-    crosses the target gets its measured time; otherwise that spp × its seconds per spp at its
-    last point (the pass schedule makes time linear in spp).
+    Measured where the curve crosses the target, else extrapolated from its last point with
+    error ∝ t^(−1/2). Ratios are tofcore's time over mitransient's.
     """
-    curves = {}
-    for who in ("tofcore", "mitransient"):
-        rows = [r for r in res[who] if r["errors"][key]["rms_m"] > 0]
-        curves[who] = (np.array([r["spp"] for r in rows], float), np.array([r["seconds"] for r in rows]),
-                       np.array([r["errors"][key]["rms_m"] for r in rows]))
-    spp_need, how = None, ""
-    for who in ("mitransient", "tofcore"):
-        spp, _, e = curves[who]
-        c = _crossing(spp, e, target_m)
-        if c is not None and (spp_need is None or c < spp_need):
-            spp_need, how = c, f"measured on the {who} curve"
-    if spp_need is None:
-        who = max(curves, key=lambda w: curves[w][0][-1])
-        spp, _, e = curves[who]
-        spp_need = float(spp[-1] * (e[-1] / target_m) ** 2)
-        how = f"extrapolated e ∝ spp^-1/2 from {who} at {spp[-1]:.0f} spp ({e[-1] * 1e3:.2f} mm)"
-    out = {"spp": spp_need, "spp_how": how}
-    for who, (spp, t, e) in curves.items():
+    out = {}
+    for who in RENDERERS:
+        rows = [r for r in res.get(who, []) if r["errors"][key]["rms_m"] > 0]
+        if not rows:
+            continue
+        t = np.array([r["seconds"] for r in rows])
+        e = np.array([r["errors"][key]["rms_m"] for r in rows])
         c = _crossing(t, e, target_m)
         if c is not None:
             out[who] = {"seconds": c, "how": "measured"}
         else:
-            out[who] = {"seconds": spp_need * t[-1] / spp[-1], "how": f"{spp_need:.0f} spp × {t[-1] / spp[-1]:.4g} s/spp",
-                        "seconds_per_spp": t[-1] / spp[-1]}
-    out["ratio_tofcore_over_mitransient"] = out["tofcore"]["seconds"] / out["mitransient"]["seconds"]
+            out[who] = {"seconds": float(t[-1] * (e[-1] / target_m) ** 2),
+                        "how": f"extrapolated e ∝ t^-1/2 from {t[-1]:.1f} s ({e[-1] * 1e3:.2f} mm)"}
+    for who in ("tofcore", "tofcore-mc"):
+        if who in out and "mitransient" in out:
+            out[f"ratio_{who}_over_mitransient"] = out[who]["seconds"] / out["mitransient"]["seconds"]
     return out
+
+
+STYLES = {"tofcore": "-o", "tofcore-mc": ":^", "mitransient": "--s"}
 
 
 def plot(results: dict, out: Path) -> None:
@@ -176,33 +215,36 @@ def plot(results: dict, out: Path) -> None:
     colors = {"corner": "tab:blue", "room": "tab:red"}
     for name, r in results.items():
         c = colors.get(name, "k")
-        tt = r["time_to_1mm"]
-        for who, style in (("tofcore", "-o"), ("mitransient", "--s")):
-            rows = r[who]
+        for who in RENDERERS:
+            rows = r.get(who)
+            if not rows:
+                continue
             t = np.array([x["seconds"] for x in rows])
             n = np.array([x["spp"] for x in rows])
             e = np.array([x["errors"][key]["rms_m"] for x in rows]) * 1e3
-            ax.plot(t, e, style, color=c, ms=3.5, lw=1.3, label=f"{name}: {who}")
-            bx.plot(n, e, style, color=c, ms=3.5, lw=1.3, label=f"{name}: {who}")
-            if tt[who]["how"] != "measured":
-                ax.plot([t[-1], tt[who]["seconds"]], [e[-1], 1.0], ":", color=c, lw=1)
-            ax.plot([tt[who]["seconds"]], [1.0], "x" if who == "tofcore" else "+", color=c, ms=9)
-        if not tt["spp_how"].startswith("measured"):
-            m = r["mitransient"][-1]
-            bx.plot([m["spp"], tt["spp"]], [m["errors"][key]["rms_m"] * 1e3, 1.0], ":", color=c, lw=1)
+            ax.plot(t, e, STYLES[who], color=c, ms=3.5, lw=1.3, label=f"{name}: {who}")
+            bx.plot(n, e, STYLES[who], color=c, ms=3.5, lw=1.3, label=f"{name}: {who}")
+            for target in TARGETS_M:
+                tt = r["time_to"][f"{target * 1e3:g}mm"].get(who)
+                if tt is None:
+                    continue
+                if tt["how"] != "measured":
+                    ax.plot([t[-1], tt["seconds"]], [e[-1], target * 1e3], ":", color=c, lw=0.8)
+                ax.plot([tt["seconds"]], [target * 1e3], "x", color=c, ms=7)
     for a in (ax, bx):
-        a.axhline(1.0, color="k", lw=0.8)
+        for target in TARGETS_M:
+            a.axhline(target * 1e3, color="k", lw=0.8)
         a.set_xscale("log")
         a.set_yscale("log")
         a.grid(True, which="both", alpha=0.3)
     ax.set_xlabel("wall time, s (2 cores, shared machine; 128 × 106 pixels)")
     ax.set_ylabel(f"RMS depth error at {FREQS[MAIN] / 1e6:.0f} MHz, mm (vs reference)")
-    ax.set_title("Error against run time, same scene, estimator and path length (5)\n"
-                 "dotted: to 1 mm at the spp the shared error-vs-spp curve needs (× tofcore, + mitransient)",
+    ax.set_title("Error against run time, same scene and path length (5); x: time to 5 mm and 1 mm\n"
+                 "tofcore: QMC + light vertices + adaptive; tofcore-mc: plain Monte Carlo (before issue 10)",
                  fontsize=9)
-    ax.legend(fontsize=8)
-    bx.set_xlabel("samples per pixel")
-    bx.set_title("the same errors against spp: one curve per scene (same estimator)", fontsize=9)
+    ax.legend(fontsize=7)
+    bx.set_xlabel("samples per pixel (mean)")
+    bx.set_title("the same errors against spp", fontsize=9)
     fig.tight_layout()
     fig.savefig(out / "error_vs_time.png", dpi=100)
     plt.close(fig)
@@ -211,42 +253,56 @@ def plot(results: dict, out: Path) -> None:
 def report(results: dict) -> None:
     key = f"{FREQS[MAIN] / 1e6:.0f}MHz"
     for name, res in results.items():
-        tt = res["time_to_1mm"]
-        print(f"\n{name} ({res['pixels']} pixels; reference {res['reference']['spp']} spp, "
-              f"its RMS SE {res['reference']['rms_se_m'][key] * 1e3:.2f} mm at {key}); 1 mm needs "
-              f"{tt['spp']:.0f} spp ({tt['spp_how']}):")
-        for who in ("tofcore", "mitransient"):
+        ref = res["reference"]
+        print(f"\n{name} ({res['pixels']} pixels; reference {ref['renderer']} {ref['spp']} spp, its RMS SE "
+              f"{ref['rms_se_m'][key] * 1e3:.2f} mm at {key}):")
+        for who in RENDERERS:
+            if not res.get(who):
+                continue
             last = res[who][-1]
-            print(f"  {who:12s} last point {last['spp']} spp {last['seconds']:.1f} s RMS "
-                  f"{last['errors'][key]['rms_m'] * 1e3:.2f} mm; 1 mm at {tt[who]['seconds']:.0f} s ({tt[who]['how']})")
-        print(f"  time to 1 mm, tofcore / mitransient: {tt['ratio_tofcore_over_mitransient']:.1f}x")
+            times = ", ".join(f"{k} at {v[who]['seconds']:.3g} s ({v[who]['how']})"
+                              for k, v in res["time_to"].items() if who in v)
+            print(f"  {who:12s} last point {last['spp']:.0f} spp {last['seconds']:.1f} s RMS "
+                  f"{last['errors'][key]['rms_m'] * 1e3:.2f} mm; {times}")
+        for k, v in res["time_to"].items():
+            ratios = ", ".join(f"{w}/mitransient {v[f'ratio_{w}_over_mitransient']:.2f}×"
+                               for w in ("tofcore", "tofcore-mc") if f"ratio_{w}_over_mitransient" in v)
+            print(f"  time to {k}: {ratios}")
 
 
 def main() -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--scenes", default="corner,room")
-    ap.add_argument("--tofcore-spp", default="corner:512,room:128", help="most spp per scene (progressive)")
+    ap.add_argument("--tofcore-spp", default="corner:512,room:256", help="most spp per scene (progressive)")
+    ap.add_argument("--tofcore-mc-spp", default="corner:256,room:128", help="most spp per scene, plain MC variant")
     ap.add_argument("--mitransient-spp", default="corner:16,64,256,1024,4096,16384;room:16,64,256,1024,2048",
                     help="spp settings per scene")
     ap.add_argument("--ref-batches", default="corner:32,room:16", help="reference 1024-spp batches per scene")
+    ap.add_argument("--tofcore-ref", default="", help="scene:spp of a tofcore reference replacing mitransient's, "
+                                                         "e.g. room:4096")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
-    ap.add_argument("--replot", action="store_true", help="recompute the 1 mm times and the figure from the JSON")
+    ap.add_argument("--replot", action="store_true", help="recompute the times and the figure from the JSON")
     args = ap.parse_args()
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    key = f"{FREQS[MAIN] / 1e6:.0f}MHz"
     if args.replot:
         with open(out / "error_vs_time.json") as fh:
             data = json.load(fh)
         for res in data["scenes"].values():
-            res["time_to_1mm"] = time_to(res, f"{FREQS[MAIN] / 1e6:.0f}MHz")
+            res["time_to"] = {f"{x * 1e3:g}mm": time_to(res, key, x) for x in TARGETS_M}
         with open(out / "error_vs_time.json", "w") as fh:
             json.dump(data, fh, indent=1)
         plot(data["scenes"], out)
         report(data["scenes"])
         return 0
-    t_spp = {k: int(v) for k, v in (x.split(":") for x in args.tofcore_spp.split(","))}
+
+    def per_scene(text, cast):
+        return {k: cast(v) for k, v in (x.split(":") for x in text.split(",") if x)}
+
+    t_spp, mc_spp = per_scene(args.tofcore_spp, int), per_scene(args.tofcore_mc_spp, int)
     m_spp = {k: [int(s) for s in v.split(",")] for k, v in (x.split(":") for x in args.mitransient_spp.split(";"))}
-    refb = {k: int(v) for k, v in (x.split(":") for x in args.ref_batches.split(","))}
+    refb, tref = per_scene(args.ref_batches, int), per_scene(args.tofcore_ref, int)
     t00 = time.perf_counter()
 
     def log(msg):
@@ -259,17 +315,32 @@ def main() -> int:
         s = cc.make_setup(name)
         r = cc.MitransientRenderer(s, FREQS, BATCH, cc.WORK / "ply", max_depth=5)
         r.name = name
-        ref, ref_var, ref_s = reference(r, refb[name], log)
+        m_ref, m_var, m_sec = reference(r, refb[name], log)
+        ref, ref_var = m_ref, m_var
+        res = {}
+        if name in tref:
+            ref, ref_var, t_sec = tofcore_reference(s, tref[name], log)
+            both = (np.abs(ref[0]) > 0) & (np.abs(m_ref[0]) > 0)
+            scale = cc.C / (4 * np.pi * np.asarray(FREQS))[:, None, None]
+            z = scale * np.angle(ref * np.conj(m_ref)) / np.sqrt(ref_var + m_var)
+            res["reference_agreement"] = {f"{f / 1e6:.0f}MHz": {
+                "std_z": float(np.std(z[i][both])), "mean_z": float(np.mean(z[i][both])),
+                "frac_abs_z_gt_3": float(np.mean(np.abs(z[i][both]) > 3))} for i, f in enumerate(FREQS)}
+            res["reference"] = {"renderer": "tofcore", "spp": tref[name], "seconds": t_sec,
+                                "mitransient_reference": {"spp": refb[name] * BATCH, "seconds": m_sec}}
+            log(f"{name}: tofcore vs mitransient references: {res['reference_agreement']}")
+        else:
+            res["reference"] = {"renderer": "mitransient", "spp": refb[name] * BATCH, "seconds": m_sec}
         mask = np.abs(ref[0]) > 0
-        res = {"reference": {"renderer": "mitransient", "spp": refb[name] * BATCH, "seconds": ref_s,
-                             "rms_se_m": {f"{f / 1e6:.0f}MHz": float(np.sqrt(np.mean(ref_var[i][mask])))
-                                          for i, f in enumerate(FREQS)}},
-               "pixels": int(mask.sum())}
+        res["reference"]["rms_se_m"] = {f"{f / 1e6:.0f}MHz": float(np.sqrt(np.mean(ref_var[i][mask])))
+                                        for i, f in enumerate(FREQS)}
+        res["pixels"] = int(mask.sum())
         log(f"{name}: reference {res['reference']}")
-        # Alternate the two renderers' long runs as little as possible: tofcore first, then mitransient.
-        res["tofcore"] = run_tofcore(s, t_spp[name], ref, ref_var, mask, log)
+        # Alternate the renderers' long runs as little as possible: tofcore first, then mitransient.
+        res["tofcore"] = run_tofcore(s, t_spp[name], ref, ref_var, mask, log, "tofcore")
+        res["tofcore-mc"] = run_tofcore(s, mc_spp[name], ref, ref_var, mask, log, "tofcore-mc")
         res["mitransient"], res["mitransient_cold_seconds"] = run_mitransient(r, m_spp[name], ref, ref_var, mask, log)
-        res["time_to_1mm"] = time_to(res, f"{FREQS[MAIN] / 1e6:.0f}MHz")
+        res["time_to"] = {f"{x * 1e3:g}mm": time_to(res, key, x) for x in TARGETS_M}
         res["load_avg_1min_after"] = os.getloadavg()[0]
         results[name] = res
         with open(out / "error_vs_time.json", "w") as fh:

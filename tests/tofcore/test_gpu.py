@@ -264,6 +264,26 @@ def test_uniform_kernel_equals_numpy_hash():
 
 @pytest.mark.gpu
 @cuda_only
+def test_qmc_kernels_equal_numpy_twins():
+    """The scrambled Sobol' points (tofcore.qmc) bit for bit, 1-D and 2-D, large sample indices included."""
+    import cupy as cp
+
+    from tofcore import qmc, rng
+
+    key = rng.seed_key(99)
+    pixel = np.random.default_rng(0).integers(0, 1 << 22, 1_000_000)
+    sample = np.concatenate([np.arange(500_000), np.random.default_rng(1).integers(0, 1 << 33, 500_000)])
+    for dim in (0, 1, 7, 1_000_001):
+        u, v = qmc.sample_2d(key, cp.asarray(pixel), cp.asarray(sample), dim)
+        ref_u, ref_v = qmc.sample_2d(key, pixel, sample, dim)
+        np.testing.assert_array_equal(cp.asnumpy(u), ref_u)
+        np.testing.assert_array_equal(cp.asnumpy(v), ref_v)
+        np.testing.assert_array_equal(cp.asnumpy(qmc.sample_1d(key, cp.asarray(pixel), cp.asarray(sample), dim)),
+                                      qmc.sample_1d(key, pixel, sample, dim))
+
+
+@pytest.mark.gpu
+@cuda_only
 def test_fused_kernels_equal_their_numpy_twins():
     """Fresnel and the square-wave correlation, over the whole domain incl. grazing, TIR and eta < 1."""
     import cupy as cp
