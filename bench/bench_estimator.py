@@ -50,11 +50,14 @@ def sensor_for(preset: str, scale: float):
     return sensor.replace(camera=small, **{"noise.model": "none"})
 
 
+DEVICE = "cpu"
+
+
 def render(scene, sensor, preset, spp, seed, variant, max_depth):
     ambient = tofcore.Ambient(radiance_w_m2_sr=AMBIENT[preset]) if preset in AMBIENT else None
     t0 = time.perf_counter()
     frame = tofcore.render(scene, sensor, spp=spp, seed=seed, max_depth=max_depth, ambient=ambient,
-                           **VARIANTS[variant])
+                           device=DEVICE, **VARIANTS[variant])
     return frame, time.perf_counter() - t0
 
 
@@ -83,7 +86,11 @@ def main() -> int:
     ap.add_argument("--seeds", type=int, default=3)
     ap.add_argument("--max-depth", type=int, default=5)
     ap.add_argument("--json", type=Path, default=Path("out/bench_estimator.json"))
+    ap.add_argument("--markdown", type=Path, help="also write the table to this file")
+    ap.add_argument("--device", choices=("cpu", "gpu"), default="cpu")
     args = ap.parse_args()
+    global DEVICE
+    DEVICE = args.device
     rows = []
     for preset in args.presets:
         sensor = sensor_for(preset, args.scale)
@@ -107,6 +114,8 @@ def main() -> int:
     args.json.write_text(json.dumps({"args": {k: str(v) for k, v in vars(args).items()},
                                      "machine": platform.platform(), "rows": rows}, indent=1))
     print(tables(rows))
+    if args.markdown:
+        args.markdown.write_text(tables(rows) + "\n")
     return 0
 
 
