@@ -67,9 +67,16 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
 
     .. math:: \hat\sigma_d^2 = \frac{1}{R(R-1)} \sum_r \big(g \cdot (Q^{(r)} - \bar Q)\big)^2,
 
-    the variance of the mean of R independent estimates. For a z-depth sensor σ is scaled by the
-    pixel ray's z component (z = d·ω_z). NaN where a pixel has no signal or a replicate no sample yet.
-    Scattering and sensor noise are not part of it: this is the render's own noise.
+    the variance of the mean of R independent estimates. A CW distance wraps at the unambiguous range
+    U (:meth:`~tofcore.modulation.Modulation.unambiguous_range_m`): noise that carries a distance d near
+    0 or U across the boundary changes the output by U, so the expected squared error adds
+    :math:`P\,U^2` with :math:`P = S_3(d/\hat\sigma_d) + S_3((U - d)/\hat\sigma_d)`, S_3 the tail of
+    Student's t with R − 1 = 3 degrees of freedom — the predictive distribution of an error whose scale is
+    estimated from four replicates (normal tails predicted a third of the wraps seen in the O3D303 room
+    at 16 spp); d from the noise-free first hit. The result is the RMS error of the output depth; for a z-depth
+    sensor it is scaled by the pixel ray's z component (z = d·ω_z). NaN where a pixel has no signal or
+    a replicate no sample yet. Scattering and sensor noise are not part of it: this is the render's own
+    noise.
     """
     means, counts = transport.replicate_means()         # (R, J+2, H, W), (R, H, W)
     replicates = means.shape[0]
@@ -79,10 +86,27 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
     var = (deviation**2).sum(axis=0) / (replicates * (replicates - 1))
     ok = (counts.min(axis=0) >= 1) & (np.abs(grad).sum(axis=0) > 0)
+    if sensor.modulation.is_cw:
+        xp = namespace(var)
+        unambiguous = sensor.modulation.unambiguous_range_m()
+        d = xp.asarray(np.nan_to_num(transport.first_hit.distance_m, nan=0.5 * unambiguous))
+        sd = np.sqrt(var)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            wrap = _student3_tail(d / sd) + _student3_tail((unambiguous - d) / sd)
+        var = var + np.where(sd > 0, wrap, 0.0) * unambiguous**2
     sigma = np.where(ok, np.sqrt(var), np.nan)
     if sensor.depth_output == "z":
         sigma = sigma * namespace(sigma).asarray(np.abs(sensor.camera.pixel_center_directions()[..., 2]))
     return sigma
+
+
+def _student3_tail(x):
+    """P(T > x) for Student's t with 3 degrees of freedom (that of the R = 4 replicates' spread), any backend.
+
+    F(x) = 1/2 + (u/(1 + u²) + atan u)/π with u = x/√3.
+    """
+    u = x / np.sqrt(3.0)
+    return 0.5 - (u / (1.0 + u * u) + np.arctan(u)) / np.pi
 
 
 def raw_images(correlation_means: np.ndarray, ambient_mean: np.ndarray, sensor) -> np.ndarray:
