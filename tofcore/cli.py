@@ -81,6 +81,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     device = select_device(args.device)
     if args.verbose:
         from .plan import make_plan
+        from .qmc import REPLICATES
 
         print(f"scene {scene.name!r}: {scene.triangle_count:,} triangles, {len(scene.materials)} materials")
         print(f"sensor {sensor.name!r}: {sensor.camera.width}x{sensor.camera.height}, {sensor.modulation.kind}, "
@@ -88,6 +89,9 @@ def cmd_render(args: argparse.Namespace) -> int:
         print(make_plan(scene, sensor, max_depth=args.max_depth, ambient=ambient).describe())
         print(f"device: {device.description}" + (f" (auto: {device.fallback_reason})" if device.fallback_reason
                                                   else ""))
+        print(f"estimator: sampler {args.sampler} in {REPLICATES} replicates, light vertices "
+              f"{'on' if args.light_paths and args.max_depth >= 2 else 'off'}, adaptive sampling "
+              f"{'on after 16 spp' if args.adaptive else 'off'}")
     frame = render(scene, sensor, spp=args.spp, max_depth=args.max_depth, seed=args.seed,
                    time_budget_s=args.time_budget, target_error_m=args.target_error, ambient=ambient,
                    progress=_progress_bar(args.quiet), device=device, sampler=args.sampler,
