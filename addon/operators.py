@@ -301,6 +301,9 @@ def device_report(frame, report) -> None:
     gpu.note_device(device)
     if device.get("fallback_reason"):
         report({'WARNING'}, gpu.fallback_warning(device["fallback_reason"]))
+    parallel = (frame.stats.get("transport") or {}).get("parallel", "")
+    if parallel.startswith("threads: "):  # worker processes could not start here (tofcore.workers)
+        report({'WARNING'}, f"ToF render ran on CPU threads, not worker processes: {parallel[len('threads: '):]}")
 
 
 def _begin_result(job: RenderJob) -> None:

@@ -167,7 +167,8 @@ def _executor_options(parser: argparse.ArgumentParser) -> None:
     add_device_option(parser, gpu_help="one worker process per visible GPU, pinned with CUDA_VISIBLE_DEVICES; "
                                        "on a --scheduler cluster each worker uses the GPU its environment shows")
     parser.add_argument("--threads-per-worker", type=_positive_int, default=None, metavar="N",
-                        help="tracer threads per render (default: CPU count / workers; on a --scheduler "
+                        help="tracer worker processes per render (threads in a Dask worker; default: usable "
+                             "CPUs / workers, so frames x tracer workers never exceed the CPUs; on a --scheduler "
                              "cluster each machine's CPU count); frames do not depend on it")
     where = parser.add_mutually_exclusive_group()
     where.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",

@@ -47,6 +47,8 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import TextIO
 
+from tofcore.workers import usable_cpus
+
 from .card import dataset_card
 from .dataset import Dataset
 from .devices import VISIBLE_ENV, plan_devices
@@ -439,8 +441,9 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
     dataset : the dataset folder (created if needed).
     workers : local worker processes, or LocalCluster workers with ``dask_local`` (default: 1; with a
         GPU plan one per GPU, and never more).
-    threads_per_worker : tracer threads per render (default: CPU count / workers, at least 1; on a
-        remote cluster: each worker machine's CPU count).
+    threads_per_worker : tracer worker processes per render (threads inside a Dask worker, which may not
+        start processes; default: usable CPUs / workers, at least 1, so frames × tracer workers never
+        exceed the CPUs; on a remote cluster: each worker machine's CPU count).
     scheduler, dask_local, inline : the executor (default: the local pool).
     device : ``"cpu"``, ``"gpu"`` or ``"auto"`` (:mod:`batch.devices`); raises
         :class:`~tofcore.backend.GpuUnavailable` for ``"gpu"`` without a usable GPU, before anything
@@ -471,7 +474,7 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
         todo = plan(jobs, data, records, retry_failed=retry_failed, verify=verify, result=result, log=log)
         data.rewrite_index(_ordered(records, jobs))
         if threads_per_worker is None and scheduler is None:
-            threads_per_worker = max(1, (os.cpu_count() or 1) // max(1, workers if not inline else 1))
+            threads_per_worker = max(1, usable_cpus() // max(1, workers if not inline else 1))
         tasks = group_by_view(todo, dataset=str(data.root), render_threads=threads_per_worker,
                               device=devices.render, fallback_reason=devices.fallback_reason)
         if result.recovered:

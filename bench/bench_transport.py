@@ -22,26 +22,26 @@ import subprocess
 import sys
 import time
 
-import numpy as np
-
 # Room detail → triangles: 49 quads × 2·detail².
 SIZES = {"10k": 10, "500k": 71, "1M": 101}
 
 
-def run_one(detail: int, spp: int, max_depth: int, width: int, height: int) -> dict:
+def run_one(detail: int, spp: int, max_depth: int, width: int, height: int, workers: int | None = None) -> dict:
     import tofcore
+    from tofcore.modulation import phasor_correlations
+    from tofcore.workers import usable_cpus
 
     t0 = time.perf_counter()
     scene = tofcore.demo_scene("room", detail=detail)
     bvh = scene.bvh
     build_s = time.perf_counter() - t0
     camera = tofcore.Camera.from_fov(width, height, 70.6, 60.0)
-    omega = 2 * np.pi * 80e6
     t = tofcore.trace(scene, camera, [tofcore.LED(position_m=(0.025, 0.0, 0.0))],
                       world_from_sensor=tofcore.suggested_pose(scene),
-                      correlations=[lambda tau: np.cos(omega * tau), lambda tau: np.sin(omega * tau)],
-                      spp=spp, max_depth=max_depth, seed=0)
+                      correlations=phasor_correlations([80e6]), spp=spp, max_depth=max_depth, seed=0,
+                      workers=workers)
     s = t.stats
+    n_workers = workers or usable_cpus()
     return {
         "triangles": scene.triangle_count, "build_s": build_s, "bvh": {k: v for k, v in bvh.stats.items()
                                                                         if isinstance(v, (int, float))},
@@ -51,10 +51,30 @@ def run_one(detail: int, spp: int, max_depth: int, width: int, height: int) -> d
         "camera_rays_per_s": s.camera_rays / max(s.camera_seconds, 1e-9),
         "bounce_rays_per_s": s.bounce_rays / max(s.bounce_seconds, 1e-9),
         "shadow_rays_per_s": s.shadow_rays / max(s.shadow_seconds, 1e-9),
-        "workers": os.cpu_count(),
-        "bvh_share": (s.camera_seconds + s.bounce_seconds + s.shadow_seconds) / (s.seconds * (os.cpu_count() or 1)),
+        "workers": n_workers, "parallel": s.parallel,
+        "bvh_share": (s.camera_seconds + s.bounce_seconds + s.shadow_seconds) / (s.seconds * n_workers),
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+        "worker_memory_mib": _worker_memory(),
     }
+
+
+def _worker_memory() -> list[dict]:
+    """Resident memory of each tracer worker process (Linux /proc): private (RssAnon) and shared (RssShmem), MiB."""
+    from tofcore import workers
+    if workers._POOL is None:
+        return []
+    out = []
+    for proc in workers._POOL.pool._pool:
+        fields = {}
+        try:
+            for line in open(f"/proc/{proc.pid}/status"):
+                key, _, value = line.partition(":")
+                if key in ("VmRSS", "RssAnon", "RssShmem", "VmHWM"):
+                    fields[key] = int(value.split()[0]) / 1024
+        except OSError:
+            continue
+        out.append(fields)
+    return out
 
 
 def main() -> int:
@@ -63,16 +83,18 @@ def main() -> int:
     parser.add_argument("--spp", type=int, default=16, help="samples per pixel (default: 16)")
     parser.add_argument("--max-depth", type=int, default=5, help="path length (default: 5)")
     parser.add_argument("--resolution", default="512x424", help="WxH (default: 512x424)")
+    parser.add_argument("--workers", type=int, default=None, help="tracer worker processes (default: usable CPUs)")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: run one detail level, print JSON
     args = parser.parse_args()
     width, height = (int(x) for x in args.resolution.split("x"))
     if args.one is not None:
-        print(json.dumps(run_one(args.one, args.spp, args.max_depth, width, height)))
+        print(json.dumps(run_one(args.one, args.spp, args.max_depth, width, height, args.workers)))
         return 0
     rows = []
     for size in args.sizes.split(","):
         cmd = [sys.executable, __file__, "--one", str(SIZES[size]), "--spp", str(args.spp),
                "--max-depth", str(args.max_depth), "--resolution", args.resolution]
+        cmd += ["--workers", str(args.workers)] if args.workers else []
         out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=os.environ).stdout
         r = json.loads(out.strip().splitlines()[-1])
         rows.append(r)

@@ -75,6 +75,12 @@ class Device:
         return {"name": self.name, "description": self.description, "requested": self.requested,
                 "fallback_reason": self.fallback_reason}
 
+    def __reduce__(self):
+        """Pickle by name: CPU worker processes (tofcore.workers) get their own NumPy module."""
+        if self.is_gpu:
+            raise TypeError("a GPU Device does not pickle: GPU renders run in one process")
+        return cpu_device, (self.requested, self.fallback_reason)
+
 
 def cpu_device(requested: str = "cpu", fallback_reason: str | None = None) -> Device:
     return Device("cpu", np, f"CPU (NumPy {np.__version__})", requested, fallback_reason)

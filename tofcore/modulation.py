@@ -63,6 +63,24 @@ Correlation = Callable[[np.ndarray], np.ndarray]
 
 
 # ------------------------------------------------------------------ correlation functions
+def phasor_component(tau_s: np.ndarray, f_hz: float, quarter: int) -> np.ndarray:
+    """cos(2πfτ) (``quarter`` = 0) or sin(2πfτ) (``quarter`` = 1): one component of the phasor e^{i2πfτ}.
+
+    For transient/phasor work outside a sensor model (the cross-check against mitransient's phasor film):
+    :func:`phasor_correlations` gives them as picklable correlation functions.
+    """
+    return np.cos(2.0 * np.pi * f_hz * asarray(tau_s, dtype=np.float64) - 0.5 * np.pi * quarter)
+
+
+def phasor_correlations(frequencies_hz) -> list:
+    """[cos, sin] correlation functions per frequency, τ in seconds: Σ w e^{i2πfL/c} from two channels.
+
+    ``functools.partial`` objects of :func:`phasor_component`, so they pickle (the tracer's worker
+    processes need that; lambdas make it fall back to threads).
+    """
+    return [functools.partial(phasor_component, f_hz=float(f), quarter=q) for f in frequencies_hz for q in (0, 1)]
+
+
 def sine_correlation(tau_s: np.ndarray, f_hz: float, offset_fraction: float) -> np.ndarray:
     """Correlation of the sine source with a half-period gate opening at ``offset_fraction`` of the period.
 

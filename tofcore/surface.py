@@ -100,6 +100,15 @@ class MaterialTable:
         self.material_ids = on_device(scene.material_ids)
         self.object_ids = on_device(scene.object_ids)
 
+    def __getstate__(self) -> dict:
+        """Pickle for CPU worker processes (tofcore.workers); the array module travels by name."""
+        if self.xp is not np:
+            raise TypeError("a MaterialTable on the GPU does not pickle: GPU renders run in one process")
+        return {k: v for k, v in self.__dict__.items() if k != "xp"}
+
+    def __setstate__(self, state: dict) -> None:
+        self.__dict__.update(state, xp=np)
+
     @property
     def has_textures(self) -> bool:
         return bool(self.textured)

@@ -35,15 +35,16 @@ Memory is bounded by the chunk size (rays in flight), not by spp.
 from __future__ import annotations
 
 import functools
-import os
+import pickle
 import time
+import uuid
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import backend, qmc, rng
+from . import backend, qmc, rng, workers
 from .ambient import Ambient
 from .bsdf import eval_bsdf, sample_bsdf
 from .camera import Camera
@@ -54,6 +55,7 @@ from .plan import leds_at_pinhole
 from .scene import Scene
 from .backend import namespace, scatter_sum
 from .surface import MaterialTable, Surface, dot, surface_at
+from .workers import process_support, usable_cpus
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
 
@@ -103,6 +105,7 @@ class TraceStats:
     camera_seconds: float = 0.0   # thread-seconds inside the BVH for each kind of ray
     bounce_seconds: float = 0.0
     shadow_seconds: float = 0.0
+    parallel: str = ""            # how chunks ran: "processes", "threads: <why>" or "one"
 
     @property
     def rays(self) -> int:
@@ -120,7 +123,7 @@ class TraceStats:
                 "rays": self.rays, "seconds": self.seconds, "passes": self.passes,
                 "skipped_shadow_rays": self.skipped_shadow_rays,
                 "camera_seconds": self.camera_seconds, "bounce_seconds": self.bounce_seconds,
-                "shadow_seconds": self.shadow_seconds,
+                "shadow_seconds": self.shadow_seconds, "parallel": self.parallel,
                 "rays_per_second": self.rays / self.seconds if self.seconds > 0 else None}
 
 
@@ -302,7 +305,11 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     seed : non-negative int; the same seed gives the same frame for any ``chunk_size``.
     chunk_size : paths in flight per chunk; bounds memory. Default: 65,536 on the CPU (temporaries
         stay in cache); on the GPU as many as :func:`gpu_chunk_paths` allows in free device memory.
-    workers : threads tracing chunks at once on the CPU (default: the CPU count; the GPU uses one).
+    workers : processes tracing chunks at once on the CPU (default: the usable CPUs, affinity and cgroup
+        quota respected, :func:`tofcore.workers.usable_cpus`; the GPU uses one). They share the scene,
+        BVH and accumulators (:mod:`tofcore.workers`); passes too small to be worth it (fewer than
+        two chunks) run in this process. Where no worker process can be started (a Blender without its
+        Python interpreter) the chunks run on threads instead, and ``stats.parallel`` says which.
         Chunks own disjoint pixels, so the result does not depend on it.
     transient_bin_m, transient_max_m : optional histogram of w over path length (bin width, range), metres.
     cancel : polled before every chunk; when it returns True, :class:`~tofcore.errors.Cancelled` is raised.
@@ -333,7 +340,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         chunk_size = gpu_chunk_paths(xp, ctx.n_channels) if dev.is_gpu else CPU_CHUNK_PATHS
     if not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ConfigError(f"trace: chunk_size must be an integer >= 1, got {chunk_size!r}")
-    workers = (os.cpu_count() or 1) if workers is None else workers
+    workers = usable_cpus() if workers is None else workers
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ConfigError(f"trace: workers must be an integer >= 1, got {workers!r}")
     if dev.is_gpu:
@@ -351,24 +358,97 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         transient_sum=xp.zeros((n_pix, ctx.transient_bins)) if ctx.transient_bins else None,
         transient_bin_m=ctx.transient_bin_m, stats=stats)
     done = np.zeros(n_pix, np.int64)  # host copy of transport.sample_count
-    with ThreadPoolExecutor(max_workers=workers) as pool:
-        for n_samples in pass_schedule(int(spp), progressive):
-            counts = None if allocate is None else allocate(transport, n_samples)
-            counts = np.full(n_pix, n_samples, np.int64) if counts is None else _checked_counts(counts, n_pix)
-            run = functools.partial(_trace_chunk, ctx, transport, first=xp.asarray(done), counts=xp.asarray(counts))
+    shared, why_not = _share(ctx, transport) if workers > 1 and not dev.is_gpu else (None, "")
+    stats.parallel = "processes" if shared is not None else f"threads: {why_not}" if workers > 1 else "one"
+    try:
+        with ThreadPoolExecutor(max_workers=workers) as threads:
+            for n_samples in pass_schedule(int(spp), progressive):
+                counts = None if allocate is None else allocate(transport, n_samples)
+                counts = np.full(n_pix, n_samples, np.int64) if counts is None else _checked_counts(counts, n_pix)
+                chunks = _chunks(counts, chunk_size)
+                if shared is not None and len(chunks) > 1:
+                    results = _run_in_processes(shared, workers, done, counts, chunks, cancel)
+                else:
+                    run = functools.partial(_trace_chunk, ctx, transport, first=xp.asarray(done),
+                                            counts=xp.asarray(counts))
 
-            def job(chunk: tuple[int, int]) -> TraceStats | None:
-                return None if cancel is not None and cancel() else run(*chunk)
+                    def job(chunk: tuple[int, int]) -> TraceStats | None:
+                        return None if cancel is not None and cancel() else run(*chunk)
 
-            for chunk_stats in pool.map(job, _chunks(counts, chunk_size)):
-                if chunk_stats is None:
+                    results = threads.map(job, chunks) if shared is None else map(job, chunks)
+                finished = 0
+                for chunk_stats in results:
+                    if chunk_stats is None:
+                        raise Cancelled("trace: cancelled")
+                    stats.add(chunk_stats)
+                    finished += 1
+                if finished < len(chunks):
                     raise Cancelled("trace: cancelled")
-                stats.add(chunk_stats)
-            done += counts
-            transport.sample_count += xp.asarray(counts)
-            stats.passes += 1
-            stats.seconds = time.perf_counter() - start
-            yield transport
+                done += counts
+                transport.sample_count += xp.asarray(counts)
+                stats.passes += 1
+                stats.seconds = time.perf_counter() - start
+                yield transport
+    finally:
+        if shared is not None:
+            _unshare(shared, transport)
+
+
+_ACCUMULATORS = ("sample_count", "signal_sum", "correlation_sum", "ambient_sum", "replicate_sum", "transient_sum")
+
+
+@dataclass
+class _SharedTrace:
+    """A render's context and accumulators in shared memory, and the per-pass sample plan the workers read."""
+
+    shared: workers.Shared
+    key: str
+    first: np.ndarray   # (P,) samples each pixel had before this pass (shared view)
+    counts: np.ndarray  # (P,) samples each pixel gets in this pass (shared view)
+
+
+def _share(ctx: _Context, transport: Transport) -> tuple[_SharedTrace | None, str]:
+    """Put the context and the accumulators into shared memory; the transport then holds the shared views.
+
+    Returns (None, why) where worker processes cannot run this trace: no interpreter to start them
+    with, or a correlation function that does not pickle (a lambda: use ``functools.partial`` of a
+    module-level function, as :meth:`~tofcore.modulation.Modulation.correlations` does).
+    """
+    possible, why = process_support()
+    if not possible:
+        return None, why
+    n_pix = transport.width * transport.height
+    first, counts = np.zeros(n_pix, np.int64), np.zeros(n_pix, np.int64)
+    written = [getattr(transport, name) for name in _ACCUMULATORS if getattr(transport, name) is not None]
+    try:
+        shared = workers.Shared((ctx, transport, first, counts), always=written + [first, counts])
+    except (pickle.PicklingError, TypeError, AttributeError) as exc:
+        return None, f"the trace context does not pickle for worker processes ({exc})"
+    for name in _ACCUMULATORS:
+        if getattr(transport, name) is not None:
+            setattr(transport, name, shared.view(getattr(transport, name)))
+    return _SharedTrace(shared, uuid.uuid4().hex, shared.view(first), shared.view(counts)), ""
+
+
+def _unshare(run: _SharedTrace, transport: Transport) -> None:
+    """Give the transport private copies of its sums and release the shared memory."""
+    for name in _ACCUMULATORS:
+        if getattr(transport, name) is not None:
+            setattr(transport, name, np.array(getattr(transport, name)))
+    run.shared.close()
+
+
+def _run_in_processes(run: _SharedTrace, n: int, done: np.ndarray, counts: np.ndarray, chunks, cancel):
+    """Trace one pass's chunks on the worker processes; yields each chunk's TraceStats."""
+    run.first[:] = done
+    run.counts[:] = counts
+    return workers.run(n, run.shared, run.key, _trace_shared_chunk, chunks, cancel)
+
+
+def _trace_shared_chunk(shared_objects, p0: int, p1: int) -> TraceStats:
+    """In a worker process: trace pixels [p0, p1) of the pass described in the shared memory."""
+    ctx, out, first, counts = shared_objects
+    return _trace_chunk(ctx, out, p0, p1, first=first, counts=counts)
 
 
 def _checked_counts(counts, n_pix: int) -> np.ndarray:

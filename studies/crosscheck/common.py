@@ -73,11 +73,9 @@ def make_setup(name: str, width: int = 128, height: int = 106, detail: int = 4) 
 
 # ----------------------------------------------------------------------------------------- tofcore
 def sine_correlations(freqs_hz):
-    out = []
-    for f in freqs_hz:
-        w = 2 * np.pi * f
-        out += [lambda tau, w=w: np.cos(w * tau), lambda tau, w=w: np.sin(w * tau)]
-    return out
+    """cos 2πfτ, sin 2πfτ per frequency (picklable, so tofcore traces on worker processes)."""
+    from tofcore.modulation import phasor_correlations
+    return phasor_correlations(freqs_hz)
 
 
 def phasors_from_correlation(corr: np.ndarray) -> np.ndarray:
