@@ -38,12 +38,13 @@ def main() -> int:
     ap.add_argument("--spp", type=int, default=16)
     ap.add_argument("--resolution", default="512x424")
     ap.add_argument("--max-workers", type=int, default=usable_cpus())
+    ap.add_argument("--modes", default="processes,threads", help="comma list of processes, threads")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     counts = sorted({1, args.max_workers} | {2 ** k for k in range(1, 8) if 2 ** k <= args.max_workers})
     runs: dict = {}
     for r in range(args.rounds):
-        for mode in ("processes", "threads"):
+        for mode in args.modes.split(","):
             for w in counts:
                 result = frame(mode, w, args)
                 runs.setdefault((mode, w), []).append(result)
@@ -57,7 +58,7 @@ def main() -> int:
     print("|---|---|---|---|---|---|---|")
     for w in counts:
         p = statistics.median(x["frame_s"] for x in runs[("processes", w)])
-        t = statistics.median(x["frame_s"] for x in runs[("threads", w)])
+        t = statistics.median(x["frame_s"] for x in runs.get(("threads", w), [{"frame_s": float("nan")}]))
         mem = runs[("processes", w)][-1].get("worker_memory_mib") or []
         mem_text = ", ".join(f"{m.get('RssAnon', 0):.0f} / {m.get('RssShmem', 0):.0f}" for m in mem) or "–"
         print(f"| {w} | {p:.1f} | {base / p:.2f}× | {base / p / w:.0%} | {t:.1f} | {base / t:.2f}× | {mem_text} |")
