@@ -488,7 +488,7 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
                 if result.skipped_failed else ""
             log(f"{len(jobs)} frames in the set: {result.done_before} done{skipped}; rendering {len(todo)} "
                 f"({len(tasks)} view{'s' if len(tasks) != 1 else ''}) with the {executor.name}, "
-                f"{threads_per_worker or 'default'} tracer thread(s) each")
+                f"{threads_per_worker or 'default'} tracer worker(s) each")
         else:
             log(f"{len(jobs)} frames in the set: nothing to render"
                 + (f" ({result.skipped_failed} failed earlier; --retry-failed retries them)"
