@@ -358,7 +358,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         transient_sum=xp.zeros((n_pix, ctx.transient_bins)) if ctx.transient_bins else None,
         transient_bin_m=ctx.transient_bin_m, stats=stats)
     done = np.zeros(n_pix, np.int64)  # host copy of transport.sample_count
-    shared, why_not = _share(ctx, transport) if workers > 1 and not dev.is_gpu else (None, "")
+    shared, why_not = _share(ctx, transport, workers) if workers > 1 and not dev.is_gpu else (None, "")
     stats.parallel = "processes" if shared is not None else f"threads: {why_not}" if workers > 1 else "one"
     try:
         with ThreadPoolExecutor(max_workers=workers) as threads:
@@ -407,7 +407,7 @@ class _SharedTrace:
     counts: np.ndarray  # (P,) samples each pixel gets in this pass (shared view)
 
 
-def _share(ctx: _Context, transport: Transport) -> tuple[_SharedTrace | None, str]:
+def _share(ctx: _Context, transport: Transport, n_workers: int) -> tuple[_SharedTrace | None, str]:
     """Put the context and the accumulators into shared memory; the transport then holds the shared views.
 
     Returns (None, why) where worker processes cannot run this trace: no interpreter to start them
@@ -417,6 +417,10 @@ def _share(ctx: _Context, transport: Transport) -> tuple[_SharedTrace | None, st
     possible, why = process_support()
     if not possible:
         return None, why
+    try:
+        workers.pool(n_workers)
+    except Exception as exc:  # e.g. "daemonic processes are not allowed to have children", no fork/spawn here
+        return None, f"worker processes could not start ({type(exc).__name__}: {exc})"
     n_pix = transport.width * transport.height
     first, counts = np.zeros(n_pix, np.int64), np.zeros(n_pix, np.int64)
     written = [getattr(transport, name) for name in _ACCUMULATORS if getattr(transport, name) is not None]

@@ -164,3 +164,24 @@ def test_workers_do_not_rerun_the_main_script(tmp_path):
     assert out.returncode == 0, out.stderr
     assert out.stdout.strip().endswith("processes")
     assert marker.read_text().count("run") == 1
+
+
+def test_a_daemonic_process_traces_on_threads(tmp_path):
+    """Inside a multiprocessing.Pool (or Dask) worker, which may not start processes: threads, and why."""
+    script = tmp_path / "daemon.py"
+    script.write_text(
+        "import multiprocessing as mp\n"
+        "def job(_):\n"
+        "    import tofcore\n"
+        "    scene = tofcore.demo_scene('corner')\n"
+        "    t = tofcore.trace(scene, tofcore.Camera.from_fov(48, 36, 60.0), [tofcore.LED()], spp=4, workers=2,\n"
+        "                      chunk_size=2000, world_from_sensor=tofcore.suggested_pose(scene))\n"
+        "    return t.stats.parallel\n"
+        "if __name__ == '__main__':\n"
+        "    with mp.get_context('spawn').Pool(1) as p:\n"
+        "        print(p.map(job, [0])[0])\n")
+    import subprocess
+    env = dict(os.environ, PYTHONPATH=str(Path(tofcore.__file__).resolve().parents[1]))
+    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr[-2000:]
+    assert out.stdout.strip().startswith("threads: this is a daemonic process")
