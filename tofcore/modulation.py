@@ -133,8 +133,8 @@ def square_correlation(tau_s: np.ndarray, f_hz: float, offset_fraction: float, d
     if is_device_array(tau_s):
         from .gpu import fused
         return fused.square_correlation(tau_s, f_hz, offset_fraction, duty)
-    cycles = f_hz * asarray(tau_s, dtype=np.float64) - offset_fraction
-    u = np.abs(np.mod(cycles + 0.5, 1.0) - 0.5)
+    shifted = f_hz * asarray(tau_s, dtype=np.float64) - offset_fraction + 0.5
+    u = np.abs(shifted - np.floor(shifted) - 0.5)  # x − ⌊x⌋ is np.mod(x, 1.0) bit for bit, and faster
     return np.clip(0.25 + 0.5 * duty - u, max(0.0, duty - 0.5), min(duty, 0.5)) / duty
 
 

@@ -162,15 +162,13 @@ def _fresnel_conductor_kernel(cp):
 
 @functools.lru_cache(maxsize=None)
 def _square_correlation_kernel(cp):
-    # np.mod(a, 1.0) as NumPy computes it (npy_divmod): fmod, then shifted into [0, 1); +0.0 for 0.
+    # x − floor(x), as the NumPy twin computes the fractional part (exact in IEEE double).
     return cp.ElementwiseKernel(
         "float64 tau, float64 f_hz, float64 offset, float64 peak, float64 lo, float64 hi, float64 duty",
         "float64 g",
         """
-        const double cycles = f_hz * tau - offset;
-        double m = fmod(cycles + 0.5, 1.0);
-        m = m != 0.0 ? (m < 0.0 ? m + 1.0 : m) : 0.0;
-        const double u = fabs(m - 0.5);
+        const double shifted = f_hz * tau - offset + 0.5;
+        const double u = fabs(shifted - floor(shifted) - 0.5);
         const double x = peak - u;
         g = (x < lo ? lo : (x > hi ? hi : x)) / duty;
         """,
