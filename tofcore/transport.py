@@ -428,6 +428,8 @@ def _share(ctx: _Context, transport: Transport, n_workers: int) -> tuple[_Shared
         shared = workers.Shared((ctx, transport, first, counts), always=written + [first, counts])
     except (pickle.PicklingError, TypeError, AttributeError) as exc:
         return None, f"the trace context does not pickle for worker processes ({exc})"
+    except OSError as exc:  # no room in /dev/shm
+        return None, f"no shared memory for worker processes ({exc})"
     for name in _ACCUMULATORS:
         if getattr(transport, name) is not None:
             setattr(transport, name, shared.view(getattr(transport, name)))
@@ -611,7 +613,7 @@ def _first_hit(ctx: _Context, stats: TraceStats) -> FirstHit:
 def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, counts) -> TraceStats:
     """Trace samples [first[p], first[p] + counts[p]) of every pixel p in [p0, p1) into ``out``.
 
-    Writes only the pixels [p0, p1) of ``out``, so chunks can run in parallel threads.
+    Writes only the pixels [p0, p1) of ``out``, so chunks can run in parallel threads or worker processes.
     Returns the chunk's ray counters.
     """
     n_pix = p1 - p0

@@ -30,6 +30,7 @@ import io
 import multiprocessing as mp
 import os
 import pickle
+import shutil
 import sys
 import threading
 from multiprocessing import shared_memory
@@ -121,6 +122,7 @@ class _SharingPickler(pickle.Pickler):
             return None
         if id(obj) in self.seen:
             return self.seen[id(obj)][1]
+        _check_room(obj.nbytes)
         block = shared_memory.SharedMemory(create=True, size=max(1, obj.nbytes))
         view = np.ndarray(obj.shape, obj.dtype, buffer=block.buf)
         view[...] = obj
@@ -128,6 +130,16 @@ class _SharingPickler(pickle.Pickler):
         self.seen[id(obj)] = (obj, ref)  # keep obj alive so its id is not reused while pickling
         self.blocks.append((block, view, obj))
         return ref
+
+
+def _check_room(nbytes: int) -> None:
+    """Refuse a block that /dev/shm cannot hold (Linux: a container's default 64 MiB would end in SIGBUS
+    on the first write past it, not in an error)."""
+    if os.path.isdir("/dev/shm"):
+        free = shutil.disk_usage("/dev/shm").free
+        if nbytes > free:
+            raise OSError(f"/dev/shm has {free / 2**20:.0f} MiB free, a shared array needs {nbytes / 2**20:.0f} MiB "
+                          f"(raise it, e.g. docker run --shm-size)")
 
 
 class Shared:

@@ -185,3 +185,15 @@ def test_a_daemonic_process_traces_on_threads(tmp_path):
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
     assert out.stdout.strip().startswith("threads: this is a daemonic process")
+
+
+def test_no_room_in_dev_shm_means_threads(monkeypatch):
+    """A container's small /dev/shm would crash a worker with SIGBUS: refuse up front, trace on threads."""
+    import shutil
+    from collections import namedtuple
+
+    usage = namedtuple("usage", "total used free")
+    monkeypatch.setattr(shutil, "disk_usage", lambda path: usage(1 << 20, 1 << 20, 0))
+    scene, cam, kw = corner()
+    t = tofcore.trace(scene, cam, [LED()], spp=4, workers=2, chunk_size=2_000, **kw)
+    assert t.stats.parallel.startswith("threads: no shared memory for worker processes (/dev/shm has 0 MiB free")
