@@ -158,11 +158,7 @@ def test_workers_do_not_rerun_the_main_script(tmp_path):
         "t = tofcore.trace(scene, cam, [tofcore.LED()], spp=4, workers=2, chunk_size=2000,\n"
         "                  world_from_sensor=tofcore.suggested_pose(scene))\n"
         "print(t.stats.parallel)\n")
-    import subprocess
-    env = dict(os.environ, PYTHONPATH=str(Path(tofcore.__file__).resolve().parents[1]))
-    out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=120)
-    assert out.returncode == 0, out.stderr
-    assert out.stdout.strip().endswith("processes")
+    assert run_script(script).endswith("processes")
     assert marker.read_text().count("run") == 1
 
 
@@ -180,11 +176,16 @@ def test_a_daemonic_process_traces_on_threads(tmp_path):
         "if __name__ == '__main__':\n"
         "    with mp.get_context('spawn').Pool(1) as p:\n"
         "        print(p.map(job, [0])[0])\n")
+    assert run_script(script).startswith("threads: this is a daemonic process")
+
+
+def run_script(script: Path) -> str:
+    """Run a Python script in a fresh interpreter with tofcore importable; its stripped stdout."""
     import subprocess
     env = dict(os.environ, PYTHONPATH=str(Path(tofcore.__file__).resolve().parents[1]))
     out = subprocess.run([sys.executable, str(script)], capture_output=True, text=True, env=env, timeout=120)
     assert out.returncode == 0, out.stderr[-2000:]
-    assert out.stdout.strip().startswith("threads: this is a daemonic process")
+    return out.stdout.strip()
 
 
 def test_no_room_in_dev_shm_means_threads(monkeypatch):
