@@ -9,7 +9,9 @@ module              concept
 ``preferences``     add-on preferences (default output folder, tracer threads, preview delay, device),
                     Install CuPy for GPU rendering, Check GPU
 ``gpu``             CuPy in Blender's Python: its folder, the pip command, CUDA libraries, GPU status
-``properties``      ``camera.tof`` and ``material.tof``, settings → ``tofcore.Sensor``
+``properties``      ``camera.tof`` and ``material.tof`` (the property groups)
+``sensors``         the preset choices, ``camera.tof`` → ``tofcore.Sensor`` and render keywords
+``updates``         the settings' update callbacks: cameras and LED empties follow, the live preview restarts
 ``operators``       Add ToF Camera, Apply Sensor to Camera, Render ToF, the live preview
 ``panels``          the ToF Sensor and Near-IR panels, menu entries
 ``export``          evaluated depsgraph → ``tofcore.Scene``

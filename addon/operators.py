@@ -3,7 +3,7 @@
 Render ToF
 ----------
 ``invoke`` (the UI) exports the evaluated scene (:func:`.export.export_scene`),
-builds the sensor (:func:`.properties.sensor_from_settings`) and starts a
+builds the sensor (:func:`.sensors.sensor_from_settings`) and starts a
 :class:`RenderJob` in a worker thread that touches no ``bpy``: it runs
 :func:`tofcore.render_progressive` and posts every pass to a queue. A modal
 timer drains the queue, shows each pass in the images of :mod:`.images`
@@ -63,7 +63,7 @@ from mathutils import Matrix
 
 import tofcore
 
-from . import export, gpu, images, mapping, preferences, properties
+from . import export, gpu, images, mapping, preferences, sensors
 
 #: Custom property that marks an LED empty; its value is the LED number (1-based).
 LED_KEY = "tof_led"
@@ -220,17 +220,17 @@ def prepare_render(context, report, *, preview: bool = False) -> RenderJob | Non
         return None
     settings = camera_obj.data.tof
     try:
-        sensor = properties.sensor_from_settings(settings, scale=settings.preview_scale if preview else 1.0)
+        sensor = sensors.sensor_from_settings(settings, scale=settings.preview_scale if preview else 1.0)
     except tofcore.ConfigError as err:
         report({'ERROR'}, f"Camera {camera_obj.name!r}: {err}")
         return None
-    quality = properties.render_settings(settings)
+    quality = sensors.render_settings(settings)
     out_dir, formats = None, ()
     if preview:
         quality.update(spp=int(settings.preview_spp), time_budget_s=None, target_error_m=None)
     else:
         out_dir = output_folder(settings.output_dir) if settings.output_dir.strip() else None
-        formats = tuple(f for f in properties.FORMATS if f in settings.formats)
+        formats = tuple(f for f in sensors.FORMATS if f in settings.formats)
         if out_dir is None and formats:
             report({'ERROR'}, f"Camera {camera_obj.name!r}: output_dir (Output Folder) is empty; choose a folder")
             return None
@@ -600,7 +600,7 @@ def apply_settings_to_cameras(camera_data, scene=None) -> None:
             sync_led_empties(obj, ())
         return
     try:
-        sensor = properties.sensor_from_settings(camera_data.tof)
+        sensor = sensors.sensor_from_settings(camera_data.tof)
     except tofcore.ConfigError:
         return
     for obj in objects:
@@ -608,7 +608,7 @@ def apply_settings_to_cameras(camera_data, scene=None) -> None:
 
 
 def _camera_preset_items():
-    return [item for item in properties.PRESET_ITEMS if item[0] != properties.CUSTOM]
+    return [item for item in sensors.PRESET_ITEMS if item[0] != sensors.CUSTOM]
 
 
 class TOF_OT_add_camera(Operator, AddObjectHelper):
@@ -619,7 +619,7 @@ and make it the scene camera"""
     bl_label = "Add ToF Camera"
     bl_options = {'REGISTER', 'UNDO'}
 
-    preset: EnumProperty(name="Preset", items=_camera_preset_items(), default=properties.DEFAULT_PRESET,
+    preset: EnumProperty(name="Preset", items=_camera_preset_items(), default=sensors.DEFAULT_PRESET,
                          description="Sensor preset of the new camera")
     make_active: BoolProperty(name="Set as Scene Camera", default=True,
                               description="Make the new camera the scene camera (Render ToF renders that one)")
@@ -638,7 +638,7 @@ and make it the scene camera"""
             context.scene.camera = obj
         data.tof.enabled = True  # update callback: intrinsics, LEDs, render resolution of the scene camera
         try:
-            sensor = properties.sensor_from_settings(data.tof)
+            sensor = sensors.sensor_from_settings(data.tof)
         except tofcore.ConfigError as err:
             self.report({'ERROR'}, str(err))
             return {'CANCELLED'}
@@ -665,7 +665,7 @@ settings"""
     def execute(self, context):
         obj = context.object
         try:
-            sensor = properties.sensor_from_settings(obj.data.tof)
+            sensor = sensors.sensor_from_settings(obj.data.tof)
         except tofcore.ConfigError as err:
             self.report({'ERROR'}, f"Camera {obj.name!r}: {err}")
             return {'CANCELLED'}
@@ -853,7 +853,7 @@ def sync_preview_handler() -> None:
 
 
 def live_preview_toggled(camera_data, on: bool) -> None:
-    """The ``live_preview`` update callback."""
+    """``live_preview`` was switched (from :func:`.updates.live_preview_toggled`)."""
     sync_preview_handler()
     if on:
         if live_preview_camera(bpy.context.scene) is not None:

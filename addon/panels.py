@@ -15,7 +15,7 @@ from __future__ import annotations
 import bpy
 from bpy.types import Panel
 
-from . import gpu, operators, properties
+from . import gpu, operators, sensors
 from .operators import TOF_OT_add_camera, TOF_OT_apply_sensor, TOF_OT_cancel_render, TOF_OT_render
 
 _STATE_TEXT = {"running": "Rendering", "done": "Done", "cancelled": "Cancelled", "error": "Failed"}
@@ -89,7 +89,7 @@ class TOF_PT_camera(_CameraPanel, Panel):
     def draw(self, context):
         settings, layout = _settings_layout(self, context)
         layout.prop(settings, "preset")
-        if settings.preset == properties.CUSTOM:
+        if settings.preset == sensors.CUSTOM:
             layout.prop(settings, "preset_path")
         layout.operator(TOF_OT_apply_sensor.bl_idname, icon='FILE_REFRESH')
         row = layout.row(align=True)

@@ -26,7 +26,7 @@ import tofcore  # noqa: E402
 
 import addon  # noqa: E402
 from addon_helpers import Reports  # noqa: E402
-from addon import images, mapping, operators, properties  # noqa: E402
+from addon import images, mapping, operators, sensors  # noqa: E402
 
 #: Every file write_frame produces with all formats.
 EXPECTED_FILES = {"frame.exr", "depth_mm.png", "depth.png", "intensity.png", "error.png", "reason.png",
@@ -199,14 +199,14 @@ def test_sensor_from_settings_applies_overrides(tof):
     settings.use_range_m = True
     settings.range_m = (0.2, 3.0)
     preset = tofcore.load_preset("kinect_v2")
-    sensor = properties.sensor_from_settings(settings)
+    sensor = sensors.sensor_from_settings(settings)
     cam = sensor.camera
     assert (cam.width, cam.height) == (128, 106)
     assert cam.fx / cam.width == pytest.approx(preset.camera.fx / preset.camera.width)  # same field of view
     assert (cam.cx + 0.5) / cam.width == pytest.approx((preset.camera.cx + 0.5) / preset.camera.width)
     assert sensor.noise.model == "none" and sensor.scattering.model == "none"
     assert sensor.depth_output == "radial" and sensor.range_m == pytest.approx((0.2, 3.0))
-    preview = properties.sensor_from_settings(settings, scale=0.25)
+    preview = sensors.sensor_from_settings(settings, scale=0.25)
     assert (preview.camera.width, preview.camera.height) == (32, 26)
 
 
