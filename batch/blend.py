@@ -55,7 +55,10 @@ def open_file(path: str) -> None:
     current = bpy.data.filepath
     if current and os.path.exists(current) and os.path.samefile(current, path):
         return
-    result = bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False)
+    # Never run code from a scene file: no registered text blocks, no Python drivers (auto-run off too,
+    # in case the process's preferences had it on).
+    bpy.context.preferences.filepaths.use_scripts_auto_execute = False
+    result = bpy.ops.wm.open_mainfile(filepath=str(path), load_ui=False, use_scripts=False)
     if "FINISHED" not in result:
         raise RuntimeError(f"{path}: Blender could not open the file ({result})")
 

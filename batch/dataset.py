@@ -50,6 +50,7 @@ import math
 import os
 import secrets
 import shutil
+import stat
 from collections.abc import Iterable
 from contextlib import contextmanager
 from pathlib import Path
@@ -63,6 +64,25 @@ LOCK = ".lock"
 
 class DatasetLocked(RuntimeError):
     """Another run holds the dataset's lock."""
+
+
+def _open_lock_file(path: Path):
+    """The lock file, opened without following a symbolic link and only if it is a regular file.
+
+    ``open(path, "a+")`` would follow a link planted at DATASET/.lock and the run would then truncate the
+    link's target; O_NOFOLLOW refuses it (ELOOP), and the mode check refuses a FIFO or a device.
+    """
+    try:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK, 0o644)
+    except OSError as exc:
+        if path.is_symlink():
+            raise DatasetLocked(f"{path}: the lock file is a symbolic link; remove it (a run never "
+                                f"writes through links)") from None
+        raise DatasetLocked(f"{path}: cannot open the lock file ({exc.strerror})") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise DatasetLocked(f"{path}: the lock file is not a regular file; remove it")
+    return os.fdopen(fd, "r+")
 
 
 # --------------------------------------------------------------------------- atomic files
@@ -154,7 +174,7 @@ class Dataset:
     def locked(self):
         """Hold an exclusive lock on the dataset for the duration (released by the kernel if killed)."""
         self.create()
-        fh = open(self.root / LOCK, "a+")
+        fh = _open_lock_file(self.root / LOCK)
         try:
             fcntl.flock(fh.fileno(), fcntl.LOCK_EX | fcntl.LOCK_NB)
         except BlockingIOError:

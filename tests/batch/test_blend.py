@@ -193,3 +193,42 @@ def test_blender_entry_device(tmp_path, blend_file):
     (record,) = read_index(tmp_path / "auto")
     assert record["device"]["name"] == "cpu" and record["device"]["requested"] == "auto"
     assert record["device"]["fallback_reason"].startswith("GPU: ")
+
+
+EMBEDDED_SCRIPT = r"""
+import sys
+import bpy
+
+blend, marker = sys.argv[-2], sys.argv[-1]
+bpy.ops.wm.read_factory_settings(use_empty=True)
+text = bpy.data.texts.new("evil.py")
+text.write(f"open({marker!r}, 'w').write('ran')\n")
+text.use_module = True   # a registered text block: Blender runs it when the file is opened with scripts
+bpy.ops.wm.save_as_mainfile(filepath=blend)
+"""
+
+OPEN_IT = r"""
+import sys
+import bpy
+sys.path.insert(0, sys.argv[-2])
+bpy.context.preferences.filepaths.use_scripts_auto_execute = True   # the most permissive process
+from batch import blend
+blend.open_file(sys.argv[-1])
+print("opened", len(bpy.data.texts))
+"""
+
+
+def test_scene_files_never_run_their_scripts(tmp_path):
+    """A .blend with a registered text block, opened by the batch with auto-run enabled: the script does not
+    run (issue 12, class 6)."""
+    blend_path, marker = tmp_path / "evil.blend", tmp_path / "ran.txt"
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    made = subprocess.run([sys.executable, "-c", EMBEDDED_SCRIPT, str(blend_path), str(marker)],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert made.returncode == 0, made.stderr[-2000:]
+    assert not marker.exists()
+    opened = subprocess.run([sys.executable, "-c", OPEN_IT, str(REPO), str(blend_path)],
+                            capture_output=True, text=True, env=env, timeout=300)
+    assert opened.returncode == 0, opened.stderr[-2000:]
+    assert "opened 1" in opened.stdout
+    assert not marker.exists(), "the scene file's script ran"

@@ -212,3 +212,16 @@ def test_a_second_run_on_the_same_dataset_is_refused(tmp_path, small_set):
     with Dataset(dataset).locked():
         proc = batch("run", str(small_set), "--out", str(dataset), "--quiet")
     assert proc.returncode == 2 and "another run is writing to this dataset" in proc.stderr
+
+
+def test_a_lock_file_planted_as_a_symlink_is_refused_and_its_target_untouched(tmp_path, small_set):
+    """DATASET/.lock pointing at a user's file: one-line refusal, exit code 2, the file keeps its bytes."""
+    dataset = tmp_path / "dataset"
+    (dataset / "frames").mkdir(parents=True)
+    precious = tmp_path / "precious.txt"
+    precious.write_text("do not truncate me\n")
+    (dataset / ".lock").symlink_to(precious)
+    proc = batch("run", str(small_set), "--out", str(dataset), "--quiet")
+    assert proc.returncode == 2, proc.stderr
+    assert "the lock file is a symbolic link" in proc.stderr and "Traceback" not in proc.stderr
+    assert precious.read_text() == "do not truncate me\n"
