@@ -1,0 +1,369 @@
+"""Dataset reader: listing and filters, lazy channel loads equal to read_exr, stacks, metadata, errors, torch adapter.
+
+One tiny dataset is rendered per module by the batch generator in this
+process (no worker processes): 2 scenes, 3 views, 2 presets = 6 frames at
+1/32 resolution (Kinect v2: 16 × 13 px), 2 spp, max path length 2, one frame
+failed on purpose.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+import types
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+pytest.importorskip("OpenEXR")
+
+import tofcore  # noqa: E402
+from tofcore.dataset import CHANNELS, Dataset, DatasetError, FrameRef, Intrinsics  # noqa: E402
+
+REPO = Path(__file__).resolve().parents[2]
+FAILED_LABEL = "box_on_wall/pose0/o3d303"
+
+SET = """
+seed = 5
+presets = ["kinect_v2", "o3d303"]
+resolution_scale = 0.03125
+[quality]
+spp = 2
+max_depth = 2
+[[scenes]]
+demo = "corner"
+[[scenes.poses]]
+suggested = true
+[[scenes.poses]]
+eye = [1.2, 0.9, 1.3]
+target = [0.0, 0.0, 1.2]
+[[scenes]]
+demo = "box_on_wall"
+[[scenes.poses]]
+suggested = true
+"""
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory) -> Path:
+    """The 6-frame dataset (5 ok, 1 failed); read-only for the tests (copy it to change it)."""
+    if str(REPO) not in sys.path:
+        sys.path.insert(0, str(REPO))
+    from batch.jobs import expand
+    from batch.run import run_jobs
+    from batch.setfile import load_set
+
+    folder = tmp_path_factory.mktemp("loader")
+    set_file = folder / "set.toml"
+    set_file.write_text(SET)
+    with pytest.MonkeyPatch.context() as mp, open(os.devnull, "w") as devnull:
+        mp.setenv("TOF_BATCH_FAIL", FAILED_LABEL)
+        result = run_jobs(expand(load_set(set_file)).jobs, folder / "ds", inline=True, threads_per_worker=1,
+                          quiet=True, stream=devnull)
+    assert result.exit_code == 1  # the injected failure
+    return folder / "ds"
+
+
+@pytest.fixture
+def copy(dataset, tmp_path) -> Path:
+    """A copy of the dataset that a test may damage."""
+    return Path(shutil.copytree(dataset, tmp_path / "ds"))
+
+
+def _index(dataset: Path) -> list[dict]:
+    return [json.loads(line) for line in (dataset / "index.jsonl").read_text().splitlines()]
+
+
+def _document(ref: FrameRef) -> dict:
+    return json.loads((ref.folder / "frame.json").read_text())
+
+
+# --------------------------------------------------------------------------- listing
+
+def test_frames_are_listed_in_index_order_with_their_record(dataset):
+    data = Dataset(dataset)
+    records = _index(dataset)
+    assert len(records) == 6
+    ok = [r for r in records if r["status"] == "ok"]
+    assert len(data) == 5 and [f.id for f in data] == [r["job_id"] for r in ok]
+    first = data[0]
+    assert (first.id, first.scene, first.view, first.preset, first.seed, first.status) == (
+        ok[0]["job_id"], ok[0]["scene"], ok[0]["view"]["label"], ok[0]["preset"], ok[0]["seed"], "ok")
+    assert first.record == ok[0] and first.folder == dataset.resolve() / "frames" / first.id
+    assert first.paths["exr"] == first.folder / "frame.exr" and first.paths["json"].is_file()
+    assert data[first.id] is first and data.frame(first.id) is first
+    assert data.scenes == ["corner", "box_on_wall"] and data.presets == ["kinect_v2", "o3d303"]
+    assert data.views == ["pose0", "pose1"]
+
+
+def test_frames_filter_by_scene_preset_view_and_status(dataset):
+    data = Dataset(dataset)
+    assert [(f.scene, f.preset) for f in data.frames(scene="corner")] == [
+        ("corner", "kinect_v2"), ("corner", "o3d303"), ("corner", "kinect_v2"), ("corner", "o3d303")]
+    assert {f.preset for f in data.frames(preset="o3d303")} == {"o3d303"}
+    assert len(data.frames(preset="o3d303")) == 2  # the third is the failed one
+    assert len(data.frames(scene="corner", preset="kinect_v2", view="pose1")) == 1
+    assert len(data.frames(scene=["corner", "box_on_wall"])) == 5
+    failed = data.frames(status="failed")
+    assert [f"{f.scene}/{f.view}/{f.preset}" for f in failed] == [FAILED_LABEL]
+    assert failed[0].paths == {} and "fault injected" in failed[0].record["error"]
+    assert len(data.frames(status=None)) == len(data.frames(status=["ok", "failed"])) == 6
+
+
+def test_a_filter_value_not_in_the_dataset_lists_the_valid_ones(dataset):
+    data = Dataset(dataset)
+    with pytest.raises(DatasetError) as exc:
+        data.frames(scene="kitchen")
+    assert _one_line(exc) == (f"{dataset.resolve()}: frames(scene=…): scene must be among ['corner', 'box_on_wall'], "
+                              f"got 'kitchen'")
+    with pytest.raises(DatasetError, match=r"status must be among \['ok', 'failed'\], got 'done'"):
+        data.frames(status="done")
+    with pytest.raises(DatasetError, match="no frame with id 'nope'"):
+        data.frame("nope")
+
+
+# --------------------------------------------------------------------------- loading
+
+def test_load_returns_exactly_the_exr_channels_asked(dataset):
+    ref = Dataset(dataset)[0]
+    stored = tofcore.read_exr(ref.folder / "frame.exr")
+    arrays = ref.load(["depth", "gt_depth", "valid", "reason"])
+    assert list(arrays) == ["depth", "gt_depth", "valid", "reason"]
+    for name, array in arrays.items():
+        assert array.dtype == stored[name].dtype == np.float32 and array.shape == (13, 16)
+        assert np.array_equal(array, stored[name], equal_nan=True), name
+    assert list(ref.load("amplitude")) == ["amplitude"]
+    everything = ref.load()
+    assert set(everything) == {n for n in stored if not n.startswith(("raw.", "distance_k"))} | {
+        "raw", "raw_labels", "distance_per_k"}
+    for name in everything.keys() - {"raw", "raw_labels", "distance_per_k"}:
+        assert np.array_equal(everything[name], stored[name], equal_nan=True), name
+
+
+def test_invalid_pixels_stay_nan(dataset):
+    for ref in Dataset(dataset):
+        arrays = ref.load(["depth", "valid"])
+        assert np.array_equal(np.isnan(arrays["depth"]), arrays["valid"] == 0)
+
+
+def test_raw_images_are_stacked_in_label_order(dataset):
+    data = Dataset(dataset)
+    for ref in (data.frames(preset="kinect_v2")[0], data.frames(preset="o3d303")[0]):
+        stored = tofcore.read_exr(ref.folder / "frame.exr")
+        labels = tuple(_document(ref)["raw_labels"])
+        arrays = ref.load(["raw"])
+        assert arrays["raw_labels"] == labels == ref.raw_labels
+        assert arrays["raw"].shape == (len(labels), ref.intrinsics.height, ref.intrinsics.width)
+        for i, label in enumerate(labels):
+            assert np.array_equal(arrays["raw"][i], stored[f"raw.{label}"])
+    assert len(data.frames(preset="kinect_v2")[0].raw_labels) == 9  # 3 frequencies × 3 steps
+
+
+def test_per_bounce_distances_are_stacked_k_1_to_K(dataset):
+    ref = Dataset(dataset)[1]
+    stored = tofcore.read_exr(ref.folder / "frame.exr")
+    stack = ref.load("distance_per_k")["distance_per_k"]
+    assert stack.shape[0] == _document(ref)["distance_per_k"] == 2  # max_depth 2
+    for k in (1, 2):
+        assert np.array_equal(stack[k - 1], stored[f"distance_k{k}"], equal_nan=True)
+
+
+def test_intrinsics_and_pose_equal_frame_json(dataset):
+    for ref in Dataset(dataset):
+        document = _document(ref)
+        expected = document["metadata"]["intrinsics"]
+        intrinsics = ref.intrinsics
+        assert isinstance(intrinsics, Intrinsics)
+        assert (intrinsics.width, intrinsics.height, intrinsics.fx, intrinsics.fy, intrinsics.cx, intrinsics.cy) == (
+            expected["width"], expected["height"], expected["fx"], expected["fy"], expected["cx"], expected["cy"])
+        assert intrinsics.distortion == tuple(expected[k] for k in ("k1", "k2", "p1", "p2", "k3"))
+        assert np.array_equal(intrinsics.matrix, [[expected["fx"], 0, expected["cx"]],
+                                                  [0, expected["fy"], expected["cy"]], [0, 0, 1]])
+        assert ref.world_from_sensor.shape == (4, 4) and ref.world_from_sensor.dtype == np.float64
+        assert np.array_equal(ref.world_from_sensor, document["world_from_sensor"])
+        assert np.array_equal(ref.world_from_sensor, ref.record["world_from_sensor"])
+        assert ref.sensor["name"] == ref.preset
+
+
+def test_ray_directions_times_distance_are_the_written_points(dataset):
+    ref = Dataset(dataset).frames(preset="kinect_v2")[0]
+    arrays = ref.load(["distance", "valid", "ray_directions"])
+    valid = arrays["valid"] > 0.5
+    assert arrays["ray_directions"].shape == (13, 16, 3) and valid.any()
+    points = (arrays["ray_directions"] * arrays["distance"][..., None])[valid].astype(np.float32)
+    ply = ref.paths["ply"].read_bytes()
+    body = ply[ply.index(b"end_header\n") + len(b"end_header\n"):]
+    vertices = np.frombuffer(body, dtype=[("xyz", "<f4", 3), ("amplitude", "<f4"), ("intensity", "u1")])
+    assert np.allclose(vertices["xyz"], points, rtol=1e-6, atol=1e-6)
+
+
+def test_sample_shapes_and_dtypes(dataset):
+    ref = Dataset(dataset).frames(preset="kinect_v2")[0]
+    sample = ref.sample(["depth", "valid", "reason", "object_id", "raw", "distance_per_k", "ray_directions"])
+    shapes = {k: (v.shape, v.dtype.name) for k, v in sample.items() if isinstance(v, np.ndarray)}
+    assert shapes == {
+        "depth": ((1, 13, 16), "float32"), "valid": ((1, 13, 16), "bool"), "reason": ((1, 13, 16), "uint8"),
+        "object_id": ((1, 13, 16), "int32"), "raw": ((9, 13, 16), "float32"),
+        "distance_per_k": ((2, 13, 16), "float32"), "ray_directions": ((3, 13, 16), "float32"),
+        "intrinsics": ((3, 3), "float32"), "distortion": ((5,), "float32"), "world_from_sensor": ((4, 4), "float32")}
+    assert (sample["id"], sample["scene"], sample["view"], sample["preset"]) == (ref.id, ref.scene, ref.view,
+                                                                                 ref.preset)
+    assert np.array_equal(sample["valid"][0], ref.load("valid")["valid"] == 1)
+
+
+def test_an_unknown_channel_lists_the_valid_names(dataset):
+    ref = Dataset(dataset)[0]
+    with pytest.raises(DatasetError, match=rf"frame {ref.id}: channels must be among .*, got unknown \['dpeth'\]"):
+        ref.load(["depth", "dpeth"])
+    assert "raw" in CHANNELS and "distance_per_k" in CHANNELS
+
+
+# --------------------------------------------------------------------------- errors
+
+def _one_line(exc: pytest.ExceptionInfo) -> str:
+    message = str(exc.value)
+    assert "\n" not in message
+    return message
+
+
+def test_a_folder_that_is_not_a_dataset_gives_one_line_naming_it(tmp_path):
+    missing = tmp_path / "nowhere"
+    with pytest.raises(DatasetError) as exc:
+        Dataset(missing)
+    assert _one_line(exc) == f"{missing}: dataset folder not found"
+    (tmp_path / "file.txt").write_text("x")
+    with pytest.raises(DatasetError, match="must be a dataset folder, got a file") as exc:
+        Dataset(tmp_path / "file.txt")
+    assert str(tmp_path / "file.txt") in _one_line(exc)
+    with pytest.raises(DatasetError, match=r"not a dataset folder \(no index.jsonl") as exc:
+        Dataset(tmp_path)
+    assert _one_line(exc).startswith(f"{tmp_path}: ")
+    (tmp_path / "index.jsonl").write_text("")
+    with pytest.raises(DatasetError, match=r"no frames/ beside index.jsonl"):
+        Dataset(tmp_path)
+    assert issubclass(DatasetError, tofcore.ConfigError)
+
+
+def test_lines_that_are_not_records_are_skipped_with_a_warning(copy):
+    index = copy / "index.jsonl"
+    lines = index.read_text().splitlines()
+    lines[1:1] = ["not json at all", '{"status": "ok"}', "[1, 2]", '{"job_id": 7}', "", '{"job_id": "cut", "sta']
+    index.write_text("\n".join(lines) + "\n")
+    with pytest.warns(UserWarning, match=r"index.jsonl: skipped 5 line\(s\) that are not frame records "
+                                         r"\(line 2, 3, 4, 5, 7\)"):
+        data = Dataset(copy)
+    assert len(data.frames(status=None)) == 6 and len(data) == 5 and data.skipped_lines == [2, 3, 4, 5, 7]
+
+
+def test_a_later_line_of_a_job_replaces_the_earlier_one(copy):
+    index = copy / "index.jsonl"
+    records = _index(copy)
+    again = dict(records[0], seed=123)
+    index.write_text("".join(json.dumps(r) + "\n" for r in [*records, again]))
+    data = Dataset(copy)
+    assert len(data.frames(status=None)) == 6 and data.frame(again["job_id"]).seed == 123
+    assert data.frames(status=None)[-1].id == again["job_id"]
+
+
+def test_a_missing_frame_file_names_it(copy):
+    data = Dataset(copy)
+    ref = data[0]
+    (ref.folder / "frame.exr").unlink()
+    with pytest.raises(DatasetError) as exc:
+        ref.load(["depth"])
+    assert _one_line(exc).startswith(f"{ref.folder / 'frame.exr'}: frame file not found")
+    other = data[1]
+    (other.folder / "frame.json").unlink()
+    with pytest.raises(DatasetError, match="frame.json: frame file not found"):
+        other.intrinsics
+    (data[3].folder / "frame.exr").write_bytes(b"not an EXR")
+    with pytest.raises(DatasetError, match=r"frame.exr: cannot be read as EXR") as exc:
+        data[3].load("depth")
+    assert str(data[3].folder) in _one_line(exc)
+    shutil.rmtree(data[2].folder)
+    with pytest.raises(DatasetError, match=f"{data[2].id}/frame.exr: frame file not found"):
+        data[2].load("depth")
+
+
+def test_a_failed_frame_cannot_be_loaded_and_says_why(dataset):
+    failed = Dataset(dataset).frames(status="failed")[0]
+    with pytest.raises(DatasetError, match=rf"frame {failed.id}: status 'failed', no files \(error: .*fault injected"):
+        failed.load("depth")
+
+
+def test_a_channel_missing_from_the_file_names_file_and_channels(copy):
+    ref = Dataset(copy)[0]
+    stored = tofcore.read_exr(ref.folder / "frame.exr")
+    import OpenEXR
+
+    del stored["render_error"]
+    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
+                 stored).write(str(ref.folder / "frame.exr"))
+    with pytest.raises(DatasetError, match=r"frame.exr: channel 'render_error' not in the file; it holds \['ampl"):
+        ref.load(["render_error"])
+    assert "render_error" not in ref.load()
+
+
+# --------------------------------------------------------------------------- PyTorch adapter
+
+def test_importing_tofcore_and_the_reader_imports_neither_torch_nor_batch():
+    code = ("import sys, tofcore, tofcore.dataset; "
+            "print(sorted(m for m in ('torch', 'batch', 'bpy') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO / "tests",
+                         check=True).stdout
+    assert out.strip() == "[]"
+
+
+def test_the_torch_adapter_without_torch_says_so_in_one_line(monkeypatch):
+    monkeypatch.setitem(sys.modules, "torch", None)
+    monkeypatch.delitem(sys.modules, "tofcore.torch_dataset", raising=False)
+    with pytest.raises(ImportError, match=r"^tofcore.torch_dataset: needs PyTorch, which is not installed: "
+                                          r"pip install torch") as exc:
+        import tofcore.torch_dataset  # noqa: F401
+    assert _one_line(exc)
+
+
+def _fake_torch() -> types.ModuleType:
+    """Just enough of torch for the adapter: a Dataset base class and from_numpy (tagging the array)."""
+    torch = types.ModuleType("torch")
+    torch.utils = types.ModuleType("torch.utils")
+    torch.utils.data = types.ModuleType("torch.utils.data")
+    torch.utils.data.Dataset = type("Dataset", (), {})
+    torch.from_numpy = lambda array: ("tensor", array)
+    return torch
+
+
+def test_the_torch_adapter_logic_on_a_stand_in_torch(dataset, monkeypatch):
+    fake = _fake_torch()
+    for name, module in (("torch", fake), ("torch.utils", fake.utils), ("torch.utils.data", fake.utils.data)):
+        monkeypatch.setitem(sys.modules, name, module)
+    monkeypatch.delitem(sys.modules, "tofcore.torch_dataset", raising=False)
+    from tofcore.torch_dataset import TorchDataset
+
+    data = TorchDataset(dataset, channels=["depth", "valid", "raw"], preset="kinect_v2",
+                        transform=lambda s: {**s, "seen": True})
+    assert isinstance(data, fake.utils.data.Dataset) and len(data) == 3
+    sample = data[0]
+    assert sample["seen"] and sample["id"] == data.refs[0].id and isinstance(sample["scene"], str)
+    assert {k for k, v in sample.items() if isinstance(v, tuple) and v[0] == "tensor"} == {
+        "depth", "valid", "raw", "intrinsics", "distortion", "world_from_sensor"}
+    assert sample["raw"][1].shape == (9, 13, 16) and sample["valid"][1].dtype == bool
+    monkeypatch.delitem(sys.modules, "tofcore.torch_dataset")
+
+
+def test_the_torch_adapter_with_torch(dataset):
+    torch = pytest.importorskip("torch")
+    from torch.utils.data import DataLoader
+
+    from tofcore.torch_dataset import TorchDataset
+
+    data = TorchDataset(dataset, channels=["depth", "gt_depth", "valid", "raw"], preset="kinect_v2")
+    batch = next(iter(DataLoader(data, batch_size=2)))
+    assert batch["depth"].shape == (2, 1, 13, 16) and batch["depth"].dtype == torch.float32
+    assert batch["valid"].dtype == torch.bool and batch["raw"].shape == (2, 9, 13, 16)
+    assert batch["intrinsics"].shape == (2, 3, 3) and batch["world_from_sensor"].shape == (2, 4, 4)
+    assert batch["id"] == [data.refs[0].id, data.refs[1].id]
