@@ -1,4 +1,5 @@
-"""``python -m batch``: see :mod:`batch.cli`."""
+"""``python -m batch`` in a checkout, ``python -m tofcore_batch`` or the ``tofcore-batch`` command when
+installed (the same package, ``batch/`` installs as ``tofcore_batch``): see the ``cli`` module."""
 
 import sys
 

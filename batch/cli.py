@@ -1,14 +1,18 @@
-"""Command line: ``python -m batch run | validate | compare``.
+"""Command line: ``tofcore-batch run | validate | compare`` (in a checkout also ``python -m batch …``).
+
+The dataset generator; installed, it is the package ``tofcore_batch`` (the
+repository's ``batch/`` folder), and its example sets are in
+``tofcore_batch/examples/`` (python -c "import tofcore_batch; print(tofcore_batch.__path__[0])").
 
 Examples::
 
-    python -m batch validate batch/examples/demo_set.toml
-    python -m batch run batch/examples/demo_set.toml --out datasets/demo --workers 2
-    python -m batch run batch/examples/demo_set.toml --out datasets/demo --dask local --workers 2
-    python -m batch run batch/examples/demo_set.toml --out datasets/demo --scheduler tcp://10.0.0.5:8786
-    python -m batch run batch/examples/demo_set.toml --out datasets/demo --retry-failed
-    python -m batch run batch/examples/demo_set.toml --out datasets/demo --device gpu   # one worker per GPU
-    python -m batch compare --scene room --presets kinect_v2,o3d303,xtion2 --out report/
+    tofcore-batch validate batch/examples/demo_set.toml
+    tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --workers 2
+    tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --dask local --workers 2
+    tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --scheduler tcp://10.0.0.5:8786
+    tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --retry-failed
+    tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --device gpu   # one worker per GPU
+    tofcore-batch compare --scene room --presets kinect_v2,o3d303,xtion2 --out report/
 
 Devices (--device, batch/devices.py): cpu (NumPy, the default); gpu (CuPy, one
 worker process per visible GPU, each pinned with CUDA_VISIBLE_DEVICES; limit the
@@ -181,13 +185,14 @@ def _executor_options(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m batch", description=__doc__, formatter_class=_Formatter)
+    parser = argparse.ArgumentParser(prog="tofcore-batch", description=__doc__, formatter_class=_Formatter)
     sub = parser.add_subparsers(dest="command", required=True, metavar="{run,validate,compare}")
 
     run = sub.add_parser("run", help="render a scene set into a dataset folder (resumable)",
                          description="Render every frame of a scene-set file into DATASET/ (frames/<job_id>/, "
                                      "index.jsonl, README.md). Rerunning skips frames whose files verify.",
-                         formatter_class=_Formatter)
+                         formatter_class=_Formatter,
+                         epilog="example:\n  tofcore-batch run batch/examples/demo_set.toml --out out/demo_dataset")
     run.add_argument("set_file", type=Path, metavar="SET.toml", help="scene-set file (schema: batch/setfile.py)")
     run.add_argument("--out", type=Path, required=True, metavar="DATASET", help="dataset folder")
     _executor_options(run)
@@ -200,7 +205,8 @@ def build_parser() -> argparse.ArgumentParser:
     val = sub.add_parser("validate", help="check a scene-set file without rendering",
                          description="Read and check a set file (keys, types, files, presets, poses, .blend "
                                      "cameras) and list what it would render.",
-                         formatter_class=_Formatter)
+                         formatter_class=_Formatter,
+                         epilog="example:\n  tofcore-batch validate batch/examples/demo_set.toml --list")
     val.add_argument("set_file", type=Path, metavar="SET.toml", help="scene-set file")
     val.add_argument("--out", type=Path, default=None, metavar="DATASET",
                      help="also say how many frames an existing dataset already has")
@@ -211,7 +217,9 @@ def build_parser() -> argparse.ArgumentParser:
                          description="Render one view with each preset and write compare.png (rows: presets; "
                                      "columns: depth, error against ground truth, invalid pixels), compare.md "
                                      "and compare.json (RMS/median error, multipath error, invalid %, time).",
-                         formatter_class=_Formatter)
+                         formatter_class=_Formatter,
+                         epilog="example:\n  tofcore-batch compare --scene room --presets kinect_v2,o3d303,xtion2 "
+                                "--out out/compare --spp 32 --resolution-scale 0.5")
     cmp.add_argument("--scene", required=True,
                      help="demo scene (plane, corner, box_on_wall, room), a .npz scene or a .blend file")
     cmp.add_argument("--presets", default="kinect_v2,o3d303,xtion2",

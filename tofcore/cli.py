@@ -1,10 +1,10 @@
-"""Command line: ``python -m tofcore render …`` and ``python -m tofcore presets``.
+"""Command line: ``tofcore render …`` and ``tofcore presets`` (``python -m tofcore …`` is the same).
 
 Examples::
 
-    python -m tofcore render --scene room --preset kinect_v2 --spp 64 --out out/room
-    python -m tofcore render --scene my_scene.npz --preset presets/o3d303.toml --target-error 0.002 --verbose
-    python -m tofcore presets
+    tofcore render --scene room --preset kinect_v2 --spp 64 --out out/room
+    tofcore render --scene my_scene.npz --preset presets/o3d303.toml --target-error 0.002 --verbose
+    tofcore presets
 """
 
 from __future__ import annotations
@@ -124,11 +124,22 @@ def cmd_presets(args: argparse.Namespace) -> int:
     return 0
 
 
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
+    """Defaults in the option help; the description and the examples (epilog) as written."""
+
+
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="python -m tofcore", description="Time-of-Flight camera simulator.")
+    parser = argparse.ArgumentParser(
+        prog="tofcore", description="Time-of-Flight camera simulator (also: python -m tofcore).",
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+        epilog="example:\n  tofcore render --scene room --preset kinect_v2 --spp 32 --out out/demo\n"
+               "  tofcore presets\n\n`tofcore COMMAND --help` for a command's options.")
     sub = parser.add_subparsers(dest="command", required=True)
     r = sub.add_parser("render", help="render one frame of a scene with a sensor preset",
-                       formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+                       formatter_class=_HelpFormatter,
+                       epilog="example:\n  tofcore render --scene room --preset kinect_v2 --spp 32 --out out/demo "
+                              "--verbose\n\nwrites frame.exr, PNGs, points.ply and frame.json to out/demo/; EXR needs the "
+                              "OpenEXR package\n(pip install 'tofcore[exr]'), else use --formats png,ply,json")
     r.add_argument("--scene", required=True, help="demo scene (plane, corner, box_on_wall, room) or a .npz file")
     r.add_argument("--preset", default="kinect_v2", help="preset name (see `presets`) or a .toml file")
     r.add_argument("--out", type=Path, required=True, help="output folder")
@@ -153,7 +164,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--verbose", action="store_true", help="print the scene, sensor, render plan and device")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     r.set_defaults(func=cmd_render)
-    p = sub.add_parser("presets", help="list the sensor presets")
+    p = sub.add_parser("presets", help="list the sensor presets", formatter_class=_HelpFormatter,
+                       epilog="example:\n  tofcore presets   # name, resolution, modulation, range, LEDs")
     p.set_defaults(func=cmd_presets)
     return parser
 
