@@ -15,6 +15,9 @@ the light / next vertex. Parameters are a `SurfaceParams` of (N,) arrays.
   one-sample-MIS mixture over lobes). Over the upper hemisphere it integrates
   to 1 minus the probability of a mirror sample and of a microfacet reflection
   that lands below the horizon (returned with weight 0).
+* ``eval_pdf_bsdf(params, wo, wi)`` returns both at once, computing the half
+  vector, D(ω_h), the Fresnel terms of cos θ_o and the lobe probability once
+  (what MIS and `sample_bsdf` need); bit for bit the same as the two calls.
 * ``sample_bsdf(params, wo, u_lobe, u1, u2)`` returns a `BsdfSample`: the new
   direction ``wi``, the ``weight`` f_r cos θ_i / pdf (0 for an invalid sample:
   ``wo`` or ``wi`` at or below the surface), the ``pdf`` and an ``is_delta``
@@ -371,15 +374,49 @@ def specular_probability(params: SurfaceParams, cos_theta_o: ArrayLike) -> Float
     identically zero (no diffuse part for m = 1 or ρ = 0, no specular part for
     a dielectric with η = 1) gets probability 0.
     """
-    specular = specular_fresnel(params, cos_theta_o)
-    transmitted = 1.0 - fresnel_dielectric(cos_theta_o, params.ior)
-    diffuse = (1.0 - params.metallic) * transmitted * params.reflectance
+    return _outgoing(params, asarray(cos_theta_o, dtype=np.float64)).probability
+
+
+@dataclass(frozen=True)
+class _Outgoing:
+    """Terms of ω_o alone, shared by `eval_bsdf`, `pdf_bsdf` and `sample_bsdf` at the same points."""
+
+    cos_o: FloatArray  #: cos θ_o
+    fresnel_o: FloatArray  #: F_d(cos θ_o), the dielectric Fresnel of the diffuse weight
+    probability: FloatArray  #: P_s, `specular_probability`
+
+
+def _outgoing(params: SurfaceParams, cos_o: FloatArray) -> _Outgoing:
+    fresnel_o = fresnel_dielectric(cos_o, params.ior)
+    specular = specular_fresnel(params, cos_o) if params._has_metal else fresnel_o
+    diffuse = (1.0 - params.metallic) * (1.0 - fresnel_o) * params.reflectance
     total = specular + diffuse
     share = specular / np.where(total > 0.0, total, 1.0)
     has_specular = (params.metallic > 0.0) | (params.ior != 1.0)
     has_diffuse = diffuse > 0.0
     both = np.clip(share, MIN_LOBE_PROBABILITY, 1.0 - MIN_LOBE_PROBABILITY)
-    return np.where(has_specular & has_diffuse, both, np.where(has_specular, 1.0, 0.0))
+    probability = np.where(has_specular & has_diffuse, both, np.where(has_specular, 1.0, 0.0))
+    return _Outgoing(cos_o=cos_o, fresnel_o=fresnel_o, probability=probability)
+
+
+@dataclass(frozen=True)
+class _Pair:
+    """Terms of a direction pair (ω_o, ω_i), shared by `eval_bsdf` and `pdf_bsdf`."""
+
+    cos_i: FloatArray  #: cos θ_i
+    valid: NDArray[np.bool_]  #: both directions above the surface
+    h: FloatArray  #: (N, 3) half vector (eq. 2.25)
+    cos_oh: FloatArray  #: ω_o·ω_h
+    alpha: FloatArray  #: Beckmann α, 0 for a mirror lobe
+    distribution: FloatArray  #: D(ω_h) (eq. 2.26)
+
+
+def _pair(params: SurfaceParams, wo: FloatArray, wi: FloatArray) -> _Pair:
+    cos_i = wi[..., 2]
+    h = _half_vector(wo, wi)
+    alpha = _rough_alpha(params)
+    return _Pair(cos_i=cos_i, valid=(wo[..., 2] > 0.0) & (cos_i > 0.0), h=h, cos_oh=np.sum(wo * h, axis=-1),
+                 alpha=alpha, distribution=beckmann_distribution(h[..., 2], alpha))
 
 
 def _half_vector(wo: FloatArray, wi: FloatArray) -> FloatArray:
@@ -419,24 +456,23 @@ def eval_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> FloatArray
     wo = asarray(wo, dtype=np.float64)
     wi = asarray(wi, dtype=np.float64)
     cos_o = wo[..., 2]
-    cos_i = wi[..., 2]
-    valid = (cos_o > 0.0) & (cos_i > 0.0)
-    transmitted = (1.0 - fresnel_dielectric(cos_i, params.ior)) * (
-        1.0 - fresnel_dielectric(cos_o, params.ior)
-    )
+    return _eval(params, wo, wi, cos_o, fresnel_dielectric(cos_o, params.ior), _pair(params, wo, wi))
+
+
+def _eval(params: SurfaceParams, wo, wi, cos_o, fresnel_o, pair: _Pair) -> FloatArray:
+    """`eval_bsdf` from the shared terms."""
+    transmitted = (1.0 - fresnel_dielectric(pair.cos_i, params.ior)) * (1.0 - fresnel_o)
     diffuse = (1.0 - params.metallic) * transmitted * oren_nayar(
-        params.reflectance, params.roughness, cos_i, cos_o, cos_azimuth_difference(wo, wi)
+        params.reflectance, params.roughness, pair.cos_i, cos_o, cos_azimuth_difference(wo, wi)
     )
-    h = _half_vector(wo, wi)
-    cos_oh = np.sum(wo * h, axis=-1)
     specular = torrance_sparrow(
-        specular_fresnel(params, cos_oh),
-        beckmann_distribution(h[..., 2], _rough_alpha(params)),
-        vcavity_geometry(h[..., 2], cos_o, cos_i, cos_oh),
-        cos_i,
+        specular_fresnel(params, pair.cos_oh),
+        pair.distribution,
+        vcavity_geometry(pair.h[..., 2], cos_o, pair.cos_i, pair.cos_oh),
+        pair.cos_i,
         cos_o,
     )
-    return np.where(valid, diffuse + specular, 0.0)
+    return np.where(pair.valid, diffuse + specular, 0.0)
 
 
 def pdf_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> FloatArray:
@@ -470,18 +506,31 @@ def pdf_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> FloatArray:
     """
     wo = asarray(wo, dtype=np.float64)
     wi = asarray(wi, dtype=np.float64)
-    cos_o = wo[..., 2]
-    cos_i = wi[..., 2]
-    valid = (cos_o > 0.0) & (cos_i > 0.0)
-    h = _half_vector(wo, wi)
-    cos_oh = np.sum(wo * h, axis=-1)
-    alpha = _rough_alpha(params)
+    return _pdf(wo, specular_probability(params, wo[..., 2]), _pair(params, wo, wi))
+
+
+def _pdf(wo, probability, pair: _Pair) -> FloatArray:
+    """`pdf_bsdf` from the shared terms."""
+    cos_oh = pair.cos_oh
     reflect_jacobian = 1.0 / (4.0 * np.where(cos_oh > 0.0, cos_oh, 1.0))
-    rough = (cos_oh > 0.0) & (alpha > 0.0)
-    specular = np.where(rough, pdf_vcavity_visible_normal(wo, h, alpha) * reflect_jacobian, 0.0)
-    probability = specular_probability(params, cos_o)
-    density = probability * specular + (1.0 - probability) * pdf_cosine_hemisphere(cos_i)
-    return np.where(valid, density, 0.0)
+    rough = (cos_oh > 0.0) & (pair.alpha > 0.0)
+    visible_normal = pdf_vcavity_visible_normal(wo, pair.h, pair.alpha, distribution=pair.distribution)
+    specular = np.where(rough, visible_normal * reflect_jacobian, 0.0)
+    density = probability * specular + (1.0 - probability) * pdf_cosine_hemisphere(pair.cos_i)
+    return np.where(pair.valid, density, 0.0)
+
+
+def eval_pdf_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> tuple[FloatArray, FloatArray]:
+    """(`eval_bsdf`, `pdf_bsdf`) of the same directions, computing what they share once.
+
+    The half vector, D(ω_h), the Fresnel terms of cos θ_o and the lobe probability are the same for
+    both; a caller that needs f_r and the density (MIS, sampling) pays for them once.
+    """
+    wo = asarray(wo, dtype=np.float64)
+    wi = asarray(wi, dtype=np.float64)
+    out = _outgoing(params, wo[..., 2])
+    pair = _pair(params, wo, wi)
+    return _eval(params, wo, wi, out.cos_o, out.fresnel_o, pair), _pdf(wo, out.probability, pair)
 
 
 def sample_bsdf(
@@ -512,8 +561,8 @@ def sample_bsdf(
     """
     wo = asarray(wo, dtype=np.float64)
     u_lobe = asarray(u_lobe, dtype=np.float64)
-    cos_o = wo[..., 2]
-    probability = specular_probability(params, cos_o)
+    out = _outgoing(params, wo[..., 2])
+    cos_o, probability = out.cos_o, out.probability
     pick_specular = u_lobe < probability
     u_swap = np.where(
         pick_specular,
@@ -527,13 +576,14 @@ def sample_bsdf(
     wi_specular = 2.0 * np.sum(wo * m, axis=-1, keepdims=True) * m - wo
     wi = np.where(pick_specular[..., None], wi_specular, sample_cosine_hemisphere(u1, u2))
 
-    cos_i = wi[..., 2]
-    pdf = pdf_bsdf(params, wo, wi)
-    f_cos = eval_bsdf(params, wo, wi) * np.maximum(cos_i, 0.0)
+    pair = _pair(params, wo, wi)
+    pdf = _pdf(wo, probability, pair)
+    f_cos = _eval(params, wo, wi, cos_o, out.fresnel_o, pair) * np.maximum(pair.cos_i, 0.0)
     weight = np.where(pdf > 0.0, f_cos / np.where(pdf > 0.0, pdf, 1.0), 0.0)
 
     is_delta = pick_specular & (alpha == 0.0) & (cos_o > 0.0)
-    mirror_weight = specular_fresnel(params, cos_o) / np.where(probability > 0.0, probability, 1.0)
+    mirror_fresnel = specular_fresnel(params, cos_o) if params._has_metal else out.fresnel_o
+    mirror_weight = mirror_fresnel / np.where(probability > 0.0, probability, 1.0)
     return BsdfSample(
         wi=wi,
         weight=np.where(is_delta, mirror_weight, weight),

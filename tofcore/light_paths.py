@@ -34,7 +34,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import qmc
-from .bsdf import eval_bsdf, pdf_bsdf
+from .bsdf import eval_bsdf, eval_pdf_bsdf
 from .surface import Surface, dot, surface_at
 
 DIM_LED_CHOICE = 1_000_000   # 1-D sample dimension: which LED emits the light vertex
@@ -121,11 +121,11 @@ def connect(ctx, stats, light: LightVertices, slot, surf: Surface, spawn, wo, pr
     cos_x = dot(w_xy, x.geometric_normal)
     cos_y = -dot(w_xy, y.geometric_normal)
     wi_x = x.to_local(w_xy)
-    f_x = eval_bsdf(x.params, wo[sel], wi_x)
+    f_x, pdf_x = eval_pdf_bsdf(x.params, wo[sel], wi_x)
     f_y = eval_bsdf(y.params, y.to_local(-w_xy), y.to_local(light.to_led[rows]))
     g = np.maximum(dot(w_xy, x.shading_normal), 0.0) * np.maximum(cos_y, 0.0) / dist**2
     w = throughput[sel] * f_x * g * f_y * light.emitted[rows]
-    p_bsdf = pdf_bsdf(x.params, wo[sel], wi_x) * np.maximum(cos_y, 0.0) / dist**2
+    p_bsdf = pdf_x * np.maximum(cos_y, 0.0) / dist**2
     p_light = light.pdf_area[rows]
     with np.errstate(invalid="ignore", divide="ignore"):
         w = np.where((cos_x > 0) & (cos_y > 0) & (w > 0), w * p_light / (p_bsdf + p_light), 0.0)

@@ -274,7 +274,8 @@ def sample_vcavity_visible_normal(
     return np.where(swap[..., None], m_other, m)
 
 
-def pdf_vcavity_visible_normal(wo: ArrayLike, m: ArrayLike, alpha: ArrayLike) -> FloatArray:
+def pdf_vcavity_visible_normal(wo: ArrayLike, m: ArrayLike, alpha: ArrayLike,
+                               distribution: ArrayLike | None = None) -> FloatArray:
     r"""Solid-angle density of `sample_vcavity_visible_normal`.
 
     Parameters
@@ -285,6 +286,8 @@ def pdf_vcavity_visible_normal(wo: ArrayLike, m: ArrayLike, alpha: ArrayLike) ->
         (N, 3) unit microfacet normals.
     alpha : array_like
         Beckmann roughness α (unitless, > 0).
+    distribution : array_like, optional
+        D(m) = `beckmann_distribution` (m_z, α) where the caller has it already (1/sr).
 
     Returns
     -------
@@ -311,4 +314,8 @@ def pdf_vcavity_visible_normal(wo: ArrayLike, m: ArrayLike, alpha: ArrayLike) ->
     visible_other = np.maximum(np.sum(wo * _mirror_azimuth(m), axis=-1), 0.0)
     total = visible + visible_other
     share = visible / np.where(total > 0.0, total, 1.0)
-    return 2.0 * pdf_beckmann_normal(m, alpha) * share
+    if distribution is None:
+        normal_density = pdf_beckmann_normal(m, alpha)
+    else:
+        normal_density = _as_float64(distribution) * np.maximum(m[..., 2], 0.0)
+    return 2.0 * normal_density * share
