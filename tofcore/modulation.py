@@ -53,7 +53,7 @@ import numpy as np
 
 from .errors import ConfigError
 from .transport import SPEED_OF_LIGHT_M_S
-from .backend import asarray, is_device_array
+from .backend import asarray, is_device_array, namespace
 
 KINDS = ("pulsed", "cw_square", "cw_sine")
 DEFAULT_PHASE_STEPS = 4
@@ -165,6 +165,73 @@ def pulsed_correlation(tau_s: np.ndarray, pulse_width_s: float, bucket: int) -> 
     return np.clip(1.0 - np.abs(asarray(tau_s, dtype=np.float64) / pulse_width_s - bucket), 0.0, 1.0)
 
 
+@dataclass(frozen=True, kw_only=True)
+class CorrelationBank:
+    """The correlation functions of all raw images, evaluated together: ``bank(tau_s)`` → (R, N).
+
+    Raw images are frequency-major, then step, as in :meth:`Modulation.correlations`, whose values it
+    reproduces bit for bit. On the CPU each frequency's steps are one (N_steps, N) block computed in
+    place from :math:`f\tau` formed once (the Kinect's 9 channels: 4.6 → 1.1 ms per 65 k delays);
+    device arrays go through the per-channel fused kernels. A frozen dataclass of numbers, so it
+    pickles for the tracer's worker processes.
+    """
+
+    kind: str
+    frequencies_hz: tuple[float, ...]
+    offsets: tuple[tuple[float, ...], ...]  # CW: per frequency, the gate openings k/N
+    duty_cycle: float
+    pulse_width_s: float | None
+
+    def __len__(self) -> int:
+        return 2 if self.kind == "pulsed" else sum(len(o) for o in self.offsets)
+
+    def functions(self) -> list[Correlation]:
+        """The same channels as a list of g_j(τ) (:meth:`Modulation.correlations`)."""
+        if self.kind == "pulsed":
+            return [functools.partial(pulsed_correlation, pulse_width_s=self.pulse_width_s, bucket=b)
+                    for b in (0, 1)]
+        if self.kind == "cw_sine":
+            return [functools.partial(sine_correlation, f_hz=f, offset_fraction=o)
+                    for f, offsets in zip(self.frequencies_hz, self.offsets) for o in offsets]
+        return [functools.partial(square_correlation, f_hz=f, offset_fraction=o, duty=self.duty_cycle)
+                for f, offsets in zip(self.frequencies_hz, self.offsets) for o in offsets]
+
+    def __call__(self, tau_s) -> np.ndarray:
+        if is_device_array(tau_s):
+            xp = namespace(tau_s)
+            return xp.stack([g(tau_s) for g in self.functions()])
+        tau_s = np.asarray(tau_s, dtype=np.float64)
+        out = np.empty((len(self),) + tau_s.shape)
+        if self.kind == "pulsed":
+            scaled = tau_s / self.pulse_width_s
+            for bucket in (0, 1):  # clip(1 − |τ/t0 − b|, 0, 1), eq. 2.35–2.37
+                np.clip(1.0 - np.abs(scaled - bucket), 0.0, 1.0, out=out[bucket])
+            return out
+        j = 0
+        for f_hz, offsets in zip(self.frequencies_hz, self.offsets):
+            block = out[j:j + len(offsets)]
+            j += len(offsets)
+            cycles = f_hz * tau_s
+            if self.kind == "cw_sine":  # ½ + cos(2π(fτ − k/N))/π, eq. 2.47–2.48
+                np.subtract(cycles, np.array(offsets)[:, None], out=block)
+                block *= 2.0 * np.pi
+                np.cos(block, out=block)
+                block /= np.pi
+                block += 0.5
+                continue
+            # clip(¼ + D/2 − |frac(fτ − k/N + ½) − ½|, max(0, D − ½), min(D, ½)) / D: square_correlation
+            shifted = np.subtract(cycles, np.array(offsets)[:, None])
+            shifted += 0.5
+            np.floor(shifted, out=block)
+            np.subtract(shifted, block, out=block)
+            block -= 0.5
+            np.abs(block, out=block)
+            np.subtract(0.25 + 0.5 * self.duty_cycle, block, out=block)
+            np.clip(block, max(0.0, self.duty_cycle - 0.5), min(self.duty_cycle, 0.5), out=block)
+            block /= self.duty_cycle
+        return out
+
+
 # ------------------------------------------------------------------ configuration
 def _is_number(value: object) -> bool:
     return isinstance(value, (int, float, np.integer, np.floating)) and not isinstance(value, bool)
@@ -274,18 +341,16 @@ class Modulation:
         :func:`functools.partial` objects of :func:`sine_correlation`, :func:`square_correlation` and
         :func:`pulsed_correlation`, so they pickle.
         """
-        if self.kind == "pulsed":
-            return [functools.partial(pulsed_correlation, pulse_width_s=self.pulse_width_s, bucket=b)
-                    for b in (0, 1)]
-        result: list[Correlation] = []
-        for f_hz, offsets in zip(self.frequencies_hz, self.step_offsets()):
-            for offset in offsets:
-                if self.kind == "cw_sine":
-                    result.append(functools.partial(sine_correlation, f_hz=f_hz, offset_fraction=float(offset)))
-                else:
-                    result.append(functools.partial(square_correlation, f_hz=f_hz, offset_fraction=float(offset),
-                                                    duty=self.duty_cycle))
-        return result
+        return self.correlation_bank().functions()
+
+    def correlation_bank(self) -> CorrelationBank:
+        """All raw images' g_j(τ) as one callable τ → (R, N): what the tracer evaluates per contribution.
+
+        The same values bit for bit as :meth:`correlations`, evaluated per frequency as one block.
+        """
+        return CorrelationBank(kind=self.kind, frequencies_hz=self.frequencies_hz, offsets=tuple(
+            tuple(float(o) for o in offsets) for offsets in self.step_offsets()) if self.is_cw else (),
+            duty_cycle=self.duty_cycle, pulse_width_s=self.pulse_width_s)
 
     def gate_duty(self) -> np.ndarray:
         """(R,) fraction of time each raw image's gate is open: 1/2 for CW, the duty cycle t0/T for pulsed.

@@ -211,7 +211,7 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
         pose = np.asarray(scene.metadata.get("world_from_sensor", np.eye(4)), dtype=np.float64)
     mod = sensor.modulation
     plan = make_plan(scene, sensor, max_depth=max_depth, ambient=ambient)
-    correlations = list(mod.correlations())
+    correlations = mod.correlation_bank()
     n_raw = len(correlations)
     if reference_distance is not None:
         reference_distance = np.asarray(reference_distance, dtype=np.float64)

@@ -62,6 +62,24 @@ SPEED_OF_LIGHT_M_S = 299_792_458.0
 Correlation = Callable[[np.ndarray], np.ndarray]
 """g_j(τ): delay τ in seconds (float64 array) → correlation value per contribution (same shape)."""
 
+
+@dataclass(frozen=True)
+class CorrelationList:
+    """Correlation functions g_j given one by one, evaluated as a bank: ``bank(tau)`` → (J, N).
+
+    The tracer evaluates every channel of a contribution at once through a *bank*: a callable τ → (J, N)
+    with ``len(bank) == J``. A sensor gives one (:meth:`tofcore.modulation.Modulation.correlation_bank`,
+    one block per frequency); any other sequence of g_j(τ) is wrapped in this class.
+    """
+
+    functions: tuple[Correlation, ...]
+
+    def __len__(self) -> int:
+        return len(self.functions)
+
+    def __call__(self, tau):
+        return namespace(tau).stack([g_j(tau) for g_j in self.functions])
+
 # Sample dimensions: each decision of a path owns one (a pair of uniforms, or one).
 _DIM_PIXEL, _DIM_LENS = 0, 1  # 2-D: position in the pixel, on the lens
 
@@ -261,7 +279,7 @@ class _Context:
     led_axis: object            # (3,) world frame optical axis (+z of the sensor), device array
     leds: tuple[LED, ...]
     skip_first_shadow: np.ndarray  # (L,) bool: LED at the centre of a pinhole lens
-    correlations: tuple[Correlation, ...]
+    correlations: Callable      # bank: delays τ (N,) in seconds → (J, N) channels g_j(τ)
     n_channels: int             # J correlation channels summed per pixel
     ambient: Ambient | None
     max_depth: int
@@ -284,7 +302,7 @@ def trace(scene: Scene, camera: Camera, leds: Sequence[LED], **kwargs) -> Transp
 
 def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       world_from_sensor: np.ndarray | None = None,
-                      correlations: Sequence[Correlation] = (),
+                      correlations: Sequence[Correlation] | Callable = (),
                       ambient: Ambient | None = None,
                       spp: int = 16, max_depth: int = 5, seed: int = 0,
                       chunk_size: int | None = None, workers: int | None = None,
@@ -299,7 +317,8 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     ----------
     scene, camera, leds : what to render; LED positions are in the sensor frame.
     world_from_sensor : 4×4 pose (sensor frame = OpenCV: x right, y down, z forward); identity by default.
-    correlations : g_j(τ), τ in seconds, one per sensor bucket/phase image.
+    correlations : g_j(τ), τ in seconds, one per sensor bucket/phase image; or a bank τ → (J, N) of them
+        all with ``len`` J (:meth:`tofcore.modulation.Modulation.correlation_bank`, faster).
     ambient : background radiance; ``None`` or black skips all ambient work.
     spp : samples per pixel in total; max_depth : surface vertices per path (1 = direct only).
     seed : non-negative int; the same seed gives the same frame for any ``chunk_size``.
@@ -515,10 +534,14 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
             or not np.allclose(pose[3], [0, 0, 0, 1]):
         raise ConfigError("trace: world_from_sensor must be a rigid transform (rotation + translation, "
                           "no scale or shear; last row 0 0 0 1)")
-    correlations = tuple(correlations)
-    for j, g in enumerate(correlations):
-        if not callable(g):
-            raise ConfigError(f"trace: correlations[{j}] must be callable g(tau_s), got {type(g).__name__}")
+    if not callable(correlations):
+        correlations = CorrelationList(tuple(correlations))
+        for j, g in enumerate(correlations.functions):
+            if not callable(g):
+                raise ConfigError(f"trace: correlations[{j}] must be callable g(tau_s), got {type(g).__name__}")
+    elif not hasattr(correlations, "__len__"):
+        raise ConfigError(f"trace: a correlation bank must have len() (its channel count), "
+                          f"got {type(correlations).__name__}")
     bins = 0
     if transient_bin_m is not None:
         if not transient_bin_m > 0 or not transient_max_m or not transient_max_m > transient_bin_m:
@@ -688,7 +711,9 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
                 _add_transient(ctx, out, p0, p1, local_pixel, w, total_length)
             w_sum += w
             if n_corr:
-                wg_sum += w * _channels(ctx, total_length / SPEED_OF_LIGHT_M_S)
+                wg = ctx.correlations(total_length / SPEED_OF_LIGHT_M_S)
+                wg *= w
+                wg_sum += wg
         _accumulate(ctx, out, p0, p1, depth - 1, local_pixel, slot, w_sum, wg_sum, path_total)
 
         if depth == ctx.max_depth:
@@ -698,7 +723,9 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
             total_length = path_length + extra
             if ctx.transient_bins:
                 _add_transient(ctx, out, p0, p1, local_pixel, w, total_length)
-            wg = w * _channels(ctx, total_length / SPEED_OF_LIGHT_M_S) if n_corr else None
+            wg = ctx.correlations(total_length / SPEED_OF_LIGHT_M_S) if n_corr else None
+            if n_corr:
+                wg *= w
             _accumulate(ctx, out, p0, p1, depth, local_pixel, slot, w, wg, path_total)
         # Sample the BSDF for the next direction.
         u1, u2 = qmc.sample_2d(ctx.key, pixel, sample, _direction_dim(depth), ctx.sampler)
@@ -737,11 +764,6 @@ def _accumulate(ctx: _Context, out: Transport, p0: int, p1: int, k: int, local_p
         bins = (namespace(w).arange(n_corr)[:, None] * n_pix + local_pixel).ravel()
         out.correlation_sum[k, :, p0:p1] += scatter_sum(bins, wg.ravel(), n_corr * n_pix).reshape(n_corr, n_pix)
         path_total[1:n_corr + 1, slot] += wg
-
-
-def _channels(ctx: _Context, tau):
-    """(J, N) correlation channels g_j(τ) of delays τ (s)."""
-    return namespace(tau).stack([g_j(tau) for g_j in ctx.correlations])
 
 
 def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndarray, wo: np.ndarray,

@@ -73,6 +73,24 @@ def test_correlations_pickle_and_keep_shape():
     assert g[0](tau).shape == (3, 5) and g[0](tau).dtype == np.float64
 
 
+@pytest.mark.parametrize("modulation", [
+    Modulation(kind="cw_square", frequencies_hz=(80e6, 16e6, 120e6), phase_steps=(3, 3, 3)),
+    Modulation(kind="cw_square", frequencies_hz=(30e6, 20e6), phase_steps=(5, 3), duty_cycle=0.8),
+    Modulation(kind="cw_square", frequencies_hz=(30e6,), phase_steps=(4,), duty_cycle=0.3),
+    Modulation(kind="cw_sine", frequencies_hz=(80e6, 16e6), phase_steps=(4, 3)),
+    Modulation(kind="pulsed", pulse_width_s=50e-9, duty_cycle=0.2),
+], ids=["kinect", "square_d08", "square_d03", "sine", "pulsed"])
+def test_correlation_bank_equals_the_functions_bit_for_bit(modulation):
+    """The bank evaluates each frequency's steps as one block in place: the same values as the list of
+    g_j, over delays from 0 to 20 unambiguous ranges (wraps, negative phases, both pulse edges)."""
+    tau = np.random.default_rng(3).uniform(-5e-9, 20 * 2 * 18.8 / SPEED_OF_LIGHT_M_S, 10_001)
+    bank = modulation.correlation_bank()
+    expected = np.stack([g(tau) for g in modulation.correlations()])
+    assert len(bank) == modulation.raw_count == len(expected)
+    np.testing.assert_array_equal(bank(tau), expected)
+    np.testing.assert_array_equal(pickle.loads(pickle.dumps(bank))(tau[:5]), expected[:, :5])
+
+
 # ------------------------------------------------------------------ correlation against brute-force integration
 def _brute_force(tau_s, period_s, emitted, gate):
     """(1/T) ∫ m(t − τ) G(t) dt on a fine midpoint grid over one period (error ~ 1/steps)."""
