@@ -5,6 +5,12 @@ Renders the ``bench_peers`` frame (demo room, 9,800 triangles, 512 × 424, 16 sp
 (``TOFCORE_PARALLEL=threads``), each in a fresh subprocess, rounds alternating; prints frame time,
 speed-up over one worker, parallel efficiency and the worker processes' memory (private / shared).
 
+Where the efficiency goes: *setup* is the wall time before the first pass (first-hit buffers, shared
+memory, worker start-up); *busy* is the share of the workers' time after it spent tracing chunks (the
+rest waits at pass ends or in the parent); *work* is the CPU-seconds inside chunks relative to one
+worker's (above 1: each core traces slower when all are busy — shared caches, memory bandwidth, SMT
+siblings, lower turbo clocks). Efficiency ≈ (1 − setup share) × busy / work.
+
     .venv/bin/python bench/bench_scaling.py [--rounds 2] [--resolution 512x424] [--json out/bench_scaling.json]
 """
 
@@ -27,7 +33,7 @@ BENCH = Path(__file__).resolve().parent / "bench_transport.py"
 def frame(mode: str, workers: int, args) -> dict:
     env = dict(os.environ, TOFCORE_PARALLEL=mode)
     cmd = [sys.executable, str(BENCH), "--one", "10", "--spp", str(args.spp), "--resolution", args.resolution,
-           "--workers", str(workers)]
+           "--workers", str(workers)] + (["--progressive"] if args.progressive else [])
     out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -39,6 +45,7 @@ def main() -> int:
     ap.add_argument("--resolution", default="512x424")
     ap.add_argument("--max-workers", type=int, default=usable_cpus())
     ap.add_argument("--modes", default="processes,threads", help="comma list of processes, threads")
+    ap.add_argument("--progressive", action="store_true", help="passes of 1, 1, 2, 4, 8 spp (previews)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     counts = sorted({1, args.max_workers} | {2 ** k for k in range(1, 8) if 2 ** k <= args.max_workers})
@@ -53,15 +60,18 @@ def main() -> int:
     base = statistics.median(x["frame_s"] for x in runs[("processes", 1)])
     print(f"{args.resolution}, {args.spp} spp, room 9,800 triangles, path length 5; {usable_cpus()} usable CPUs; "
           f"median of {args.rounds}\n")
-    print("| workers | processes s | speed-up | efficiency | threads s | speed-up | worker memory MiB "
-          "(private / shared, each) |")
-    print("|---|---|---|---|---|---|---|")
+    work1 = statistics.median(x["chunk_s"] for x in runs[("processes", 1)])
+    print("| workers | processes s | speed-up | efficiency | setup s | busy | work | threads s | speed-up "
+          "| worker memory MiB (private / shared, each) |")
+    print("|---|---|---|---|---|---|---|---|---|---|")
     for w in counts:
         p = statistics.median(x["frame_s"] for x in runs[("processes", w)])
         t = statistics.median(x["frame_s"] for x in runs.get(("threads", w), [{"frame_s": float("nan")}]))
         mem = runs[("processes", w)][-1].get("worker_memory_mib") or []
         mem_text = ", ".join(f"{m.get('RssAnon', 0):.0f} / {m.get('RssShmem', 0):.0f}" for m in mem) or "–"
-        print(f"| {w} | {p:.1f} | {base / p:.2f}× | {base / p / w:.0%} | {t:.1f} | {base / t:.2f}× | {mem_text} |")
+        one = [x for x in runs[("processes", w)] if x["frame_s"] == p][0]
+        print(f"| {w} | {p:.1f} | {base / p:.2f}× | {base / p / w:.0%} | {one['setup_s']:.2f} | {one['busy']:.0%} "
+              f"| {one['chunk_s'] / work1:.2f} | {t:.1f} | {base / t:.2f}× | {mem_text} |")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps({f"{m} {w}": v for (m, w), v in runs.items()}, indent=1))

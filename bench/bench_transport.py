@@ -26,7 +26,8 @@ import time
 SIZES = {"10k": 10, "500k": 71, "1M": 101}
 
 
-def run_one(detail: int, spp: int, max_depth: int, width: int, height: int, workers: int | None = None) -> dict:
+def run_one(detail: int, spp: int, max_depth: int, width: int, height: int, workers: int | None = None,
+            progressive: bool = False) -> dict:
     import tofcore
     from tofcore.modulation import phasor_correlations
     from tofcore.workers import usable_cpus
@@ -39,7 +40,7 @@ def run_one(detail: int, spp: int, max_depth: int, width: int, height: int, work
     t = tofcore.trace(scene, camera, [tofcore.LED(position_m=(0.025, 0.0, 0.0))],
                       world_from_sensor=tofcore.suggested_pose(scene),
                       correlations=phasor_correlations([80e6]), spp=spp, max_depth=max_depth, seed=0,
-                      workers=workers)
+                      workers=workers, progressive=progressive)
     s = t.stats
     n_workers = workers or usable_cpus()
     return {
@@ -51,7 +52,8 @@ def run_one(detail: int, spp: int, max_depth: int, width: int, height: int, work
         "camera_rays_per_s": s.camera_rays / max(s.camera_seconds, 1e-9),
         "bounce_rays_per_s": s.bounce_rays / max(s.bounce_seconds, 1e-9),
         "shadow_rays_per_s": s.shadow_rays / max(s.shadow_seconds, 1e-9),
-        "workers": n_workers, "parallel": s.parallel,
+        "workers": n_workers, "parallel": s.parallel, "setup_s": s.setup_seconds, "chunk_s": s.chunk_seconds,
+        "busy": s.chunk_seconds / (n_workers * max(s.seconds - s.setup_seconds, 1e-9)),
         "bvh_share": (s.camera_seconds + s.bounce_seconds + s.shadow_seconds) / (s.seconds * n_workers),
         "peak_rss_mib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
         "worker_memory_mib": _worker_memory(),
@@ -84,11 +86,14 @@ def main() -> int:
     parser.add_argument("--max-depth", type=int, default=5, help="path length (default: 5)")
     parser.add_argument("--resolution", default="512x424", help="WxH (default: 512x424)")
     parser.add_argument("--workers", type=int, default=None, help="tracer worker processes (default: usable CPUs)")
+    parser.add_argument("--progressive", action="store_true",
+                        help="passes of 1, 1, 2, 4, 8, 16 spp (previews) instead of 16")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: run one detail level, print JSON
     args = parser.parse_args()
     width, height = (int(x) for x in args.resolution.split("x"))
     if args.one is not None:
-        print(json.dumps(run_one(args.one, args.spp, args.max_depth, width, height, args.workers)))
+        print(json.dumps(run_one(args.one, args.spp, args.max_depth, width, height, args.workers,
+                                    args.progressive)))
         return 0
     rows = []
     for size in args.sizes.split(","):

@@ -123,6 +123,8 @@ class TraceStats:
     camera_seconds: float = 0.0   # thread-seconds inside the BVH for each kind of ray
     bounce_seconds: float = 0.0
     shadow_seconds: float = 0.0
+    chunk_seconds: float = 0.0    # thread-seconds inside chunks (all tracing work, summed over workers)
+    setup_seconds: float = 0.0    # wall time before the first pass: first-hit buffers, sharing, worker start
     parallel: str = ""            # how chunks ran: "processes", "threads: <why>" or "one"
 
     @property
@@ -132,7 +134,7 @@ class TraceStats:
     def add(self, other: TraceStats) -> None:
         """Add the ray counters and BVH times of a chunk (not ``seconds`` or ``passes``)."""
         for key in ("camera_rays", "bounce_rays", "shadow_rays", "light_rays", "skipped_shadow_rays",
-                    "camera_seconds", "bounce_seconds", "shadow_seconds"):
+                    "camera_seconds", "bounce_seconds", "shadow_seconds", "chunk_seconds"):
             setattr(self, key, getattr(self, key) + getattr(other, key))
 
     def as_dict(self) -> dict:
@@ -141,7 +143,8 @@ class TraceStats:
                 "rays": self.rays, "seconds": self.seconds, "passes": self.passes,
                 "skipped_shadow_rays": self.skipped_shadow_rays,
                 "camera_seconds": self.camera_seconds, "bounce_seconds": self.bounce_seconds,
-                "shadow_seconds": self.shadow_seconds, "parallel": self.parallel,
+                "shadow_seconds": self.shadow_seconds, "chunk_seconds": self.chunk_seconds,
+                "setup_seconds": self.setup_seconds, "parallel": self.parallel,
                 "rays_per_second": self.rays / self.seconds if self.seconds > 0 else None}
 
 
@@ -293,8 +296,13 @@ class _Context:
 
 
 def trace(scene: Scene, camera: Camera, leds: Sequence[LED], **kwargs) -> Transport:
-    """Trace a whole frame; see :func:`trace_progressive` for the parameters."""
+    """Trace a whole frame; see :func:`trace_progressive` for the parameters.
+
+    Only the finished frame is wanted, so the passes are of 16 samples (``progressive=False``, fewer
+    waits for the slowest chunk) unless ``progressive`` is given.
+    """
     transport = None
+    kwargs.setdefault("progressive", False)
     for transport in trace_progressive(scene, camera, leds, **kwargs):
         pass
     return transport
@@ -368,6 +376,8 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     n_pix = camera.width * camera.height
     n_corr = ctx.n_channels
     stats = TraceStats()
+    # Start the worker processes first: they boot and import tofcore while this one traces the first hits.
+    why_not = _start_workers(workers) if workers > 1 and not dev.is_gpu else "one"
     transport = Transport(
         width=camera.width, height=camera.height, max_depth=max_depth, n_correlations=n_corr,
         sample_count=xp.zeros(n_pix, np.int64),
@@ -377,8 +387,9 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         transient_sum=xp.zeros((n_pix, ctx.transient_bins)) if ctx.transient_bins else None,
         transient_bin_m=ctx.transient_bin_m, stats=stats)
     done = np.zeros(n_pix, np.int64)  # host copy of transport.sample_count
-    shared, why_not = _share(ctx, transport, workers) if workers > 1 and not dev.is_gpu else (None, "")
-    stats.parallel = "processes" if shared is not None else f"threads: {why_not}" if workers > 1 else "one"
+    shared, why_not = (None, why_not) if why_not else _share(ctx, transport)
+    stats.parallel = "processes" if shared is not None else "one" if why_not == "one" else f"threads: {why_not}"
+    stats.setup_seconds = time.perf_counter() - start
     try:
         with ThreadPoolExecutor(max_workers=workers) as threads:
             for n_samples in pass_schedule(int(spp), progressive):
@@ -426,20 +437,26 @@ class _SharedTrace:
     counts: np.ndarray  # (P,) samples each pixel gets in this pass (shared view)
 
 
-def _share(ctx: _Context, transport: Transport, n_workers: int) -> tuple[_SharedTrace | None, str]:
-    """Put the context and the accumulators into shared memory; the transport then holds the shared views.
-
-    Returns (None, why) where worker processes cannot run this trace: no interpreter to start them
-    with, or a correlation function that does not pickle (a lambda: use ``functools.partial`` of a
-    module-level function, as :meth:`~tofcore.modulation.Modulation.correlations` does).
-    """
+def _start_workers(n_workers: int) -> str:
+    """Start (or reuse) the pool of ``n_workers`` processes; returns "" or why processes cannot run here
+    (no interpreter to start them with, a daemonic parent, ``TOFCORE_PARALLEL=threads``)."""
     possible, why = process_support()
     if not possible:
-        return None, why
+        return why
     try:
         workers.pool(n_workers)
     except Exception as exc:  # e.g. "daemonic processes are not allowed to have children", no fork/spawn here
-        return None, f"worker processes could not start ({type(exc).__name__}: {exc})"
+        return f"worker processes could not start ({type(exc).__name__}: {exc})"
+    return ""
+
+
+def _share(ctx: _Context, transport: Transport) -> tuple[_SharedTrace | None, str]:
+    """Put the context and the accumulators into shared memory; the transport then holds the shared views.
+
+    Returns (None, why) where worker processes cannot run this trace: a correlation function that does
+    not pickle (a lambda: use ``functools.partial`` of a module-level function, as
+    :meth:`~tofcore.modulation.Modulation.correlations` does) or no room in /dev/shm.
+    """
     n_pix = transport.width * transport.height
     first, counts = np.zeros(n_pix, np.int64), np.zeros(n_pix, np.int64)
     written = [getattr(transport, name) for name in _ACCUMULATORS if getattr(transport, name) is not None]
@@ -639,6 +656,7 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
     Writes only the pixels [p0, p1) of ``out``, so chunks can run in parallel threads or worker processes.
     Returns the chunk's ray counters.
     """
+    chunk_start = time.perf_counter()
     n_pix = p1 - p0
     n_corr = ctx.n_channels
     xp = ctx.device.xp
@@ -750,6 +768,7 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
                                                   n_rep * n_ch * n_pix).reshape(n_rep, n_ch, n_pix)
     if ctx.ambient is not None:
         out.ambient_sum[p0:p1] += scatter_sum(slot_pixel, path_total[-1], n_pix)
+    stats.chunk_seconds = time.perf_counter() - chunk_start
     return stats
 
 

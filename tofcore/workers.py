@@ -207,6 +207,12 @@ def _init_worker() -> None:
         return None
 
     resource_tracker.register = no_register  # type: ignore[assignment]
+    # Import the tracer now, while the parent traces the first hits, not on the first chunk. A failure
+    # here must not kill the worker (the pool would restart it forever): the first task reports it.
+    try:
+        import tofcore.transport  # noqa: F401
+    except Exception:
+        pass
 
 
 def _load(key: str, ref: tuple[str, int]):

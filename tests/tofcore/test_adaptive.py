@@ -168,7 +168,7 @@ def test_adaptive_trace_is_independent_of_chunk_size_and_counts_add_up():
     sums are the same bit for bit with chunks of about 301 paths (whole pixels, so the chunk boundaries
     move with every pass's allocation) as with one chunk."""
     scene, cam, kw = corner()
-    kw = dict(kw, spp=64, max_depth=3, seed=5, correlations=CORRELATIONS)
+    kw = dict(kw, spp=64, max_depth=3, seed=5, correlations=CORRELATIONS, progressive=True)
     log = []
     big = trace(scene, cam, LEDS, allocate=signal_error_allocator(log), **kw)
     small = trace(scene, cam, LEDS, allocate=signal_error_allocator(), chunk_size=301, **kw)
