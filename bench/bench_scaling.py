@@ -33,7 +33,8 @@ BENCH = Path(__file__).resolve().parent / "bench_transport.py"
 def frame(mode: str, workers: int, args) -> dict:
     env = dict(os.environ, TOFCORE_PARALLEL=mode)
     cmd = [sys.executable, str(BENCH), "--one", "10", "--spp", str(args.spp), "--resolution", args.resolution,
-           "--workers", str(workers)] + (["--progressive"] if args.progressive else [])
+           "--workers", str(workers)] + (["--progressive"] if args.progressive else []) \
+        + (["--chunk-size", str(args.chunk_size)] if args.chunk_size else [])
     out = subprocess.run(cmd, check=True, capture_output=True, text=True, env=env).stdout
     return json.loads(out.strip().splitlines()[-1])
 
@@ -46,6 +47,7 @@ def main() -> int:
     ap.add_argument("--max-workers", type=int, default=usable_cpus())
     ap.add_argument("--modes", default="processes,threads", help="comma list of processes, threads")
     ap.add_argument("--progressive", action="store_true", help="passes of 1, 1, 2, 4, 8 spp (previews)")
+    ap.add_argument("--chunk-size", type=int, help="paths per chunk (default: the tracer's)")
     ap.add_argument("--json", type=Path)
     args = ap.parse_args()
     counts = sorted({1, args.max_workers} | {2 ** k for k in range(1, 8) if 2 ** k <= args.max_workers})
@@ -60,7 +62,7 @@ def main() -> int:
     base = statistics.median(x["frame_s"] for x in runs[("processes", 1)])
     print(f"{args.resolution}, {args.spp} spp, room 9,800 triangles, path length 5; {usable_cpus()} usable CPUs; "
           f"median of {args.rounds}\n")
-    work1 = statistics.median(x["chunk_s"] for x in runs[("processes", 1)])
+    work1 = min(runs[("processes", 1)], key=lambda x: abs(x["frame_s"] - base))["chunk_s"]
     print("| workers | processes s | speed-up | efficiency | setup s | busy | work | threads s | speed-up "
           "| worker memory MiB (private / shared, each) |")
     print("|---|---|---|---|---|---|---|---|---|---|")
@@ -69,7 +71,7 @@ def main() -> int:
         t = statistics.median(x["frame_s"] for x in runs.get(("threads", w), [{"frame_s": float("nan")}]))
         mem = runs[("processes", w)][-1].get("worker_memory_mib") or []
         mem_text = ", ".join(f"{m.get('RssAnon', 0):.0f} / {m.get('RssShmem', 0):.0f}" for m in mem) or "–"
-        one = [x for x in runs[("processes", w)] if x["frame_s"] == p][0]
+        one = min(runs[("processes", w)], key=lambda x: abs(x["frame_s"] - p))  # the run nearest the median
         print(f"| {w} | {p:.1f} | {base / p:.2f}× | {base / p / w:.0%} | {one['setup_s']:.2f} | {one['busy']:.0%} "
               f"| {one['chunk_s'] / work1:.2f} | {t:.1f} | {base / t:.2f}× | {mem_text} |")
     if args.json:

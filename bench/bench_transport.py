@@ -27,7 +27,7 @@ SIZES = {"10k": 10, "500k": 71, "1M": 101}
 
 
 def run_one(detail: int, spp: int, max_depth: int, width: int, height: int, workers: int | None = None,
-            progressive: bool = False) -> dict:
+            progressive: bool = False, chunk_size: int | None = None) -> dict:
     import tofcore
     from tofcore.modulation import phasor_correlations
     from tofcore.workers import usable_cpus
@@ -40,7 +40,7 @@ def run_one(detail: int, spp: int, max_depth: int, width: int, height: int, work
     t = tofcore.trace(scene, camera, [tofcore.LED(position_m=(0.025, 0.0, 0.0))],
                       world_from_sensor=tofcore.suggested_pose(scene),
                       correlations=phasor_correlations([80e6]), spp=spp, max_depth=max_depth, seed=0,
-                      workers=workers, progressive=progressive)
+                      workers=workers, progressive=progressive, chunk_size=chunk_size)
     s = t.stats
     n_workers = workers or usable_cpus()
     return {
@@ -88,12 +88,13 @@ def main() -> int:
     parser.add_argument("--workers", type=int, default=None, help="tracer worker processes (default: usable CPUs)")
     parser.add_argument("--progressive", action="store_true",
                         help="passes of 1, 1, 2, 4, 8, 16 spp (previews) instead of 16")
+    parser.add_argument("--chunk-size", type=int, default=None, help="paths per chunk (default: the tracer's)")
     parser.add_argument("--one", type=int, help=argparse.SUPPRESS)  # internal: run one detail level, print JSON
     args = parser.parse_args()
     width, height = (int(x) for x in args.resolution.split("x"))
     if args.one is not None:
         print(json.dumps(run_one(args.one, args.spp, args.max_depth, width, height, args.workers,
-                                    args.progressive)))
+                                    args.progressive, args.chunk_size)))
         return 0
     rows = []
     for size in args.sizes.split(","):

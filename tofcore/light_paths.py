@@ -35,7 +35,7 @@ import numpy as np
 
 from . import qmc
 from .bsdf import eval_bsdf, eval_pdf_bsdf
-from .surface import Surface, dot, surface_at
+from .surface import Surface, dot, rotate, surface_at
 
 DIM_LED_CHOICE = 1_000_000   # 1-D sample dimension: which LED emits the light vertex
 DIM_EMISSION = 1_000_001     # 2-D: its emission direction
@@ -76,7 +76,7 @@ def trace_light_vertices(ctx, stats, pixel, sample) -> LightVertices:
         sel = xp.flatnonzero(led_index == i)
         local[sel] = led.sample_emission(u1[sel], u2[sel])
         pdf_dir[sel] = q[i] * led.emission_pdf(local[sel, 2])
-    direction = local @ ctx.rotation.T
+    direction = rotate(local, ctx.rotation)
     origin = ctx.led_positions[led_index]
     hits = ctx.scene.bvh.intersect(origin.astype(np.float32), direction.astype(np.float32), workers=1)
     stats.light_rays += n

@@ -54,7 +54,7 @@ from .light_paths import bsdf_strategy_weight, connect, led_probabilities, trace
 from .plan import leds_at_pinhole
 from .scene import Scene
 from .backend import namespace, scatter_sum
-from .surface import MaterialTable, Surface, dot, surface_at
+from .surface import MaterialTable, Surface, dot, rotate, surface_at
 from .workers import process_support, usable_cpus
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
@@ -625,7 +625,7 @@ def _first_hit(ctx: _Context, stats: TraceStats) -> FirstHit:
     """Trace the pixel-centre rays on the tracing device; the buffers come back as NumPy arrays."""
     xp = ctx.device.xp
     cam = ctx.camera
-    d = xp.asarray(cam.pixel_center_directions().reshape(-1, 3).astype(np.float64)) @ ctx.rotation.T
+    d = rotate(xp.asarray(cam.pixel_center_directions().reshape(-1, 3).astype(np.float64)), ctx.rotation)
     n = len(d)
     origin = xp.broadcast_to(ctx.lens_center, (n, 3))
     hits = ctx.scene.bvh.intersect(origin.astype(np.float32), d.astype(np.float32))
@@ -683,8 +683,8 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
     pixel_u, pixel_v = qmc.sample_2d(ctx.key, pixel, sample, _DIM_PIXEL, ctx.sampler)
     lens_u, lens_v = qmc.sample_2d(ctx.key, pixel, sample, _DIM_LENS, ctx.sampler)
     o_s, d_s = cam.generate_rays(pixel, pixel_u, pixel_v, lens_u, lens_v)
-    origin = o_s @ rot.T + ctx.lens_center                      # ray origins (offset off the surface after bounce 1)
-    direction = d_s @ rot.T                                     # unit ray directions, world frame
+    origin = rotate(o_s, rot) + ctx.lens_center                     # ray origins (offset off the surface after bounce 1)
+    direction = rotate(d_s, rot)                                # unit ray directions, world frame
     prev_point = origin                                         # true position of the previous vertex (lens point first)
 
     for depth in range(1, ctx.max_depth + 1):
@@ -797,13 +797,14 @@ def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndar
     wi_world = to_led / dist[:, None]
     cos_geo = dot(wi_world, surf.geometric_normal)
     cos_shading = dot(wi_world, surf.shading_normal)
-    intensity = led.intensity(-wi_world @ ctx.led_axis)
+    cos_axis = -dot(wi_world, ctx.led_axis[None, :])
+    intensity = led.intensity(cos_axis)
     f = eval_bsdf(surf.params, wo, surf.to_local(wi_world))
     w = throughput * f * np.maximum(cos_shading, 0.0) * intensity / dist**2
     w = np.where(cos_geo > 0, w, 0.0)
     if bsdf_area_pdf is not None:
         w = w * bsdf_strategy_weight(bsdf_area_pdf, prev_delta, led, float(ctx.led_probability[i]),
-                                     -wi_world @ ctx.led_axis, cos_geo, dist)
+                                     cos_axis, cos_geo, dist)
     test = np.flatnonzero(w > 0)
     if depth == 1 and ctx.skip_first_shadow[i]:
         stats.skipped_shadow_rays += len(test)
