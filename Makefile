@@ -9,9 +9,19 @@ VENV313   ?= .venv313
 
 .PHONY: demo test test-numpy2 bench venv clean addon
 
+# OpenCV comes as opencv-contrib-python-headless (cv2 with cv2.ximgproc). The plain builds (opencv-python-headless,
+# which an older venv has, or opencv-python) own the same cv2 folder: installed beside the contrib build, or
+# removed after it, they break cv2. Where one is present, both go, and the contrib build is installed anew.
+OPENCV_OTHERS := opencv-python-headless opencv-python opencv-contrib-python
+pip_names = $$($(1) -m pip show $(2) 2>/dev/null | sed -n 's/^Name: //p' | paste -sd ' ' -)
+drop_other_opencv = others="$(call pip_names,$(1),$(OPENCV_OTHERS))"; if [ -n "$$others" ]; then \
+	echo "$(1): replacing $$others by opencv-contrib-python-headless (one cv2)"; \
+	$(1) -m pip uninstall --quiet --yes $$others $(call pip_names,$(1),opencv-contrib-python-headless); fi
+
 $(VENV)/.installed: requirements-dev.txt pyproject.toml
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
+	@$(call drop_other_opencv,$(PY))
 	$(PY) -m pip install --quiet -r requirements-dev.txt
 	$(PY) -m pip install --quiet --no-deps -e .
 	touch $@
@@ -27,7 +37,8 @@ test: venv
 test-numpy2:
 	@if [ -z "$(PYTHON313)" ]; then echo "python3.13 not found: NumPy 2 check skipped"; else \
 	  [ -x $(VENV313)/bin/python ] || $(PYTHON313) -m venv $(VENV313); \
-	  $(VENV313)/bin/python -m pip install --quiet "numpy>=2" pytest opencv-python-headless "OpenEXR>=3.3" && \
+	  $(call drop_other_opencv,$(VENV313)/bin/python); \
+	  $(VENV313)/bin/python -m pip install --quiet "numpy>=2" pytest tqdm opencv-contrib-python-headless "OpenEXR>=3.3" && \
 	  $(VENV313)/bin/python -m pip install --quiet --no-deps -e . && \
 	  $(VENV313)/bin/python -m pytest -q -m "not slow" tests; fi
 

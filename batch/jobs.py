@@ -205,7 +205,7 @@ def _poses(scene: SceneSpec, set_path: str) -> list[tuple[str, np.ndarray]]:
 
 def inspect_blend_subprocess(path: str) -> BlendInfo:
     """Read cameras and frames of a .blend in a child process (this process must stay free of bpy)."""
-    cmd = [sys.executable, "-m", "batch.blend", "inspect", str(path)]
+    cmd = [sys.executable, "-m", f"{__package__}.blend", "inspect", str(path)]  # batch or tofcore_batch
     env = dict(os.environ)
     env["PYTHONPATH"] = os.pathsep.join([str(Path(__file__).resolve().parents[1])]
                                         + ([env["PYTHONPATH"]] if env.get("PYTHONPATH") else []))

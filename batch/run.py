@@ -47,6 +47,7 @@ from concurrent.futures.process import BrokenProcessPool
 from dataclasses import dataclass, field
 from typing import TextIO
 
+from tofcore.progress import tqdm_class, use_bar
 from tofcore.workers import usable_cpus
 
 from .card import dataset_card
@@ -295,23 +296,27 @@ def _device_tag(record: dict) -> str:
 
 
 class Progress:
-    """Frames done, failures, rate and ETA on stderr: a redrawn bar on a terminal, else one line per frame."""
+    """Frames done, failures, rate and ETA on stderr: a tqdm bar on a terminal, else one plain line per frame.
+
+    The bar (:func:`tofcore.progress.use_bar`: a terminal and tqdm installed) is made at the first frame or
+    heartbeat, so the run's opening lines come before it; failures are printed above it. In a log (a file
+    or pipe, ``blender -b`` output), without tqdm, or with ``quiet``: one line per frame, no carriage returns.
+    """
 
     def __init__(self, total: int, *, quiet: bool = False, stream: TextIO | None = None):
         self.total = total
         self.done = 0
         self.failed = 0
         self.stream = stream or sys.stderr
-        self.bar = not quiet and self.stream.isatty()
+        self.bar = not quiet and use_bar(self.stream)
         self.start = time.monotonic()
         self._last_draw = 0.0
+        self._tqdm = None
 
-    def _status(self) -> str:
+    def _rate(self) -> str:
         elapsed = time.monotonic() - self.start
         rate = self.done / elapsed * 60 if self.done and elapsed > 0 else 0.0
-        eta = (self.total - self.done) / (rate / 60) if rate > 0 else math.inf
-        return (f"{self.done}/{self.total} frames  {self.failed} failed  {rate:.2f} frames/min  "
-                f"elapsed {_duration(elapsed)}  ETA {_duration(eta) if self.done < self.total else '0s'}")
+        return f"{self.failed} failed, {rate:.2f} frames/min"
 
     def record(self, record: dict) -> None:
         self.done += 1
@@ -319,10 +324,9 @@ class Progress:
             self.failed += 1
         if self.bar:
             if record["status"] != "ok":
-                self._clear()
-                self.stream.write(f"FAILED {record['job_id']} {record['scene']}/{record['view']['label']}/"
-                                  f"{record['preset']}: {record['error']}\n")
-            self.draw(force=True)
+                self._write(f"FAILED {record['job_id']} {record['scene']}/{record['view']['label']}/"
+                            f"{record['preset']}: {record['error']}")
+            self.draw(force=True, step=1)
             return
         label = f"{record['scene']}/{record['view']['label']}/{record['preset']}"
         if record["status"] == "ok":
@@ -334,27 +338,37 @@ class Progress:
             self.stream.write(f"[{self.done}/{self.total}] FAILED  {record['job_id']} {label}: {record['error']}\n")
         self.stream.flush()
 
-    def _clear(self) -> None:
-        self.stream.write("\r\033[K")
+    def _write(self, line: str) -> None:
+        """A line above the bar."""
+        self._bar().write(line, file=self.stream)
 
-    def draw(self, force: bool = False) -> None:
+    def _bar(self):
+        if self._tqdm is None:
+            self._tqdm = tqdm_class()(total=self.total, unit="frame", file=self.stream, dynamic_ncols=True,
+                                      leave=True, mininterval=0.5, postfix=self._rate(),
+                                      bar_format="{l_bar}{bar}| {n_fmt}/{total_fmt} frames "
+                                                 "[{elapsed}<{remaining}{postfix}]")
+        return self._tqdm
+
+    def draw(self, force: bool = False, step: int = 0) -> None:
+        """Redraw the bar (``step`` frames more); between frames at most every 0.5 s (elapsed time moves on)."""
         if not self.bar:
             return
         now = time.monotonic()
         if not force and now - self._last_draw < 0.5:
             return
         self._last_draw = now
-        width = 30
-        filled = int(width * self.done / self.total) if self.total else width
-        self._clear()
-        self.stream.write(f"[{'#' * filled}{'-' * (width - filled)}] {self._status()}")
-        self.stream.flush()
+        bar = self._bar()
+        bar.set_postfix_str(self._rate(), refresh=False)
+        if step:
+            bar.update(step)
+        bar.refresh()
 
     def close(self) -> None:
-        if self.bar:
+        if self.bar and self.total:
             self.draw(force=True)
-            self.stream.write("\n")
-            self.stream.flush()
+            self._tqdm.close()
+        self._tqdm, self.bar = None, False
 
 
 # --------------------------------------------------------------------------- the run

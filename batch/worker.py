@@ -166,7 +166,7 @@ def _export_blend(path: str, *, camera: str | None, frame: int | None):
 
     with tempfile.TemporaryDirectory(prefix="tofbatch-export-") as tmp:
         out = Path(tmp) / "export.pickle"
-        cmd = [sys.executable, "-m", "batch.blend", "export", path, "--out", str(out)]
+        cmd = [sys.executable, "-m", f"{__package__}.blend", "export", path, "--out", str(out)]
         if camera is not None:
             cmd += ["--camera", camera]
         if frame is not None:

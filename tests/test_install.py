@@ -14,6 +14,7 @@ build or install failure is a packaging error and fails. About 20-30 s in all, m
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import re
@@ -182,3 +183,19 @@ def test_tofcore_batch_is_importable_and_ships_its_examples(run):
     examples, bare = _ok(run("python", "-c", code)).splitlines()
     assert examples == repr(sorted(p.name for p in (REPO / "batch" / "examples").glob("*.toml")))
     assert bare == "None", "the wheel must not install a top-level 'batch'"
+
+
+def test_installed_progress_and_blend_child_commands(run):
+    """tqdm comes with the wheel; in a log (stderr a pipe) the commands print plain lines; the .blend child
+    processes name tofcore_batch.blend (batch.blend does not exist in an installed copy)."""
+    _ok(run("python", "-c", "import tqdm"))
+    proc = run("tofcore", "render", "--scene", "corner", "--preset", "kinect_v2", "--spp", "2", "--max-depth", "1",
+               "--device", "cpu", "--formats", "json", "--out", "out")
+    _ok(proc)
+    assert "\r" not in proc.stderr and proc.stderr.startswith("pass 1: 2/2 spp"), proc.stderr
+    assert "wrote 1 files to out/" in proc.stdout
+    spec = importlib.util.spec_from_file_location("child_commands", REPO / "tests" / "batch" / "test_child_commands.py")
+    child = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(child)
+    lines = _ok(run("python", "-c", child.CHILD_COMMANDS, "tofcore_batch")).splitlines()
+    assert lines == ["tofcore_batch.blend inspect", "tofcore_batch.blend export"]

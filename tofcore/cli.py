@@ -12,12 +12,12 @@ from __future__ import annotations
 import argparse
 import signal
 import sys
-import time
 from pathlib import Path
 
 import numpy as np
 
 from .errors import TofError
+from .progress import PassProgress
 
 
 def _scene(name: str):
@@ -32,24 +32,6 @@ def _scene(name: str):
     if not path.is_file():
         raise TofError(f"--scene: file not found: {path}")
     return Scene.load(path)
-
-
-def _progress_bar(quiet: bool):
-    start = time.perf_counter()
-
-    def show(row: dict) -> None:
-        if quiet:
-            return
-        done = row["spp"] / row["spp_max"]
-        bar = "#" * int(30 * done) + "-" * (30 - int(30 * done))
-        err = row["est_depth_error_m"]
-        err_txt = f"{err * 1000:7.2f} mm" if err is not None else "      – mm"
-        eta = (time.perf_counter() - start) / done * (1 - done) if done > 0 else 0.0
-        sys.stderr.write(f"\r[{bar}] {row['spp']:4d}/{row['spp_max']} spp  est. error {err_txt}  "
-                         f"{row['seconds']:6.1f} s  ETA {eta:5.0f} s ")
-        sys.stderr.flush()
-
-    return show
 
 
 def _convergence_table(log: list[dict]) -> str:
@@ -92,12 +74,11 @@ def cmd_render(args: argparse.Namespace) -> int:
         print(f"estimator: sampler {args.sampler} in {REPLICATES} replicates, light vertices "
               f"{'on' if args.light_paths and args.max_depth >= 2 else 'off'}, adaptive sampling "
               f"{'on after 16 spp' if args.adaptive else 'off'}")
-    frame = render(scene, sensor, spp=args.spp, max_depth=args.max_depth, seed=args.seed,
-                   time_budget_s=args.time_budget, target_error_m=args.target_error, ambient=ambient,
-                   progress=_progress_bar(args.quiet), device=device, sampler=args.sampler,
-                   adaptive=args.adaptive, light_paths=args.light_paths)
-    if not args.quiet:
-        sys.stderr.write("\n")
+    with PassProgress(quiet=args.quiet) as progress:   # a tqdm bar on a terminal, plain lines in logs
+        frame = render(scene, sensor, spp=args.spp, max_depth=args.max_depth, seed=args.seed,
+                       time_budget_s=args.time_budget, target_error_m=args.target_error, ambient=ambient,
+                       progress=progress, device=device, sampler=args.sampler,
+                       adaptive=args.adaptive, light_paths=args.light_paths)
     files = write_frame(frame, args.out, formats=formats)
     stats = frame.stats
     if not args.quiet:

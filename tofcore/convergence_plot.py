@@ -103,7 +103,7 @@ def convergence_png(log: Iterable[Mapping] | None, *, width_px: int = 640, heigh
     else:
         if backend == "opencv" and cv2 is None:
             raise ImportError("convergence_png: backend 'opencv' needs OpenCV, which is not installed: "
-                              "pip install opencv-python-headless")
+                              "pip install opencv-contrib-python-headless")
         canvas = _CvCanvas(width_px, height_px) if backend == "opencv" else _NumpyCanvas(width_px, height_px)
         _draw_raster(canvas, curves)
         rgb = canvas.image

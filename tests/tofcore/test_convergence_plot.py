@@ -138,7 +138,7 @@ def test_bad_arguments_raise():
 
 def test_forced_backend_without_its_package_names_it(monkeypatch):
     monkeypatch.setattr(cp, "cv2", None)
-    with pytest.raises(ImportError, match="opencv-python-headless"):
+    with pytest.raises(ImportError, match="opencv-contrib-python-headless"):
         cp.convergence_png([], backend="opencv")
     monkeypatch.setattr(cp, "_MATPLOTLIB", [None])
     with pytest.raises(ImportError, match="pip install matplotlib"):

@@ -1,0 +1,129 @@
+"""Progress output (tofcore/progress.py) and the render command's progress: a tqdm bar on a terminal only,
+plain lines in logs (no carriage returns), nothing with --quiet, and tofcore working without tqdm."""
+
+from __future__ import annotations
+
+import io
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tofcore import progress as progress_module
+from tofcore.progress import PassProgress
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+class _Terminal(io.StringIO):
+    def isatty(self) -> bool:
+        return True
+
+
+def _rows(spp_max: int = 32, stop_at: int | None = None):
+    """Convergence-log rows of the pass schedule 1, 1, 2, 4, 8, 16, … up to ``spp_max`` (or ``stop_at``)."""
+    spp, size, n = 0, 1, 0
+    while spp < min(spp_max, stop_at or spp_max):
+        n += 1
+        spp += min(size, spp_max - spp)
+        if n > 1:
+            size = min(2 * size, 16)
+        yield {"pass": n, "spp": spp, "spp_max": spp_max, "seconds": 0.25 * n,
+               "est_depth_error_m": None if n < 3 else 0.02 / n}
+
+
+def test_plain_lines_in_a_log_one_per_pass():
+    log = io.StringIO()
+    with PassProgress(stream=log, plain_interval_s=0) as show:
+        for row in _rows(32):
+            show(row)
+    text = log.getvalue()
+    assert "\r" not in text and "\033" not in text
+    lines = text.splitlines()
+    assert len(lines) == 6 and lines[0] == "pass 1: 1/32 spp  est. error – mm  0.2 s  ETA 8 s"
+    assert lines[-1] == "pass 6: 32/32 spp  est. error 3.33 mm  1.5 s  ETA 0 s"
+
+
+def test_plain_lines_are_thinned_to_the_interval_and_the_last_pass_is_printed():
+    log = io.StringIO()
+    with PassProgress(stream=log, plain_interval_s=1e9) as show:    # stopped early (target error): 8 of 64 spp
+        for row in _rows(64, stop_at=8):
+            show(row)
+    assert [line.split(":")[0] for line in log.getvalue().splitlines()] == ["pass 1", "pass 4"]
+    assert "8/64 spp  est. error 5.00 mm" in log.getvalue()
+
+
+def test_quiet_prints_nothing_even_on_a_terminal():
+    terminal = _Terminal()
+    with PassProgress(stream=terminal, quiet=True) as show:
+        for row in _rows(8):
+            show(row)
+    assert terminal.getvalue() == ""
+
+
+def test_a_terminal_gets_a_tqdm_bar_with_the_estimated_error():
+    pytest.importorskip("tqdm")
+    terminal = _Terminal()
+    with PassProgress(stream=terminal) as show:
+        assert show.bar
+        for row in _rows(32):
+            show(row)
+    text = terminal.getvalue()
+    assert "\r" in text and "32/32" in text and "est. error 3.33 mm" in text and text.endswith("\n")
+
+
+def test_a_terminal_without_tqdm_gets_plain_lines(monkeypatch):
+    monkeypatch.setitem(sys.modules, "tqdm", None)          # import tqdm raises ImportError
+    assert progress_module.tqdm_class() is None
+    terminal = _Terminal()
+    with PassProgress(stream=terminal, plain_interval_s=0) as show:
+        assert not show.bar
+        for row in _rows(4):
+            show(row)
+    assert "\r" not in terminal.getvalue() and terminal.getvalue().count("\n") == 3
+
+
+def _render_cli(tmp_path: Path, *flags: str, python_code: str | None = None) -> subprocess.CompletedProcess:
+    args = ["render", "--scene", "corner", "--preset", "kinect_v2", "--spp", "4", "--max-depth", "1",
+            "--target-error", "1e-9", "--device", "cpu", "--formats", "json", "--out", str(tmp_path / "out"), *flags]
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO)] + ([os.environ["PYTHONPATH"]]
+                                                                      if os.environ.get("PYTHONPATH") else [])))
+    cmd = [sys.executable, "-m", "tofcore", *args] if python_code is None else \
+        [sys.executable, "-c", python_code, *args]
+    return subprocess.run(cmd, cwd=tmp_path, env=env, capture_output=True, text=True, timeout=240)
+
+
+def test_render_command_logs_plain_lines_when_stderr_is_not_a_terminal(tmp_path):
+    proc = _render_cli(tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "\r" not in proc.stderr and "\r" not in proc.stdout
+    lines = proc.stderr.splitlines()
+    assert lines[0].startswith("pass 1: 1/4 spp  est. error ") and lines[-1].startswith("pass 3: 4/4 spp")
+    # The summary the command prints at the end is kept.
+    assert "| pass | spp | seconds | est. depth error mm |" in proc.stdout
+    assert "wrote 1 files to" in proc.stdout and "RMS depth error vs ground truth" in proc.stdout
+
+
+def test_render_command_quiet_prints_nothing(tmp_path):
+    proc = _render_cli(tmp_path, "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    assert (proc.stdout, proc.stderr) == ("", "")
+    assert (tmp_path / "out" / "frame.json").is_file()
+
+
+def test_tofcore_renders_without_tqdm_and_never_imports_it(tmp_path):
+    """Blender's Python has no tqdm: the package, the render and the command line work without it."""
+    code = ("import sys; sys.modules['tqdm'] = None\n"          # any import of tqdm now raises ImportError
+            "import tofcore, tofcore.cli\n"
+            "frame = tofcore.render(tofcore.demo_scene('corner'), tofcore.load_preset('kinect_v2'), spp=1, max_depth=1)\n"
+            "sys.exit(tofcore.cli.main(sys.argv[1:]))\n")
+    proc = _render_cli(tmp_path, python_code=code)
+    assert proc.returncode == 0, proc.stderr
+    assert "\r" not in proc.stderr and proc.stderr.startswith("pass 1: 1/4 spp")
+    code = ("import sys, tofcore, tofcore.cli, tofcore.progress\n"
+            "tofcore.render(tofcore.demo_scene('corner'), tofcore.load_preset('kinect_v2'), spp=1, max_depth=1)\n"
+            "assert 'tqdm' not in sys.modules, 'tofcore imported tqdm'\n")
+    proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=240)
+    assert proc.returncode == 0, proc.stderr
