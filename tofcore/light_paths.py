@@ -35,7 +35,7 @@ import numpy as np
 
 from . import qmc
 from .bsdf import eval_bsdf, eval_pdf_bsdf
-from .surface import Surface, dot, rotate, surface_at
+from .surface import Surface, dot, leaving, rotate, shadow_ray, surface_at
 
 DIM_LED_CHOICE = 1_000_000   # 1-D sample dimension: which LED emits the light vertex
 DIM_EMISSION = 1_000_001     # 2-D: its emission direction
@@ -78,7 +78,7 @@ def trace_light_vertices(ctx, stats, pixel, sample) -> LightVertices:
         pdf_dir[sel] = q[i] * led.emission_pdf(local[sel, 2])
     direction = rotate(local, ctx.rotation)
     origin = ctx.led_positions[led_index]
-    hits = ctx.scene.bvh.intersect(origin.astype(np.float32), direction.astype(np.float32), workers=1)
+    hits = ctx.scene.bvh.intersect(leaving(origin, direction, ctx.offset_scale), direction.astype(np.float32), workers=1)
     stats.light_rays += n
     hit = xp.flatnonzero((hits.prim >= 0) & (pdf_dir > 0))
     row = xp.full(n, -1, np.int64)
@@ -92,7 +92,10 @@ def trace_light_vertices(ctx, stats, pixel, sample) -> LightVertices:
     with np.errstate(divide="ignore", invalid="ignore"):
         emitted = np.where(cos_geo > 0, power / xp.asarray(np.where(q > 0, q, 1.0))[led_index[hit]]
                            * cos_shading / cos_geo, 0.0)
-    pdf_area = pdf_dir[hit] * np.abs(cos_geo) / led_distance**2
+    # An LED on (or behind) the surface it lights has no light vertex there: nothing leaves it that way.
+    away = led_distance > ctx.offset_scale
+    emitted = np.where(away, emitted, 0.0)
+    pdf_area = np.where(away, pdf_dir[hit] * np.abs(cos_geo) / np.where(away, led_distance, 1.0)**2, 0.0)
     return LightVertices(row=row, surface=surf, prim=hits.prim[hit], to_led=to_led, led_distance=led_distance,
                          emitted=emitted, pdf_area=pdf_area)
 
@@ -133,8 +136,7 @@ def connect(ctx, stats, light: LightVertices, slot, surf: Surface, spawn, wo, pr
     if len(test):
         clock = time.perf_counter()
         # Stop short of y by a few ray offsets, so y's own surface does not occlude it.
-        blocked = ctx.scene.bvh.occluded(spawn[sel[test]].astype(np.float32), w_xy[test].astype(np.float32),
-                                         (dist[test] - 4.0 * ctx.offset_scale).astype(np.float32),
+        blocked = ctx.scene.bvh.occluded(*shadow_ray(spawn[sel[test]], y.position[test], 4.0 * ctx.offset_scale),
                                          ignore_prim=prim[sel[test]], workers=1)
         stats.shadow_rays += len(test)
         stats.shadow_seconds += time.perf_counter() - clock

@@ -3,13 +3,19 @@
 ==================  ===========  =======  ==========================================================
 array               shape        dtype    meaning
 ==================  ===========  =======  ==========================================================
-``vertices``        (N, 3)       float32  positions, metres, world frame (right-handed, Z up)
+``vertices``        (N, 3)       float32  positions, metres, scene frame = world frame − ``origin_m``
 ``triangles``       (M, 3)       int32    vertex indices, counter-clockwise seen from the front
 ``material_ids``    (M,)         int32    index into ``materials`` per triangle
 ``object_ids``      (M,)         int32    which object a triangle belongs to (ground-truth ids)
 ``normals``         (N, 3)       float32  optional vertex normals for smooth shading
 ``uvs``             (N, 2)       float32  optional texture coordinates
 ==================  ===========  =======  ==========================================================
+
+The scene frame is the world frame (right-handed, Z up) shifted by ``origin_m`` (float64, metres): a
+scene built from coordinates more than :data:`RECENTRE_BEYOND_M` from the world origin is stored about a
+whole-metre point near its centre, because float32 vertices there would lose the sub-millimetre
+resolution ToF needs (1e5 m from the origin, float32 steps are 7.8 mm). The tracer works in the scene
+frame (poses are shifted by ``origin_m``); everything it returns is in world or sensor coordinates.
 
 Surfaces are two-sided and opaque. :meth:`Scene.from_arrays` validates the
 arrays (a :class:`~tofcore.errors.SceneError` names the array and the first
@@ -34,6 +40,10 @@ from .material import Material, Texture
 FORMAT_VERSION = 1
 """Version of the ``.npz`` layout written by :meth:`Scene.save`."""
 
+RECENTRE_BEYOND_M = 1000.0
+"""Geometry whose bounding box reaches farther than this from the world origin is stored relative to
+``origin_m`` (float32 resolution at 1 km: 61 µm)."""
+
 
 def _first_bad(mask: np.ndarray) -> int:
     return int(np.flatnonzero(mask.reshape(len(mask), -1).any(axis=1))[0])
@@ -54,13 +64,17 @@ class Scene:
     dropped_triangles: int = 0
     name: str = "scene"
     metadata: dict = field(default_factory=dict)
+    origin_m: tuple[float, float, float] = (0.0, 0.0, 0.0)  # world position of the scene frame's origin
 
     # ------------------------------------------------------------------ build
     @classmethod
     def from_arrays(cls, vertices, triangles, material_ids=None, materials=None, *,
                     object_ids=None, normals=None, uvs=None, object_names=(), name: str = "scene",
-                    metadata: dict | None = None) -> Scene:
+                    metadata: dict | None = None, origin_m=None) -> Scene:
         """Validate arrays and build a scene.
+
+        ``vertices`` are world coordinates, or scene-frame coordinates when ``origin_m`` is given (a saved
+        scene). Without ``origin_m``, geometry reaching beyond :data:`RECENTRE_BEYOND_M` is recentred.
 
         Raises
         ------
@@ -69,7 +83,7 @@ class Scene:
             empty scene; the message names the array and the first bad index.
         """
         where = f"Scene {name!r}"
-        vertices = _as_array(vertices, np.float32, (None, 3), f"{where}: vertices")
+        vertices = _as_array(vertices, np.float64, (None, 3), f"{where}: vertices")
         triangles = _as_array(triangles, np.int64, (None, 3), f"{where}: triangles")
         n_vert, n_tri = len(vertices), len(triangles)
         if n_tri == 0:
@@ -107,6 +121,8 @@ class Scene:
         if needs_uv and uvs is None:
             raise SceneError(f"{where}: uvs are required by the textured materials {needs_uv}")
 
+        origin = _origin(vertices, triangles, origin_m, where)
+        vertices = (vertices if origin_m is not None else vertices - origin).astype(np.float32)
         keep = ~_degenerate(vertices, triangles)
         dropped = int(n_tri - keep.sum())
         if not keep.any():
@@ -114,7 +130,7 @@ class Scene:
         return cls(vertices=vertices, triangles=triangles[keep].astype(np.int32),
                    material_ids=material_ids[keep], object_ids=object_ids[keep], materials=materials,
                    normals=normals, uvs=uvs, object_names=tuple(object_names), dropped_triangles=dropped,
-                   name=name, metadata=dict(metadata or {}))
+                   name=name, metadata=dict(metadata or {}), origin_m=tuple(float(x) for x in origin))
 
     # ------------------------------------------------------- derived geometry
     @property
@@ -131,7 +147,8 @@ class Scene:
 
     @cached_property
     def bounds(self) -> tuple[np.ndarray, np.ndarray]:
-        """Axis-aligned bounds (lo, hi) of the referenced vertices, metres."""
+        """Axis-aligned bounds (lo, hi) of the referenced vertices, metres, scene frame (add ``origin_m``
+        for world coordinates)."""
         used = self.vertices[np.unique(self.triangles)]
         return used.min(axis=0), used.max(axis=0)
 
@@ -154,7 +171,8 @@ class Scene:
             "header": np.array(json.dumps({
                 "name": self.name, "object_names": list(self.object_names),
                 "materials": [m.to_dict() for m in self.materials],
-                "dropped_triangles": self.dropped_triangles, "metadata": self.metadata})),
+                "dropped_triangles": self.dropped_triangles, "metadata": self.metadata,
+                "origin_m": list(self.origin_m)})),
         }
         if self.normals is not None:
             arrays["normals"] = self.normals
@@ -198,7 +216,8 @@ class Scene:
                 object_ids=data["object_ids"],
                 normals=data["normals"] if "normals" in data else None,
                 uvs=data["uvs"] if "uvs" in data else None,
-                object_names=header["object_names"], name=header["name"], metadata=header["metadata"])
+                object_names=header["object_names"], name=header["name"], metadata=header["metadata"],
+                origin_m=header.get("origin_m", (0.0, 0.0, 0.0)))
 
 
 def _as_array(values, dtype, shape, where: str) -> np.ndarray:
@@ -228,6 +247,21 @@ def _per_triangle(values, n_tri: int, n_valid: int | None, where: str) -> np.nda
         i = int(np.flatnonzero(bad)[0])
         raise SceneError(f"{where}: must be in [0, {hi}), got {int(arr[i])} at triangle {i}")
     return arr.astype(np.int32)
+
+
+def _origin(vertices: np.ndarray, triangles: np.ndarray, origin_m, where: str) -> np.ndarray:
+    """The scene frame's origin in world coordinates: ``origin_m`` when given, else a whole-metre point
+    at the centre of geometry that reaches beyond :data:`RECENTRE_BEYOND_M`, else 0."""
+    if origin_m is not None:
+        origin = np.asarray(origin_m, dtype=np.float64)
+        if origin.shape != (3,) or not np.isfinite(origin).all():
+            raise SceneError(f"{where}: origin_m must be 3 finite numbers (metres), got {origin_m!r}")
+        return origin
+    used = vertices[np.unique(triangles)]
+    lo, hi = used.min(axis=0), used.max(axis=0)
+    if np.max(np.abs(np.concatenate([lo, hi]))) <= RECENTRE_BEYOND_M:
+        return np.zeros(3)
+    return np.round(0.5 * (lo + hi))
 
 
 def _degenerate(vertices: np.ndarray, triangles: np.ndarray) -> np.ndarray:

@@ -73,6 +73,30 @@ def rotate(v: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     return v[:, 0:1] * rotation[:, 0] + v[:, 1:2] * rotation[:, 1] + v[:, 2:3] * rotation[:, 2]
 
 
+def leaving(origin: np.ndarray, direction: np.ndarray, offset_m: float) -> np.ndarray:
+    """float32 ray origins moved ``offset_m`` along their rays, for rays that start at the lens or an LED
+    rather than on a surface: a camera or LED mounted flush with a wall does not hit that wall at t ≈ 0.
+
+    Only the intersection query starts there: path lengths are measured from the true point, and
+    :func:`surface_at` gets the true origin.
+    """
+    return (origin + offset_m * direction).astype(np.float32)
+
+
+def shadow_ray(spawn: np.ndarray, target: np.ndarray, margin_m: float):
+    """float32 (origins, unit directions, t_max) of shadow rays from ``spawn`` that stop ``margin_m`` short
+    of ``target`` (an LED, or a light vertex on a surface).
+
+    Aimed and measured from the spawn point itself, not from the surface point it was offset from: the
+    surface at the target (an LED mounted flush with a wall, the light vertex's own triangle) then lies
+    at t = |target − spawn|, a full margin beyond t_max whatever the angle of arrival.
+    """
+    to_target = target - spawn
+    length = np.linalg.norm(to_target, axis=1)
+    direction = to_target / np.where(length > 0, length, 1.0)[:, None]
+    return spawn.astype(np.float32), direction.astype(np.float32), (length - margin_m).astype(np.float32)
+
+
 def _normalize(v: np.ndarray) -> np.ndarray:
     return v / np.linalg.norm(v, axis=1, keepdims=True)
 

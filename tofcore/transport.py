@@ -54,7 +54,7 @@ from .light_paths import bsdf_strategy_weight, connect, led_probabilities, trace
 from .plan import leds_at_pinhole
 from .scene import Scene
 from .backend import namespace, scatter_sum
-from .surface import MaterialTable, Surface, dot, rotate, surface_at
+from .surface import MaterialTable, Surface, dot, leaving, rotate, shadow_ray, surface_at
 from .workers import process_support, usable_cpus
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
@@ -275,11 +275,11 @@ class _Context:
     table: MaterialTable        # the scene's arrays on the tracing device
     camera: Camera
     device: backend.Device      # where the wavefront runs; xp = device.xp
-    world_from_sensor: np.ndarray  # 4×4 host pose
+    world_from_sensor: np.ndarray  # 4×4 host pose, world frame
     rotation: object            # (3, 3) world_from_sensor rotation, device array
-    lens_center: object         # (3,) world frame, device array
-    led_positions: object       # (L, 3) world frame, device array
-    led_axis: object            # (3,) world frame optical axis (+z of the sensor), device array
+    lens_center: object         # (3,) scene frame (world − scene.origin_m, where the tracer works), device array
+    led_positions: object       # (L, 3) scene frame, device array
+    led_axis: object            # (3,) optical axis (+z of the sensor), device array
     leds: tuple[LED, ...]
     skip_first_shadow: np.ndarray  # (L,) bool: LED at the centre of a pinhole lens
     correlations: Callable      # bank: delays τ (N,) in seconds → (J, N) channels g_j(τ)
@@ -566,14 +566,15 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
                               f"got {transient_bin_m!r} and {transient_max_m!r}")
         bins = int(np.ceil(transient_max_m / transient_bin_m))
     positions = np.array([x.position_m for x in leds])
-    led_world = positions @ rot.T + pose[:3, 3]
+    lens_scene = pose[:3, 3] - np.asarray(scene.origin_m)  # the tracer works in the scene frame
+    led_scene = positions @ rot.T + lens_scene
     lo, hi = scene.bounds
-    extent = float(np.max(np.abs(np.concatenate([lo, hi, pose[:3, 3]]))))
+    extent = float(np.max(np.abs(np.concatenate([lo, hi, lens_scene]))))
     xp = device.xp
     return _Context(
         scene=scene, table=MaterialTable(scene, xp), camera=camera, device=device, world_from_sensor=pose,
-        rotation=xp.asarray(rot), lens_center=xp.asarray(pose[:3, 3]),
-        led_positions=xp.asarray(led_world), led_axis=xp.asarray(rot[:, 2]), leds=leds,
+        rotation=xp.asarray(rot), lens_center=xp.asarray(lens_scene),
+        led_positions=xp.asarray(led_scene), led_axis=xp.asarray(rot[:, 2]), leds=leds,
         skip_first_shadow=leds_at_pinhole(camera, leds),
         correlations=correlations, n_channels=len(correlations),
         ambient=None if ambient is None or ambient.is_black else ambient,
@@ -628,7 +629,7 @@ def _first_hit(ctx: _Context, stats: TraceStats) -> FirstHit:
     d = rotate(xp.asarray(cam.pixel_center_directions().reshape(-1, 3).astype(np.float64)), ctx.rotation)
     n = len(d)
     origin = xp.broadcast_to(ctx.lens_center, (n, 3))
-    hits = ctx.scene.bvh.intersect(origin.astype(np.float32), d.astype(np.float32))
+    hits = ctx.scene.bvh.intersect(leaving(origin, d, ctx.offset_scale), d.astype(np.float32))
     stats.camera_rays += n
     hit = hits.prim >= 0
     distance = xp.full(n, np.nan)
@@ -639,7 +640,7 @@ def _first_hit(ctx: _Context, stats: TraceStats) -> FirstHit:
     if hit.any():
         surf = surface_at(ctx.scene, ctx.table, hits.prim[hit], hits.u[hit], hits.v[hit], origin[hit], d[hit])
         distance[hit] = xp.linalg.norm(surf.position - ctx.lens_center, axis=1)
-        position[hit] = surf.position
+        position[hit] = surf.position + xp.asarray(ctx.scene.origin_m)  # world frame
         normal[hit] = surf.geometric_normal
         material[hit] = ctx.table.material_ids[hits.prim[hit]]
         obj[hit] = ctx.table.object_ids[hits.prim[hit]]
@@ -689,8 +690,8 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
 
     for depth in range(1, ctx.max_depth + 1):
         clock = time.perf_counter()
-        hits = ctx.scene.bvh.intersect(origin.astype(np.float32), direction.astype(np.float32),
-                                       ignore_prim=prev_prim, workers=1)
+        query = leaving(origin, direction, ctx.offset_scale) if depth == 1 else origin.astype(np.float32)
+        hits = ctx.scene.bvh.intersect(query, direction.astype(np.float32), ignore_prim=prev_prim, workers=1)
         if depth == 1:
             stats.camera_rays += len(slot)
             stats.camera_seconds += time.perf_counter() - clock
@@ -810,8 +811,7 @@ def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndar
         stats.skipped_shadow_rays += len(test)
     elif len(test):
         clock = time.perf_counter()
-        blocked = ctx.scene.bvh.occluded(spawn[test].astype(np.float32), wi_world[test].astype(np.float32),
-                                         (dist[test] - ctx.offset_scale).astype(np.float32),
+        blocked = ctx.scene.bvh.occluded(*shadow_ray(spawn[test], ctx.led_positions[i], ctx.offset_scale),
                                          ignore_prim=prim[test], workers=1)
         stats.shadow_rays += len(test)
         stats.shadow_seconds += time.perf_counter() - clock

@@ -1,0 +1,98 @@
+"""Where the scene and sensor sit must not change the light transport (issue 12, class 4).
+
+Before: a room 1e5 m from the world origin lost its geometry to float32 (7.8 mm steps) and its
+multipath to a ray offset of 1.7 m (the offset scaled with the distance from the origin); a camera and
+LED mounted flush with a wall left 48 % of the pixels without signal (shadow rays to an LED in the
+wall plane hit the wall, the lens's own wall was hit at t = 0, light vertices at distance 0 gave
+non-finite raw images). Now the scene is stored about its own origin (``Scene.origin_m``), and rays
+leaving the lens or an LED, and shadow rays, are measured from where they start.
+"""
+
+import numpy as np
+import pytest
+
+import tofcore
+from tofcore import LED, Camera, Scene
+from tofcore.modulation import phasor_correlations
+from tofcore.pose import look_at
+from tofcore.scene import RECENTRE_BEYOND_M
+
+ROOM = tofcore.demo_scene("room", detail=2)
+CAMERA = Camera.from_fov(48, 40, 70.0, 60.0)
+LEDS = [LED(position_m=(-0.025, 0.0, 0.0), kind="lambertian")]
+POSE = look_at((0.0, -1.8, 1.6), (0.0, 1.0, 0.8))
+
+
+def moved(scene: Scene, scale: float, offset) -> Scene:
+    return Scene.from_arrays(scene.vertices.astype(np.float64) * scale + offset, scene.triangles,
+                             scene.material_ids, scene.materials, object_ids=scene.object_ids)
+
+
+def per_bounce(scene, pose, leds=LEDS, **kw):
+    t = tofcore.trace(scene, CAMERA, leds, world_from_sensor=pose, spp=4, max_depth=3, workers=1, seed=3,
+                      correlations=phasor_correlations([80e6]), **kw)
+    return t, t.signal_per_bounce().reshape(3, -1).sum(axis=1)
+
+
+@pytest.mark.parametrize("offset_m", [1e3, 1e4, 1e5, 1e6, -3e5])
+def test_far_from_the_origin_the_room_renders_as_at_the_origin(offset_m):
+    """Direct light, 2nd and 3rd bounce and the first-hit distances agree with the room at the origin
+    to 1e-4 (same samples; only float rounding of the recentred vertices differs)."""
+    offset = np.array([offset_m, -0.5 * offset_m, 0.25 * offset_m])
+    far = moved(ROOM, 1.0, offset)
+    assert np.abs(np.asarray(far.origin_m) - offset).max() < 3.0  # stored about a point near its centre
+    pose = POSE.copy()
+    pose[:3, 3] += offset
+    t0, near_sums = per_bounce(ROOM, POSE)
+    t1, far_sums = per_bounce(far, pose)
+    np.testing.assert_allclose(far_sums, near_sums, rtol=1e-4)
+    assert near_sums[1:].sum() / near_sums.sum() > 0.2  # there is multipath to lose
+    np.testing.assert_allclose(t1.first_hit.distance_m, t0.first_hit.distance_m, rtol=0, atol=1e-6)
+    # World positions come back in the world frame.
+    np.testing.assert_allclose(t1.first_hit.position_m - offset, t0.first_hit.position_m, atol=0.05)
+
+
+def test_recentring_only_beyond_the_threshold_and_saved_with_the_scene(tmp_path):
+    assert ROOM.origin_m == (0.0, 0.0, 0.0)
+    near = moved(ROOM, 1.0, np.array([0.5 * RECENTRE_BEYOND_M, 0.0, 0.0]))
+    assert near.origin_m == (0.0, 0.0, 0.0)
+    far = moved(ROOM, 1.0, np.array([2e5, 1e5, 0.0]))
+    assert far.origin_m[0] == 2e5 and far.origin_m[1] == 1e5
+    assert np.abs(far.vertices).max() < 10.0  # float32 scene-frame coordinates, µm resolution
+    again = Scene.load(far.save(tmp_path / "far.npz"))
+    assert again.origin_m == far.origin_m
+    np.testing.assert_array_equal(again.vertices, far.vertices)
+
+
+@pytest.mark.parametrize("scale", [0.01, 100.0])
+def test_scaled_rooms_keep_their_multipath_share(scale):
+    """A room 100× smaller (5 cm) or larger (500 m), sensor and LED scaled with it: the share of light
+    after one and two bounces is that of the room (irradiance scales as 1/scale², ratios do not)."""
+    leds = [LED(position_m=tuple(scale * np.array(LEDS[0].position_m)), kind="lambertian")]
+    pose = POSE.copy()
+    pose[:3, 3] *= scale
+    _, base = per_bounce(ROOM, POSE)
+    _, sums = per_bounce(moved(ROOM, scale, 0.0), pose, leds=leds)
+    np.testing.assert_allclose(sums / sums.sum(), base / base.sum(), rtol=1e-3)
+
+
+@pytest.mark.parametrize("light_paths", [False, True])
+def test_camera_and_led_flush_with_a_wall(light_paths):
+    """Lens and LED exactly in the back wall's plane (y = −2 m) give the light of a sensor 0.1 mm in
+    front of it: no pixel lost, nothing non-finite."""
+    sums = {}
+    for y in (-2.0, -1.9999):
+        pose = look_at((0.0, y, 1.6), (0.0, 1.0, 1.6))
+        t, sums[y] = per_bounce(ROOM, pose, light_paths=light_paths)
+        assert np.isfinite(t.correlation_sum).all() and np.isfinite(t.replicate_sum).all()
+        assert (t.signal().ravel() > 0).mean() > 0.99
+    np.testing.assert_allclose(sums[-2.0], sums[-1.9999], rtol=2e-3)
+
+
+def test_render_flush_with_a_wall_gives_a_finite_frame():
+    """The whole pipeline (noise, decoding): before, the raw images were non-finite and render raised."""
+    sensor = tofcore.load_preset("kinect_v2").replace(camera=CAMERA)
+    frame = tofcore.render(ROOM, sensor, look_at((0.0, -2.0, 1.6), (0.0, 1.0, 1.6)), spp=4, max_depth=2,
+                           workers=1, adaptive=False)
+    assert np.isfinite(frame.raw).all()
+    assert frame.valid.mean() > 0.5
