@@ -228,6 +228,12 @@ def prepare_render(context, report, *, preview: bool = False) -> RenderJob | Non
     out_dir, formats = None, ()
     if preview:
         quality.update(spp=int(settings.preview_spp), time_budget_s=None, target_error_m=None)
+    try:  # resource limits (tofcore.limits) before the scene is exported or anything allocated
+        tofcore.limits.check_render(sensor, max_depth=quality["max_depth"], spp=quality["spp"],
+                                    where=f"Camera {camera_obj.name!r}")
+    except tofcore.ConfigError as err:
+        report({'ERROR'}, str(err))
+        return None
     else:
         out_dir = output_folder(settings.output_dir) if settings.output_dir.strip() else None
         formats = tuple(f for f in sensors.FORMATS if f in settings.formats)

@@ -86,8 +86,8 @@ class Limit:
 
 MAX_PIXELS = Limit(
     "max_pixels", "TOFCORE_MAX_PIXELS", 4096 * 4096, "pixels",
-    "a camera builds per-pixel tables when it is made (distortion: 40 B/pixel) and a render holds "
-    "kilobytes per pixel; 4096 x 4096 is 30x the largest preset")
+    "a camera with distortion checks its inverse at every pixel when it is made (~200 B/pixel) and a "
+    "render holds kilobytes per pixel; 4096 x 4096 is 77x the largest preset (512 x 424)")
 MAX_RAW_IMAGES = Limit(
     "max_raw_images", "TOFCORE_MAX_RAW_IMAGES", 64, "raw images",
     "every raw image is a per-pixel, per-bounce accumulator; real sensors take 2 to 12")
@@ -152,3 +152,7 @@ def check_render(sensor, *, max_depth: int, where: str, spp: int | None = None) 
 #: factor at most 1e30 the product stays below ~1e110, far inside float64 (1.8e308), so no setting can
 #: overflow the radiometric chain into inf/NaN deep inside a render.
 MAX_MAGNITUDE = 1e30
+
+#: Largest preset or set file read (TOML text); not adjustable: real ones are a few kilobytes, and a path such
+#: as /dev/zero must not be read into memory.
+MAX_TEXT_FILE_BYTES = 16 << 20
