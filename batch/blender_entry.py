@@ -98,8 +98,12 @@ def main(argv: list[str] | None = None) -> int:
     from batch import blend
     from batch.jobs import BlendInfo, expand
     from batch.run import Interrupted, install_signal_handlers, run_jobs, summary
+    from batch.cli import FLAG_OF_KEY, flag_error
     from batch.setfile import parse_set
     from tofcore.errors import TofError
+
+    FLAGS = dict(FLAG_OF_KEY, **{"presets": "--preset", "scenes.frames": "--frames", "scenes.cameras": "--cameras",
+                                 "scenes.blend": "the open .blend file"})
 
     args = build_parser().parse_args(script_args(sys.argv if argv is None else argv))
     path = bpy.data.filepath
@@ -120,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\ninterrupted ({exc}): finished frames are kept; rerun to continue", file=sys.stderr)
         return exc.exit_code
     except (TofError, OSError, RuntimeError) as exc:
-        print(f"error: {str(exc).replace('set: ', 'arguments: ', 1)}", file=sys.stderr)
+        print(f"error: {flag_error(str(exc), FLAGS)}", file=sys.stderr)
         return 2
     print(summary(result, args.out), file=sys.stderr)
     return result.exit_code
