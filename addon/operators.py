@@ -228,18 +228,18 @@ def prepare_render(context, report, *, preview: bool = False) -> RenderJob | Non
     out_dir, formats = None, ()
     if preview:
         quality.update(spp=int(settings.preview_spp), time_budget_s=None, target_error_m=None)
-    try:  # resource limits (tofcore.limits) before the scene is exported or anything allocated
-        tofcore.limits.check_render(sensor, max_depth=quality["max_depth"], spp=quality["spp"],
-                                    where=f"Camera {camera_obj.name!r}")
-    except tofcore.ConfigError as err:
-        report({'ERROR'}, str(err))
-        return None
     else:
         out_dir = output_folder(settings.output_dir) if settings.output_dir.strip() else None
         formats = tuple(f for f in sensors.FORMATS if f in settings.formats)
         if out_dir is None and formats:
             report({'ERROR'}, f"Camera {camera_obj.name!r}: output_dir (Output Folder) is empty; choose a folder")
             return None
+    try:  # resource limits (tofcore.limits) before the scene is exported or anything allocated
+        tofcore.limits.check_render(sensor, max_depth=quality["max_depth"], spp=quality["spp"],
+                                    where=f"Camera {camera_obj.name!r}")
+    except tofcore.ConfigError as err:
+        report({'ERROR'}, str(err))
+        return None
     try:
         result = export.export_scene(context.evaluated_depsgraph_get(), camera_obj)
     except tofcore.SceneError as err:  # "nothing visible to render: …"
