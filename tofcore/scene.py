@@ -328,11 +328,7 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
                                          f"{info.file_size - header_bytes:,} bytes")
                     if not _wanted(name):
                         continue
-                    data = fh.read(nbytes)
-                    if len(data) != nbytes:
-                        raise EOFError(f"{len(data):,} of {nbytes:,} bytes")
-                    order = "F" if fortran else "C"
-                    arrays[name] = np.frombuffer(data, dtype=dtype).reshape(shape, order=order).copy()
+                    arrays[name] = _read_data(fh, count, dtype).reshape(shape, order="F" if fortran else "C")
             except TofError:  # SceneError, LimitError: already say what is wrong
                 raise
             except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError, RuntimeError,
@@ -340,6 +336,20 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
                 raise SceneError(f"{where}: array {name!r} cannot be read: the file is damaged or truncated "
                                  f"({exc})") from None
     return arrays
+
+
+def _read_data(fh, count: int, dtype: np.dtype) -> np.ndarray:
+    """``count`` items of ``dtype`` read in 16 MiB pieces straight into the array (no second copy in memory)."""
+    out = np.empty(count, dtype=dtype)
+    view = memoryview(out.view(np.uint8).reshape(-1)) if out.nbytes else memoryview(b"")
+    done = 0
+    while done < out.nbytes:
+        chunk = fh.read(min(1 << 24, out.nbytes - done))
+        if not chunk:
+            raise EOFError(f"{done:,} of {out.nbytes:,} bytes")
+        view[done:done + len(chunk)] = chunk
+        done += len(chunk)
+    return out
 
 
 def _wanted(name: str) -> bool:
