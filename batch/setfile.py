@@ -533,7 +533,8 @@ def _preset(ctx: _Context, entry: object, path: list, default_scale: float):
         sensor = scaled_sensor(sensor, scale)
     except ConfigError as err:
         key = path + ["resolution_scale"] if "resolution_scale" in table else ["resolution_scale"]
-        raise ctx.error(key, f"cannot scale the sensor {label!r} by {scale}: {str(err).removeprefix('Camera: ')}") from None
+        reason = str(err).removeprefix("Camera: ")
+        raise ctx.error(key, f"cannot scale the sensor {label!r} by {scale}: {reason}") from None
     return PresetSpec(label=label, source=source, sensor=sensor, resolution_scale=scale,
                       overrides=dict(overrides))
 
@@ -736,7 +737,8 @@ def load_set(path: str | Path) -> SetSpec:
     path = Path(path).resolve()
     try:
         if path.exists() and not path.is_file():
-            raise SetFileError(f"{path}: must be a set file (.toml), got {'a folder' if path.is_dir() else 'a special file'}")
+            kind = "a folder" if path.is_dir() else "a special file"
+            raise SetFileError(f"{path}: must be a set file (.toml), got {kind}")
         if path.exists() and path.stat().st_size > limits.MAX_TEXT_FILE_BYTES:
             raise SetFileError(f"{path}: must be a set file of at most {limits.MAX_TEXT_FILE_BYTES:,} bytes, got "
                                f"{path.stat().st_size:,} bytes")

@@ -42,7 +42,8 @@ class Ambient:
         for key in ("radiance_w_m2_sr", "environment_strength"):
             value = getattr(self, key)
             if not isinstance(value, (int, float, np.number)) or not 0 <= value <= MAX_MAGNITUDE:  # NaN fails
-                raise ConfigError(f"Ambient: {key} must be a finite number >= 0, at most {MAX_MAGNITUDE:g}, got {value!r}")
+                raise ConfigError(f"Ambient: {key} must be a finite number >= 0, at most {MAX_MAGNITUDE:g}, "
+                                  f"got {value!r}")
         env = self.environment
         if env is not None:
             if not isinstance(env, Texture):

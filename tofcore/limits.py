@@ -7,9 +7,9 @@ it, and a request above it raises :class:`~tofcore.errors.LimitError` (a
 Each limit is read from its environment variable when it is checked, so
 ``TOFCORE_MAX_PIXELS=50000000 tofcore render …`` raises it for one command.
 
-=========================  ===========================  ===================  ============================================
+=========================  ===========================  ===================  ==========================================
 limit                      environment variable         default              what it bounds
-=========================  ===========================  ===================  ============================================
+=========================  ===========================  ===================  ==========================================
 :data:`MAX_PIXELS`         ``TOFCORE_MAX_PIXELS``       16,777,216 (4096²)   width × height of a camera (presets,
                                                                              overrides, resolution scales)
 :data:`MAX_RAW_IMAGES`     ``TOFCORE_MAX_RAW_IMAGES``   64                   raw images per frame (sum of phase_steps)
@@ -23,8 +23,8 @@ limit                      environment variable         default              wha
 :data:`MAX_SET_FRAMES`     ``TOFCORE_MAX_SET_FRAMES``   100,000              frames of one scene set (poses × frames ×
                                                                              cameras × presets), and any one pose count
                                                                              or frame range
-:data:`MAX_WORKERS`        ``TOFCORE_MAX_WORKERS``      256                  worker processes / tracer workers asked for
-=========================  ===========================  ===================  ============================================
+:data:`MAX_WORKERS`        ``TOFCORE_MAX_WORKERS``      256                  worker processes or tracer workers
+=========================  ===========================  ===================  ==========================================
 
 Values are plain integers (``TOFCORE_MAX_RENDER_BYTES=34359738368``); underscores are allowed
 (``TOFCORE_MAX_PIXELS=50_000_000``).
@@ -81,7 +81,8 @@ class Limit:
         """Raise :class:`LimitError` ``"{where}: {field} must be at most …, got {shown!r}"`` if value > limit."""
         if value > self.value:
             got = value if shown is None else shown
-            raise LimitError(f"{where}: {field} must be {self.describe()}, got {got if isinstance(got, str) else repr(got)}")
+            shown = got if isinstance(got, str) else repr(got)
+            raise LimitError(f"{where}: {field} must be {self.describe()}, got {shown}")
 
 
 MAX_PIXELS = Limit(

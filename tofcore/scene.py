@@ -275,8 +275,8 @@ def _read_npz(path: Path) -> dict[str, np.ndarray]:
     where = str(path)
     try:
         if not path.is_file():
-            raise SceneError(f"{where}: must be a scene file, got "
-                             f"{'a folder' if path.is_dir() else 'no such file' if not path.exists() else 'a special file'}")
+            kind = "a folder" if path.is_dir() else "no such file" if not path.exists() else "a special file"
+            raise SceneError(f"{where}: must be a scene file, got {kind}")
         size = path.stat().st_size
         with open(path, "rb") as fh:
             start = fh.read(8)
