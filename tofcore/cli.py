@@ -158,11 +158,11 @@ def cmd_render(args: argparse.Namespace) -> int:
 
     # Everything that can be checked is checked before the scene is loaded or a ray traced.
     formats = args.formats
-    check_exr(formats)
-    check_output_folder(args.out)
     sensor = load_preset(args.preset)
     limits.check_render(sensor, max_depth=args.max_depth, spp=args.spp,
                         where=f"--preset {args.preset} with --max-depth {args.max_depth}")
+    check_exr(formats)
+    check_output_folder(args.out)
     scene = _scene(args.scene)
     ambient = Ambient(radiance_w_m2_sr=args.ambient) if args.ambient else None
     device = select_device(args.device)
