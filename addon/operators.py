@@ -234,6 +234,12 @@ def prepare_render(context, report, *, preview: bool = False) -> RenderJob | Non
         if out_dir is None and formats:
             report({'ERROR'}, f"Camera {camera_obj.name!r}: output_dir (Output Folder) is empty; choose a folder")
             return None
+    try:  # resource limits (tofcore.limits) before the scene is exported or anything allocated
+        tofcore.limits.check_render(sensor, max_depth=quality["max_depth"], spp=quality["spp"],
+                                    where=f"Camera {camera_obj.name!r}")
+    except tofcore.ConfigError as err:
+        report({'ERROR'}, str(err))
+        return None
     try:
         result = export.export_scene(context.evaluated_depsgraph_get(), camera_obj)
     except tofcore.SceneError as err:  # "nothing visible to render: …"

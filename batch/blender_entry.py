@@ -47,6 +47,7 @@ def script_args(argv: list[str]) -> list[str]:
 
 def build_parser() -> argparse.ArgumentParser:
     from batch.cli import _Formatter, add_device_option, add_quality_options
+    from tofcore.cli import formats_type
 
     parser = argparse.ArgumentParser(
         prog="blender -b FILE.blend --python batch/blender_entry.py --",
@@ -61,7 +62,8 @@ def build_parser() -> argparse.ArgumentParser:
     add_quality_options(parser, seed_help="set seed (per-frame seeds derive from it)",
                         ambient_help="constant ambient radiance (default: the exporter's, from the world)",
                         scale_help="image size factor (intrinsics scaled)")
-    parser.add_argument("--formats", default="exr,png,ply,json", help="comma list of exr, png, ply, json")
+    parser.add_argument("--formats", type=formats_type, default="exr,png,ply,json",
+                        help="comma list of exr, png, ply, json (exr needs the OpenEXR package)")
     add_device_option(parser, gpu_help="on this process's GPU, the first CUDA_VISIBLE_DEVICES shows")
     parser.add_argument("--retry-failed", action="store_true", help="render only the frames recorded as failed")
     parser.add_argument("--verify", choices=["sha256", "size"], default="sha256",
@@ -86,7 +88,7 @@ def set_data(args: argparse.Namespace, blend_path: str) -> dict:
         scene["ambient_w_m2_sr"] = args.ambient
     return {"seed": args.seed, "presets": [p.strip() for p in args.preset.split(",") if p.strip()],
             "resolution_scale": args.resolution_scale, "quality": quality,
-            "output": {"formats": [f.strip() for f in args.formats.split(",") if f.strip()]},
+            "output": {"formats": list(args.formats)},
             "scenes": [scene]}
 
 
@@ -96,8 +98,12 @@ def main(argv: list[str] | None = None) -> int:
     from batch import blend
     from batch.jobs import BlendInfo, expand
     from batch.run import Interrupted, install_signal_handlers, run_jobs, summary
+    from batch.cli import FLAG_OF_KEY, flag_error
     from batch.setfile import parse_set
     from tofcore.errors import TofError
+
+    FLAGS = dict(FLAG_OF_KEY, **{"presets": "--preset", "scenes.frames": "--frames", "scenes.cameras": "--cameras",
+                                 "scenes.blend": "the open .blend file"})
 
     args = build_parser().parse_args(script_args(sys.argv if argv is None else argv))
     path = bpy.data.filepath
@@ -118,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"\ninterrupted ({exc}): finished frames are kept; rerun to continue", file=sys.stderr)
         return exc.exit_code
     except (TofError, OSError, RuntimeError) as exc:
-        print(f"error: {str(exc).replace('set: ', 'arguments: ', 1)}", file=sys.stderr)
+        print(f"error: {flag_error(str(exc), FLAGS)}", file=sys.stderr)
         return 2
     print(summary(result, args.out), file=sys.stderr)
     return result.exit_code

@@ -29,45 +29,76 @@ are kept; rerun to continue).
 from __future__ import annotations
 
 import argparse
+import importlib.util
+import math
+import re
 import sys
-from collections.abc import Callable
 from pathlib import Path
 
-from tofcore.errors import TofError
+from tofcore import limits
+from tofcore.cli import (check_output_folder, max_depth_type, metres_type, number_type, radiance_type, seconds_type,
+                         seed_type, spp_type)
+from tofcore.errors import ConfigError, TofError
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
 
-def _number(kind: type, rule: str, ok: Callable[[float], bool]) -> Callable[[str], float]:
-    """An argparse type: ``kind(text)`` that must satisfy ``ok``; errors say ``rule`` and the text."""
-    def parse(text: str):
-        try:
-            value = kind(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"must be {rule}, got {text!r}") from None
-        if not ok(value):
-            raise argparse.ArgumentTypeError(f"must be {rule}, got {text!r}")
-        return value
-    parse.__name__ = kind.__name__  # argparse names the type in its messages
-    return parse
+_positive_float = number_type(float, "a finite number > 0", lambda v: 0 < v < math.inf)
+_workers_type = number_type(int, "an integer >= 1", lambda v: v >= 1, limits.MAX_WORKERS)
+
+#: Dask scheduler addresses: [tcp|tls|ucx|ws|wss://]HOST:PORT, HOST a name, IPv4 or [IPv6] (Dask needs the port).
+_SCHEDULER = re.compile(r"(?:(?:tcp|tls|ucx|ws|wss)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})/?")
 
 
-_positive_int = _number(int, "an integer >= 1", lambda v: v >= 1)
-_non_negative_int = _number(int, "an integer >= 0", lambda v: v >= 0)
-_positive_float = _number(float, "a finite number > 0", lambda v: 0 < v < float("inf"))
+def _scheduler(text: str) -> str:
+    """An argparse type: a Dask scheduler address, checked before anything is loaded or written."""
+    match = _SCHEDULER.fullmatch(text.strip())
+    if not match or not 0 < int(match.group(2)) < 65536:
+        raise argparse.ArgumentTypeError(f"must be a Dask scheduler address tcp://HOST:PORT (or tls://, ucx://, "
+                                         f"ws://, wss://; port 1-65535), got {text!r}")
+    return text.strip()
+
+
+#: The keys of the one-scene set that ``compare`` and the Blender entry script build from their flags.
+FLAG_OF_KEY = {
+    "scenes.npz": "--scene", "scenes.blend": "--scene", "scenes.demo": "--scene", "scenes.poses": "--eye/--target",
+    "scenes.cameras": "--camera", "scenes.frames": "--frame", "scenes.ambient_w_m2_sr": "--ambient",
+    "presets": "--presets", "resolution_scale": "--resolution-scale", "quality.spp": "--spp",
+    "quality.max_depth": "--max-depth", "quality.time_budget_s": "--time-budget",
+    "quality.target_error_m": "--target-error", "seed": "--seed", "output.formats": "--formats", "scenes": "--scene",
+}
+
+
+def flag_error(text: str, flags: dict[str, str]) -> str:
+    """A set error of a set built from flags, ``"set: scenes[0].npz: …"``, as ``"--scene: …"``.
+
+    ``flags`` maps dotted keys without indices to flags; the longest matching prefix wins; a key without
+    a flag stays, as ``"arguments: key: …"``.
+    """
+    if not text.startswith("set: "):
+        return text
+    key, _, rest = text[len("set: "):].partition(": ")
+    parts = re.sub(r"\[\d+\]", "", key).split(".")
+    for n in range(len(parts), 0, -1):
+        flag = flags.get(".".join(parts[:n]))
+        if flag:
+            return f"{flag}: {rest}"
+    return f"arguments: {key}: {rest}"
 
 
 def add_quality_options(parser: argparse.ArgumentParser, *, seed_help: str, ambient_help: str,
                         scale_help: str) -> None:
     """The render-quality flags shared by ``compare`` and the Blender entry script."""
-    parser.add_argument("--spp", type=_positive_int, default=64, metavar="N", help="most samples per pixel")
-    parser.add_argument("--max-depth", type=_positive_int, default=5, metavar="N", help="surface vertices per path")
-    parser.add_argument("--seed", type=_non_negative_int, default=0, metavar="N", help=seed_help)
-    parser.add_argument("--time-budget", type=_positive_float, default=None, metavar="S",
+    parser.add_argument("--spp", type=spp_type, default=64, metavar="N",
+                        help="most samples per pixel (at most TOFCORE_MAX_SPP)")
+    parser.add_argument("--max-depth", type=max_depth_type, default=5, metavar="N",
+                        help="surface vertices per path (at most TOFCORE_MAX_DEPTH)")
+    parser.add_argument("--seed", type=seed_type, default=0, metavar="N", help=seed_help)
+    parser.add_argument("--time-budget", type=seconds_type, default=None, metavar="S",
                         help="stop each render after about S seconds of tracing")
-    parser.add_argument("--target-error", type=_positive_float, default=None, metavar="M",
+    parser.add_argument("--target-error", type=metres_type, default=None, metavar="M",
                         help="stop each render at this estimated RMS depth error (metres)")
-    parser.add_argument("--ambient", type=float, default=None, metavar="W_M2_SR", help=ambient_help)
+    parser.add_argument("--ambient", type=radiance_type, default=None, metavar="W_M2_SR", help=ambient_help)
     parser.add_argument("--resolution-scale", type=_positive_float, default=1.0, metavar="F", help=scale_help)
 
 
@@ -76,7 +107,7 @@ def _vector3(text: str) -> tuple[float, float, float]:
         values = tuple(float(v) for v in text.split(","))
     except ValueError:
         values = ()
-    if len(values) != 3:
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
         raise argparse.ArgumentTypeError(f"must be three comma-separated numbers x,y,z (metres), got {text!r}")
     return values
 
@@ -122,6 +153,8 @@ def cmd_run(args: argparse.Namespace) -> int:
     from .setfile import load_set
 
     install_signal_handlers()
+    check_output_folder(args.out)
+    _check_dask(args)
     spec = load_set(args.set_file)
     expansion = expand(spec)
     for note in expansion.notes:
@@ -139,7 +172,17 @@ def cmd_compare(args: argparse.Namespace) -> int:
     from .run import install_signal_handlers
 
     install_signal_handlers()
+    check_output_folder(args.out)
+    _check_dask(args)
     return compare(args)
+
+
+def _check_dask(args: argparse.Namespace) -> None:
+    """ConfigError before anything is read or written when --scheduler/--dask asks for a missing package."""
+    flag = "--scheduler" if args.scheduler is not None else "--dask" if args.dask is not None else None
+    if flag and importlib.util.find_spec("distributed") is None:
+        raise ConfigError(f"{flag}: needs the distributed package, which is not installed: "
+                          f"pip install 'dask[distributed]' (or leave {flag} out for the local pool)")
 
 
 # --------------------------------------------------------------------------- parser
@@ -164,18 +207,18 @@ def add_device_option(parser: argparse.ArgumentParser, *, gpu_help: str) -> None
 
 
 def _executor_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--workers", type=_positive_int, default=None, metavar="N",
+    parser.add_argument("--workers", type=_workers_type, default=None, metavar="N",
                         help="worker processes (local pool, or LocalCluster workers with --dask local); "
                              "each render also uses tracer threads (default: 1; with --device gpu/auto one "
                              "per visible GPU: a smaller N uses the first N GPUs, a larger N is clamped)")
     add_device_option(parser, gpu_help="one worker process per visible GPU, pinned with CUDA_VISIBLE_DEVICES; "
                                        "on a --scheduler cluster each worker uses the GPU its environment shows")
-    parser.add_argument("--threads-per-worker", type=_positive_int, default=None, metavar="N",
+    parser.add_argument("--threads-per-worker", type=_workers_type, default=None, metavar="N",
                         help="tracer worker processes per render (threads in a Dask worker; default: usable "
                              "CPUs / workers, so frames x tracer workers never exceed the CPUs; on a --scheduler "
                              "cluster each machine's CPU count); frames do not depend on it")
     where = parser.add_mutually_exclusive_group()
-    where.add_argument("--scheduler", default=None, metavar="tcp://HOST:PORT",
+    where.add_argument("--scheduler", type=_scheduler, default=None, metavar="tcp://HOST:PORT",
                        help="run on an existing Dask distributed cluster (needs dask[distributed]; workers "
                             "must see the dataset and scene files at the same paths)")
     where.add_argument("--dask", choices=["local"], default=None,

@@ -209,10 +209,12 @@ def compare(args: argparse.Namespace) -> int:
     from .run import run_jobs, summary
     from .setfile import parse_set
 
+    from .cli import FLAG_OF_KEY, flag_error
+
     try:
         spec = parse_set(_set_data(args), path=None)
     except ValueError as err:
-        raise tofcore.ConfigError(str(err).replace("set: ", "arguments: ", 1)) from None
+        raise tofcore.ConfigError(flag_error(str(err), FLAG_OF_KEY)) from None
     expansion = expand(spec)
     view = group_by_view(expansion.jobs)[0]  # one view: the first camera of a .blend without --camera
     jobs = list(view.jobs)

@@ -134,7 +134,8 @@ from typing import Any
 
 import numpy as np
 
-from tofcore.errors import ConfigError
+from tofcore import limits
+from tofcore.errors import ConfigError, LimitError, SceneError
 
 #: Formats a frame can be written in (``tofcore.write_frame``).
 FORMATS = ("exr", "png", "ply", "json")
@@ -337,6 +338,16 @@ def _int(ctx: _Context, value: object, path: list, minimum: int) -> int:
     return value
 
 
+def _limit(ctx: _Context, limit: limits.Limit, value: int, path: list, what: str = "") -> None:
+    """SetFileError naming the key, the limit and how to raise it, if ``value`` is above ``limit``."""
+    try:
+        too_large = limit.exceeded(value)
+    except ConfigError as err:  # a malformed TOFCORE_MAX_… variable
+        raise ctx.error(path, str(err)) from None
+    if too_large:
+        raise ctx.error(path, f"must be {limit.describe()}, got {value!r}{(' ' + what) if what else ''}")
+
+
 def _positive(ctx: _Context, value: object, path: list, unit: str = "", allow_zero: bool = False) -> float:
     ok = _is_number(value) and math.isfinite(value) and (value >= 0 if allow_zero else value > 0)
     if not ok:
@@ -370,6 +381,34 @@ def _matrix(ctx: _Context, value: object, path: list) -> tuple[tuple[float, ...]
     return tuple(tuple(float(v) for v in row) for row in m)
 
 
+_NPZ_CHECKED: dict[tuple[str, int, int], None] = {}
+
+
+def _check_npz(ctx: _Context, source: str, path: list) -> None:
+    """Load the scene file once (per path, size and time) so that a damaged one is reported here, naming the key,
+    and not as a failed frame after the run has started."""
+    from tofcore.scene import Scene
+
+    st = Path(source).stat()
+    key = (source, st.st_size, st.st_mtime_ns)
+    if key in _NPZ_CHECKED:
+        return
+    try:
+        Scene.load(source)
+    except (SceneError, ConfigError) as err:
+        raise ctx.error(path, str(err)) from None
+    _NPZ_CHECKED[key] = None
+
+
+def _count_frames(scenes: Sequence[SceneSpec]) -> int:
+    """Frames the scenes expand to (a lower bound for a .blend whose cameras are not named)."""
+    total = 0
+    for scene in scenes:
+        views = sum(p.count for p in scene.poses) if scene.poses else len(scene.cameras or ()) or 1
+        total += len(scene.frames or (None,)) * views * len(scene.presets)
+    return total
+
+
 def _file(ctx: _Context, value: object, path: list, suffix: str) -> str:
     text = _string(ctx, value, path)
     if not text.endswith(suffix):
@@ -389,14 +428,20 @@ def _frames(ctx: _Context, value: object, path: list) -> tuple[int, ...]:
     if isinstance(value, str):
         try:
             return parse_frames(value)
+        except LimitError as err:
+            raise ctx.error(path, str(err).removeprefix("frames: ")) from None
         except ValueError:
             raise ctx.fail(path, rule, value) from None
     raise ctx.fail(path, rule, value)
 
 
 def parse_frames(text: str) -> tuple[int, ...]:
-    """``"1-3,7"`` → (1, 2, 3, 7); ValueError when malformed or a range is reversed."""
-    frames: list[int] = []
+    """``"1-3,7"`` → (1, 2, 3, 7); ValueError when malformed or a range is reversed.
+
+    Raises :class:`~tofcore.errors.LimitError` (a ValueError) before building anything when the ranges hold
+    more than :data:`tofcore.limits.MAX_SET_FRAMES` frames.
+    """
+    ranges: list[tuple[int, int]] = []
     for part in text.split(","):
         part = part.strip()
         match = re.fullmatch(r"(-?\d+)(?:\s*-\s*(-?\d+))?", part)
@@ -406,8 +451,10 @@ def parse_frames(text: str) -> tuple[int, ...]:
         end = int(match.group(2)) if match.group(2) is not None else start
         if end < start:
             raise ValueError(f"frames: range {part!r} ends before it starts")
-        frames.extend(range(start, end + 1))
-    return tuple(dict.fromkeys(frames))
+        ranges.append((start, end))
+    count = sum(end - start + 1 for start, end in ranges)
+    limits.MAX_SET_FRAMES.check(count, "frames", "the frame ranges", f"{text!r} ({count:,} frames)")
+    return tuple(dict.fromkeys(frame for start, end in ranges for frame in range(start, end + 1)))
 
 
 # --------------------------------------------------------------------------- sensors
@@ -432,8 +479,11 @@ def scaled_sensor(sensor, factor: float):
     if factor == 1:
         return sensor
     cam = sensor.camera
-    width = max(1, int(math.floor(cam.width * factor + 0.5)))
-    height = max(1, int(math.floor(cam.height * factor + 0.5)))
+    exact_w, exact_h = cam.width * factor, cam.height * factor
+    if not math.isfinite(exact_w * exact_h) or exact_w * exact_h > 4 * limits.MAX_PIXELS.value:  # before rounding
+        limits.MAX_PIXELS.check(math.inf, "Camera", "width x height", f"{exact_w:.4g} x {exact_h:.4g}")
+    width = max(1, int(math.floor(exact_w + 0.5)))
+    height = max(1, int(math.floor(exact_h + 0.5)))
     sx, sy = width / cam.width, height / cam.height
     return sensor.replace(**{
         "camera.width": width, "camera.height": height, "camera.fx": cam.fx * sx, "camera.fy": cam.fy * sy,
@@ -482,7 +532,9 @@ def _preset(ctx: _Context, entry: object, path: list, default_scale: float):
     try:
         sensor = scaled_sensor(sensor, scale)
     except ConfigError as err:
-        raise ctx.error(path + ["resolution_scale"], f"cannot scale the sensor by {scale}: {err}") from None
+        key = path + ["resolution_scale"] if "resolution_scale" in table else ["resolution_scale"]
+        reason = str(err).removeprefix("Camera: ")
+        raise ctx.error(key, f"cannot scale the sensor {label!r} by {scale}: {reason}") from None
     return PresetSpec(label=label, source=source, sensor=sensor, resolution_scale=scale,
                       overrides=dict(overrides))
 
@@ -506,6 +558,7 @@ def _quality(ctx: _Context, value: object, path: list, base: Quality) -> Quality
     for key, item in table.items():
         if key in ("spp", "max_depth"):
             values[key] = _int(ctx, item, path + [key], 1)
+            _limit(ctx, limits.MAX_SPP if key == "spp" else limits.MAX_DEPTH, values[key], path + [key])
         else:
             values[key] = _positive(ctx, item, path + [key], "s" if key == "time_budget_s" else "m")
     return Quality(**values)
@@ -548,7 +601,7 @@ def _pose(ctx: _Context, value: object, path: list, set_seed: int) -> PoseSpec:
         try:
             matrix = look_at(eye, target, up)
         except ConfigError as err:
-            raise ctx.error(path, str(err)) from None
+            raise ctx.error(path + ["presets"] if "presets" in table else ["presets"], str(err)) from None
         return PoseSpec(kind=kind, where=where, world_from_sensor=tuple(map(tuple, matrix.tolist())),
                         target=target, up=up)
     box_min = _vector3(ctx, table["box_min"], path + ["box_min"])
@@ -557,7 +610,9 @@ def _pose(ctx: _Context, value: object, path: list, set_seed: int) -> PoseSpec:
         raise ctx.fail(path + ["box_max"], f">= box_min {list(box_min)} on every axis", list(box_max))
     jitter = (_positive(ctx, table["target_jitter_m"], path + ["target_jitter_m"], "m", allow_zero=True)
               if "target_jitter_m" in table else 0.0)
-    return PoseSpec(kind=kind, where=where, count=_int(ctx, table["count"], path + ["count"], 1),
+    count = _int(ctx, table["count"], path + ["count"], 1)
+    _limit(ctx, limits.MAX_SET_FRAMES, count, path + ["count"], "poses")
+    return PoseSpec(kind=kind, where=where, count=count,
                     box_min=box_min, box_max=box_max, target=target, up=up,
                     seed=_int(ctx, table["seed"], path + ["seed"], 0) if "seed" in table else set_seed,
                     target_jitter_m=jitter)
@@ -577,6 +632,8 @@ def _scene(ctx: _Context, value: object, path: list, *, presets, quality: Qualit
         default_name = source
     else:
         source = _file(ctx, table[kind], path + [kind], f".{kind}")
+        if kind == "npz":
+            _check_npz(ctx, source, path + [kind])
         default_name = Path(source).stem
     name = _string(ctx, table["name"], path + ["name"]) if "name" in table else default_name
     scene_presets = (_presets(ctx, table["presets"], path + ["presets"], scale) if "presets" in table
@@ -586,6 +643,13 @@ def _scene(ctx: _Context, value: object, path: list, *, presets, quality: Qualit
     scene_quality = _quality(ctx, table["quality"], path + ["quality"], quality) if "quality" in table else quality
     ambient = (_positive(ctx, table["ambient_w_m2_sr"], path + ["ambient_w_m2_sr"], "W m^-2 sr^-1", allow_zero=True)
                if "ambient_w_m2_sr" in table else None)
+    if ambient is not None and ambient > limits.MAX_MAGNITUDE:
+        raise ctx.fail(path + ["ambient_w_m2_sr"], f"at most {limits.MAX_MAGNITUDE:g} (W m^-2 sr^-1)", ambient)
+    for preset in scene_presets:  # before any job is expanded or frame rendered
+        try:
+            limits.check_render(preset.sensor, max_depth=scene_quality.max_depth, where=f"preset {preset.label!r}")
+        except ConfigError as err:
+            raise ctx.error(path + ["presets"] if "presets" in table else ["presets"], str(err)) from None
     cameras = frames = None
     for key in ("cameras", "frames"):
         if key in table and kind != "blend":
@@ -657,6 +721,8 @@ def parse_set(data: Mapping[str, Any], path: Path | None = None, text: str | Non
         raise ctx.fail(["scenes"], "a non-empty array of tables ([[scenes]])", entries)
     scenes = tuple(_scene(ctx, entry, ["scenes", i], presets=presets, quality=quality, scale=scale, set_seed=seed)
                    for i, entry in enumerate(entries))
+    total = _count_frames(scenes)
+    _limit(ctx, limits.MAX_SET_FRAMES, total, ["scenes"], "frames (views x frames x presets, all scenes)")
     names = [s.name for s in scenes]
     for i, name in enumerate(names):
         if name in names[:i]:
@@ -670,6 +736,12 @@ def load_set(path: str | Path) -> SetSpec:
     """Read and check a set file; see :func:`parse_set`. TOML syntax errors carry the line and column."""
     path = Path(path).resolve()
     try:
+        if path.exists() and not path.is_file():
+            kind = "a folder" if path.is_dir() else "a special file"
+            raise SetFileError(f"{path}: must be a set file (.toml), got {kind}")
+        if path.exists() and path.stat().st_size > limits.MAX_TEXT_FILE_BYTES:
+            raise SetFileError(f"{path}: must be a set file of at most {limits.MAX_TEXT_FILE_BYTES:,} bytes, got "
+                               f"{path.stat().st_size:,} bytes")
         text = path.read_text(encoding="utf-8")
     except FileNotFoundError:
         raise SetFileError(f"{path}: set file not found") from None

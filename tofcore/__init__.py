@@ -13,12 +13,14 @@ The public API, re-exported from one module per concept:
 * :class:`Modulation` — pulsed / square / sine correlation functions (``modulation``)
 * :func:`render` → :class:`Frame` — the camera's output with ground truth (``render``, ``frame``)
 * :func:`write_frame`, :func:`read_exr` — EXR, PNG, PLY and JSON outputs (``writers``)
+* ``limits`` — resource limits checked before allocating (:class:`LimitError`)
 """
 
 from .ambient import Ambient
 from .camera import Camera
 from .demo import demo_scene, suggested_pose
-from .errors import Cancelled, ConfigError, SceneError, TofError
+from . import limits
+from .errors import Cancelled, ConfigError, LimitError, SceneError, TofError
 from .led import LED
 from .material import Material, Texture
 from .pose import from_blender_matrix_world, look_at
@@ -32,8 +34,8 @@ from .render import render, render_progressive
 from .writers import read_exr, write_frame
 
 __all__ = [
-    "Ambient", "Camera", "Cancelled", "ConfigError", "FirstHit", "Frame", "LED", "Material", "Modulation", "Reason",
-    "SPEED_OF_LIGHT_M_S", "Scene", "SceneError", "Sensor", "Texture", "TofError", "Transport", "demo_scene",
+    "Ambient", "Camera", "Cancelled", "ConfigError", "FirstHit", "Frame", "LED", "LimitError", "Material", "Modulation",
+    "Reason", "SPEED_OF_LIGHT_M_S", "Scene", "SceneError", "Sensor", "Texture", "TofError", "Transport", "demo_scene",
     "from_blender_matrix_world", "list_presets", "load_preset", "look_at", "read_exr", "render", "render_progressive",
     "suggested_pose", "trace", "trace_progressive", "write_frame",
 ]

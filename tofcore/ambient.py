@@ -26,6 +26,7 @@ import numpy as np
 
 from .backend import namespace
 from .errors import ConfigError
+from .limits import MAX_MAGNITUDE
 from .material import Texture
 
 
@@ -40,8 +41,9 @@ class Ambient:
     def __post_init__(self) -> None:
         for key in ("radiance_w_m2_sr", "environment_strength"):
             value = getattr(self, key)
-            if not isinstance(value, (int, float, np.number)) or not np.isfinite(value) or value < 0:
-                raise ConfigError(f"Ambient: {key} must be a finite number >= 0, got {value!r}")
+            if not isinstance(value, (int, float, np.number)) or not 0 <= value <= MAX_MAGNITUDE:  # NaN fails
+                raise ConfigError(f"Ambient: {key} must be a finite number >= 0, at most {MAX_MAGNITUDE:g}, "
+                                  f"got {value!r}")
         env = self.environment
         if env is not None:
             if not isinstance(env, Texture):

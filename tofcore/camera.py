@@ -54,6 +54,7 @@ from functools import cached_property
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from . import limits
 from .errors import ConfigError
 from .sampling import sample_concentric_disk
 from .backend import asarray, device_copy, namespace
@@ -101,6 +102,9 @@ class Camera:
             if as_int is None or isinstance(value, bool) or as_int <= 0:
                 raise ConfigError(f"Camera: {name} must be a positive integer (pixels), got {value!r}")
             object.__setattr__(self, name, as_int)
+        # Before any per-pixel table is built (the distortion check below makes 40 bytes a pixel).
+        limits.MAX_PIXELS.check(self.width * self.height, "Camera", "width x height",
+                                f"{self.width} x {self.height} = {self.width * self.height:,}")
         for name in ("fx", "fy", "cx", "cy", "k1", "k2", "p1", "p2", "k3", "aperture_radius_m",
                      "focus_distance_m"):
             value = getattr(self, name)

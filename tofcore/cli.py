@@ -10,14 +10,96 @@ Examples::
 from __future__ import annotations
 
 import argparse
+import math
+import os
 import signal
 import sys
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
-from .errors import TofError
+from . import limits
+from .errors import ConfigError, TofError
 from .progress import PassProgress
+
+
+# --------------------------------------------------------------------------- argument types
+# Every flag is checked when it is parsed, before anything is loaded or rendered: argparse prints
+# "tofcore render: error: argument --spp: must be …, got '…'" and exits with code 2.
+
+def number_type(kind: type, rule: str, ok: Callable[[Any], bool] = lambda v: True,
+                limit: limits.Limit | None = None) -> Callable[[str], Any]:
+    """An argparse type: ``kind(text)`` that satisfies ``ok`` (described by ``rule``) and, if given, is at
+    most ``limit``; every refusal says the rule and the text given."""
+    def parse(text: str):
+        try:
+            value = kind(text)
+        except (ValueError, OverflowError):
+            raise argparse.ArgumentTypeError(f"must be {rule}, got {text!r}") from None
+        if not ok(value):
+            raise argparse.ArgumentTypeError(f"must be {rule}, got {text!r}")
+        if limit is not None:
+            try:
+                too_large = limit.exceeded(value)
+            except ConfigError as err:  # a malformed TOFCORE_MAX_… variable
+                raise argparse.ArgumentTypeError(str(err)) from None
+            if too_large:
+                raise argparse.ArgumentTypeError(f"must be {limit.describe()}, got {text!r}")
+        return value
+    parse.__name__ = kind.__name__  # argparse names the type in its own messages
+    return parse
+
+
+def _finite_positive(v: float) -> bool:
+    return 0 < v < math.inf
+
+
+spp_type = number_type(int, "an integer >= 1", lambda v: v >= 1, limits.MAX_SPP)
+max_depth_type = number_type(int, "an integer >= 1", lambda v: v >= 1, limits.MAX_DEPTH)
+seed_type = number_type(int, "an integer >= 0", lambda v: v >= 0)
+seconds_type = number_type(float, "a finite number > 0 (seconds)", _finite_positive)
+metres_type = number_type(float, "a finite number > 0 (metres)", _finite_positive)
+radiance_type = number_type(float, f"a finite number >= 0, at most {limits.MAX_MAGNITUDE:g} (W m^-2 sr^-1)",
+                            lambda v: 0 <= v <= limits.MAX_MAGNITUDE)
+
+
+def formats_type(text: str) -> tuple[str, ...]:
+    """``"exr,png"`` → ("exr", "png"): a non-empty comma list of known output formats."""
+    from .writers import FORMATS
+
+    names = [f.strip() for f in text.split(",")]
+    unknown = [f for f in names if f and f not in FORMATS]
+    chosen = tuple(dict.fromkeys(f for f in names if f))
+    if unknown or not chosen:
+        why = f" (unknown: {', '.join(map(repr, unknown))})" if unknown else " (none given)"
+        raise argparse.ArgumentTypeError(f"must be a comma list of one or more of {', '.join(FORMATS)}, "
+                                         f"got {text!r}{why}")
+    return chosen
+
+
+def check_exr(formats, flag: str = "--formats") -> None:
+    """ConfigError unless the OpenEXR package is importable when ``formats`` holds "exr" (before rendering)."""
+    from . import writers
+
+    if "exr" in formats and writers.OpenEXR is None:
+        raise ConfigError(f"{flag}: 'exr' needs the OpenEXR package, which is not installed: pip install OpenEXR "
+                          f"(or pip install 'tofcore[exr]'), or leave exr out, e.g. {flag} png,ply,json")
+
+
+def check_output_folder(path: Path, flag: str = "--out") -> None:
+    """ConfigError unless ``path`` is a folder, or could be made as one, that this user may write (nothing is made)."""
+    if path.exists() and not path.is_dir():
+        raise ConfigError(f"{flag}: must be a folder, got the existing file {str(path)!r}")
+    parent = path
+    while not parent.exists():
+        if parent.parent == parent:
+            break
+        parent = parent.parent
+    if parent.exists() and (not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK)):
+        raise ConfigError(f"{flag}: must be a folder this user can write, got {str(path)!r} "
+                          f"({str(parent)!r} is {'not a folder' if not parent.is_dir() else 'not writable'})")
 
 
 def _scene(name: str):
@@ -56,9 +138,14 @@ def cmd_render(args: argparse.Namespace) -> int:
     from .ambient import Ambient
     from .backend import select_device
 
-    formats = tuple(f for f in args.formats.split(",") if f)
-    scene = _scene(args.scene)
+    # Everything that can be checked is checked before the scene is loaded or a ray traced.
+    formats = args.formats
     sensor = load_preset(args.preset)
+    limits.check_render(sensor, max_depth=args.max_depth, spp=args.spp,
+                        where=f"--preset {args.preset} with --max-depth {args.max_depth}")
+    check_exr(formats)
+    check_output_folder(args.out)
+    scene = _scene(args.scene)
     ambient = Ambient(radiance_w_m2_sr=args.ambient) if args.ambient else None
     device = select_device(args.device)
     if args.verbose:
@@ -124,15 +211,18 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--scene", required=True, help="demo scene (plane, corner, box_on_wall, room) or a .npz file")
     r.add_argument("--preset", default="kinect_v2", help="preset name (see `presets`) or a .toml file")
     r.add_argument("--out", type=Path, required=True, help="output folder")
-    r.add_argument("--spp", type=int, default=64, help="most samples per pixel")
-    r.add_argument("--max-depth", type=int, default=5, help="surface vertices per path (1 = direct only)")
-    r.add_argument("--seed", type=int, default=0, help="random seed (same seed, same frame)")
-    r.add_argument("--time-budget", type=float, default=None, metavar="S", help="stop tracing after about S seconds")
-    r.add_argument("--target-error", type=float, default=None, metavar="M",
+    r.add_argument("--spp", type=spp_type, default=64, help="most samples per pixel (at most TOFCORE_MAX_SPP)")
+    r.add_argument("--max-depth", type=max_depth_type, default=5,
+                   help="surface vertices per path (1 = direct only; at most TOFCORE_MAX_DEPTH)")
+    r.add_argument("--seed", type=seed_type, default=0, help="random seed >= 0 (same seed, same frame)")
+    r.add_argument("--time-budget", type=seconds_type, default=None, metavar="S",
+                   help="stop tracing after about S seconds")
+    r.add_argument("--target-error", type=metres_type, default=None, metavar="M",
                    help="stop once the estimated RMS depth error (Monte Carlo) is at most M metres")
-    r.add_argument("--ambient", type=float, default=0.0, metavar="W_M2_SR",
+    r.add_argument("--ambient", type=radiance_type, default=0.0, metavar="W_M2_SR",
                    help="constant ambient radiance, W m^-2 sr^-1")
-    r.add_argument("--formats", default="exr,png,ply,json", help="comma list of exr, png, ply, json")
+    r.add_argument("--formats", type=formats_type, default="exr,png,ply,json",
+                   help="comma list of exr, png, ply, json (exr needs the OpenEXR package)")
     r.add_argument("--device", choices=("cpu", "gpu", "auto"), default="auto",
                    help="cpu (NumPy), gpu (CuPy on an NVIDIA GPU) or auto (the GPU when usable)")
     r.add_argument("--sampler", choices=("sobol", "independent"), default="sobol",

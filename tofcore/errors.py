@@ -17,5 +17,12 @@ class ConfigError(TofError, ValueError):
     """A configuration value (camera, LED, material, preset, settings) is invalid."""
 
 
+class LimitError(ConfigError):
+    """A request is larger than a resource limit of :mod:`tofcore.limits`; refused before allocating.
+
+    The message names the limit, the value asked for and the environment variable that raises it.
+    """
+
+
 class Cancelled(TofError):
     """A render was cancelled by its caller (``cancel`` callback); nothing was written."""

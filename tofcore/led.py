@@ -23,6 +23,7 @@ import numpy as np
 from .backend import namespace
 from .sampling import sample_cosine_hemisphere
 from .errors import ConfigError
+from .limits import MAX_MAGNITUDE
 
 KINDS = ("point", "lambertian")
 
@@ -41,9 +42,10 @@ class LED:
             raise ConfigError(f"LED: position_m must be three finite numbers (metres, sensor frame), "
                               f"got {self.position_m!r}")
         object.__setattr__(self, "position_m", tuple(float(x) for x in pos))
-        if not isinstance(self.intensity_w_sr, (int, float, np.number)) or not np.isfinite(self.intensity_w_sr) \
-                or self.intensity_w_sr < 0:
-            raise ConfigError(f"LED: intensity_w_sr must be a finite number >= 0, got {self.intensity_w_sr!r}")
+        if not isinstance(self.intensity_w_sr, (int, float, np.number)) or isinstance(self.intensity_w_sr, bool) \
+                or not 0 <= self.intensity_w_sr <= MAX_MAGNITUDE:  # NaN fails too
+            raise ConfigError(f"LED: intensity_w_sr must be a finite number >= 0, at most {MAX_MAGNITUDE:g} (W/sr), "
+                              f"got {self.intensity_w_sr!r}")
         if self.kind not in KINDS:
             raise ConfigError(f"LED: kind must be one of {list(KINDS)}, got {self.kind!r}")
 

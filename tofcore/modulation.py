@@ -51,6 +51,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from . import limits
 from .errors import ConfigError
 from .transport import SPEED_OF_LIGHT_M_S
 from .backend import asarray, is_device_array, namespace
@@ -245,6 +246,8 @@ def _positive_tuple(name: str, values: object) -> tuple[float, ...]:
     for value in items:
         if not _is_number(value) or not math.isfinite(value) or value <= 0:
             raise ConfigError(f"Modulation: {name} must be finite numbers > 0, got {values!r}")
+        if value > limits.MAX_MAGNITUDE:
+            raise ConfigError(f"Modulation: {name} must be numbers <= {limits.MAX_MAGNITUDE:g}, got {values!r}")
     return tuple(float(value) for value in items)
 
 
@@ -282,6 +285,8 @@ class Modulation:
             self._check_cw(frequencies, steps, exposures)
             steps = steps or (DEFAULT_PHASE_STEPS,) * len(frequencies)
             exposures = exposures or (DEFAULT_EXPOSURE_S,) * len(frequencies)
+        raw_images = sum(steps) if self.kind != "pulsed" else 2
+        limits.MAX_RAW_IMAGES.check(raw_images, "Modulation", "phase_steps (raw images per frame)", list(steps))
         object.__setattr__(self, "frequencies_hz", frequencies)
         object.__setattr__(self, "phase_steps", steps)
         object.__setattr__(self, "exposure_s", exposures)

@@ -66,8 +66,10 @@ def add_raw_noise(raw: np.ndarray, *, read_noise_e: float, rng: np.random.Genera
 
     Notes
     -----
-    Exact Poisson counts at every charge (no switch to the Gaussian N(q, q) at
-    high counts, so no threshold to tune; NumPy's sampler is exact at any λ).
+    Exact Poisson counts at every charge NumPy's sampler takes (λ up to ~9.2e18
+    e⁻, far beyond any full well; no switch to the Gaussian N(q, q) at high
+    counts, so no threshold to tune); above that, N(q, q), drawn after the
+    Poisson counts so that frames without such charges keep their noise.
     Negative charge, which negative PSF lobes can leave in a dark pixel next to
     a bright one, has no photons: its shot noise is that of zero. The clip at 0
     (a pixel cannot hold negative charge) biases the mean only where
@@ -80,8 +82,18 @@ def add_raw_noise(raw: np.ndarray, *, read_noise_e: float, rng: np.random.Genera
     if not np.isfinite(charge).all():
         raise ConfigError(f"{where}: raw must be finite, got {np.count_nonzero(~np.isfinite(charge))} "
                           f"non-finite values")
-    shot = rng.poisson(np.maximum(charge, 0.0)).astype(np.float64)
+    mean = np.maximum(charge, 0.0)
+    huge = mean > _POISSON_MAX_LAM
+    if not huge.any():
+        shot = rng.poisson(mean).astype(np.float64)
+    else:  # far beyond any full well: NumPy's sampler refuses λ this large; N(q, q) is exact to ~1e-9 there
+        shot = rng.poisson(np.where(huge, 0.0, mean)).astype(np.float64)
+        shot[huge] = mean[huge] + np.sqrt(mean[huge]) * rng.standard_normal(int(np.count_nonzero(huge)))
     return np.maximum(shot + read_noise_e * rng.standard_normal(charge.shape), 0.0)
+
+
+#: Largest λ ``numpy.random.Generator.poisson`` accepts (int64 max minus 10 σ); above it, a Gaussian draw.
+_POISSON_MAX_LAM = float(np.iinfo(np.int64).max - 10 * np.sqrt(np.iinfo(np.int64).max))
 
 
 def li_sigma_m(amplitude, offset, f_hz: float, modulation_contrast: float) -> np.ndarray:

@@ -37,7 +37,7 @@ from collections.abc import Callable, Iterator
 
 import numpy as np
 
-from . import backend
+from . import backend, limits
 from . import decode as decoding
 from . import noise as noise_models
 from . import optics
@@ -178,7 +178,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
         :class:`~tofcore.backend.GpuUnavailable` with one line naming the cause; with ``"auto"``
         a failure before the first frame falls back to the CPU (recorded in ``fallback_reason``).
     """
-    _check_settings(spp, time_budget_s, target_error_m)
+    _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor)
     dev = backend.select_device(device)
     settings = dict(spp=spp, max_depth=max_depth, seed=seed, time_budget_s=time_budget_s,
                     target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,
@@ -276,9 +276,15 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
             return
 
 
-def _check_settings(spp, time_budget_s, target_error_m) -> None:
-    if not isinstance(spp, (int, np.integer)) or spp < 1:
-        raise ConfigError(f"render: spp must be an integer >= 1, got {spp!r}")
+def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, sensor=None) -> None:
+    """Every setting checked, and the resource limits (:mod:`tofcore.limits`), before anything is allocated."""
+    for name, value, lowest in (("spp", spp, 1), ("max_depth", max_depth, 1), ("seed", seed, 0)):
+        if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < lowest:
+            raise ConfigError(f"render: {name} must be an integer >= {lowest}, got {value!r}")
+    limits.MAX_SPP.check(int(spp), "render", "spp")
+    limits.MAX_DEPTH.check(int(max_depth), "render", "max_depth")
+    if sensor is not None and hasattr(sensor, "camera") and hasattr(sensor, "modulation"):
+        limits.check_render(sensor, max_depth=int(max_depth), where="render")
     for name, value in (("time_budget_s", time_budget_s), ("target_error_m", target_error_m)):
         if value is not None and (not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0):
             raise ConfigError(f"render: {name} must be a number > 0, got {value!r}")

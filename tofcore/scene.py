@@ -26,15 +26,19 @@ bad index) and drops degenerate triangles, counting them in
 from __future__ import annotations
 
 import json
+import math
 import os
 import tempfile
-from dataclasses import dataclass, field
+import zipfile
+import zlib
+from dataclasses import dataclass, field, fields
 from functools import cached_property
 from pathlib import Path
 
 import numpy as np
 
-from .errors import SceneError
+from . import limits
+from .errors import ConfigError, SceneError, TofError
 from .material import Material, Texture
 
 FORMAT_VERSION = 1
@@ -195,29 +199,244 @@ class Scene:
 
     @classmethod
     def load(cls, path: str | os.PathLike) -> Scene:
-        """Read a scene written by :meth:`save`; errors name the file."""
+        """Read a scene written by :meth:`save`.
+
+        Everything is checked before it is used, and before an array is
+        decompressed its size is checked against
+        :data:`tofcore.limits.MAX_SCENE_BYTES` (from the zip directory and the
+        ``.npy`` header, so a small file that would decompress to gigabytes is
+        refused unread).
+
+        Raises
+        ------
+        SceneError
+            Naming the file and what is wrong with it: not a zip of ``.npy``
+            arrays (empty, truncated, random bytes, a lone ``.npy``), a missing
+            or malformed array, a header that is not the JSON object
+            :meth:`save` writes, a texture without its name, a material or
+            array that :meth:`from_arrays` rejects.
+        LimitError
+            An array or the whole file is larger than ``MAX_SCENE_BYTES``.
+        """
         path = Path(path)
+        where = str(path)
+        arrays = _read_npz(path)
+        version = arrays.get("format_version")
+        if version is None or version.shape != () or version.dtype.kind not in "iu" or int(version) != FORMAT_VERSION:
+            shown = (None if version is None else version.tolist() if version.size <= 8
+                     else f"an array of shape {version.shape}")
+            raise SceneError(f"{where}: format_version must be {FORMAT_VERSION}, got {shown!r}")
+        for name in _REQUIRED_ARRAYS:
+            if name not in arrays:
+                raise SceneError(f"{where}: must hold the array {name!r} (a tofcore scene holds "
+                                 f"{list(_REQUIRED_ARRAYS)}), got arrays {sorted(arrays)}")
+        header = _header(arrays["header"], where)
+        materials = []
+        for i, md in enumerate(header["materials"]):
+            if not isinstance(md, dict):
+                raise SceneError(f"{where}: header materials[{i}] must be a JSON object of material "
+                                 f"parameters, got {md!r}")
+            textures = {}
+            for key in _TEXTURE_FIELDS:
+                tex_name = f"texture/{i}/{key}"
+                if tex_name not in arrays:
+                    continue
+                label = f"texture_name/{i}/{key}"
+                if label not in arrays:
+                    raise SceneError(f"{where}: array {label!r} must be present (the name of the texture "
+                                     f"array {tex_name!r}, as Scene.save writes), got no such array")
+                label_value = arrays[label]
+                if label_value.shape != () or label_value.dtype.kind not in "US":
+                    raise SceneError(f"{where}: array {label!r} must be a single string, got dtype "
+                                     f"{label_value.dtype} shape {label_value.shape}")
+                try:
+                    label_text = label_value.item()
+                    if isinstance(label_text, bytes):
+                        label_text = label_text.decode("utf-8", "replace")
+                    textures[key] = Texture(arrays[tex_name], name=label_text)
+                except (ConfigError, TypeError, ValueError) as err:
+                    raise SceneError(f"{where}: array {tex_name!r}: {err}") from None
+            try:
+                materials.append(Material.from_dict(md, where=f"materials[{i}]", textures=textures))
+            except (ConfigError, TypeError) as err:
+                raise SceneError(f"{where}: materials[{i}]: {str(err).removeprefix(f'materials[{i}]: ')}") from None
+        for name in arrays:
+            if name.startswith("texture/"):
+                parts = name.split("/")
+                if (len(parts) != 3 or not parts[1].isdigit() or int(parts[1]) >= len(materials)
+                        or parts[2] not in _TEXTURE_FIELDS):
+                    raise SceneError(f"{where}: array {name!r} must be named texture/<material index < "
+                                     f"{len(materials)}>/<one of {list(_TEXTURE_FIELDS)}>, got {name!r}")
         try:
-            data = np.load(path, allow_pickle=False)
-        except (OSError, ValueError) as exc:
-            raise SceneError(f"{path}: not a readable tofcore scene (.npz): {exc}") from exc
-        with data:
-            version = int(data["format_version"]) if "format_version" in data else None
-            if version != FORMAT_VERSION:
-                raise SceneError(f"{path}: format_version must be {FORMAT_VERSION}, got {version!r}")
-            header = json.loads(str(data["header"]))
-            materials = []
-            for i, md in enumerate(header["materials"]):
-                textures = {key.split("/")[2]: Texture(data[key], name=str(data[f"texture_name/{i}/{key.split('/')[2]}"]))
-                            for key in data.files if key.startswith(f"texture/{i}/")}
-                materials.append(Material.from_dict(md, where=f"{path}: materials[{i}]", textures=textures))
             return cls.from_arrays(
-                data["vertices"], data["triangles"], data["material_ids"], materials,
-                object_ids=data["object_ids"],
-                normals=data["normals"] if "normals" in data else None,
-                uvs=data["uvs"] if "uvs" in data else None,
+                arrays["vertices"], arrays["triangles"], arrays["material_ids"], materials,
+                object_ids=arrays["object_ids"], normals=arrays.get("normals"), uvs=arrays.get("uvs"),
                 object_names=header["object_names"], name=header["name"], metadata=header["metadata"],
                 origin_m=header.get("origin_m", (0.0, 0.0, 0.0)))
+        except SceneError as err:
+            raise SceneError(f"{where}: {err}") from None
+
+
+#: Arrays every scene file holds (:meth:`Scene.save`); ``normals``, ``uvs`` and textures are optional.
+_REQUIRED_ARRAYS = ("format_version", "header", "vertices", "triangles", "material_ids", "object_ids")
+#: Material fields that hold a texture (``texture/<i>/<field>`` and ``texture_name/<i>/<field>`` arrays).
+_TEXTURE_FIELDS = tuple(f.name for f in fields(Material) if f.name.endswith("_texture"))
+_NPY_MAGIC = b"\x93NUMPY"
+
+
+def _not_a_scene(where: str, got: str) -> SceneError:
+    return SceneError(f"{where}: must be a tofcore scene file (.npz: a zip archive of .npy arrays, as "
+                      f"Scene.save writes), got {got}")
+
+
+def _read_npz(path: Path) -> dict[str, np.ndarray]:
+    """The arrays of an ``.npz``, each checked against its zip entry and the size limit before it is read."""
+    where = str(path)
+    try:
+        if not path.is_file():
+            kind = "a folder" if path.is_dir() else "no such file" if not path.exists() else "a special file"
+            raise SceneError(f"{where}: must be a scene file, got {kind}")
+        size = path.stat().st_size
+        with open(path, "rb") as fh:
+            start = fh.read(8)
+    except OSError as exc:
+        raise SceneError(f"{where}: cannot read the scene file ({exc.strerror or exc})") from None
+    if size == 0:
+        raise _not_a_scene(where, "an empty file")
+    try:
+        archive = zipfile.ZipFile(path)
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, EOFError, ValueError, OSError, NotImplementedError) as exc:
+        got = ("a single .npy array (numpy.save), not an archive of arrays" if start.startswith(_NPY_MAGIC)
+               else f"a damaged or truncated zip archive ({exc})" if start.startswith(b"PK")
+               else f"a file that is not a zip archive (it starts with {start!r})")
+        raise _not_a_scene(where, got) from None
+    limit = limits.MAX_SCENE_BYTES
+    arrays: dict[str, np.ndarray] = {}
+    with archive:
+        infos = archive.infolist()
+        if not infos:
+            raise _not_a_scene(where, "an empty zip archive")
+        total = 0
+        entries = []
+        for info in infos:
+            if not info.filename.endswith(".npy") or info.is_dir():
+                raise _not_a_scene(where, f"a zip archive holding {info.filename!r}, which is not a .npy array")
+            name = info.filename[:-4]
+            if name in (e[0] for e in entries):
+                raise SceneError(f"{where}: array names must be unique, got {name!r} twice")
+            if info.compress_type not in (zipfile.ZIP_STORED, zipfile.ZIP_DEFLATED):
+                raise SceneError(f"{where}: array {name!r} must be stored or deflate-compressed (as numpy.savez "
+                                 f"writes), got zip compression method {info.compress_type}")
+            total += info.file_size
+            limit.check(info.file_size, where, f"array {name!r} (uncompressed size from the zip directory)",
+                        f"{info.file_size:,} bytes")
+            entries.append((name, info))
+        limit.check(total, where, "the arrays together (uncompressed size from the zip directory)",
+                    f"{total:,} bytes")
+        for name, info in entries:
+            try:
+                with archive.open(info) as fh:
+                    shape, fortran, dtype, header_bytes = _npy_header(fh, where, name)
+                    count = math.prod(shape)
+                    nbytes = count * dtype.itemsize
+                    limit.check(nbytes, where, f"array {name!r} (shape {shape} x {dtype} from its .npy header)",
+                                f"{nbytes:,} bytes")
+                    if nbytes != info.file_size - header_bytes:
+                        raise SceneError(f"{where}: array {name!r} must hold the {nbytes:,} bytes its .npy header "
+                                         f"declares (shape {shape}, dtype {dtype}), got "
+                                         f"{info.file_size - header_bytes:,} bytes")
+                    if not _wanted(name):
+                        continue
+                    arrays[name] = _read_data(fh, count, dtype).reshape(shape, order="F" if fortran else "C")
+            except TofError:  # SceneError, LimitError: already say what is wrong
+                raise
+            except (zipfile.BadZipFile, zlib.error, EOFError, ValueError, OSError, RuntimeError,
+                    NotImplementedError) as exc:
+                raise SceneError(f"{where}: array {name!r} cannot be read: the file is damaged or truncated "
+                                 f"({exc})") from None
+    return arrays
+
+
+def _read_data(fh, count: int, dtype: np.dtype) -> np.ndarray:
+    """``count`` items of ``dtype`` read in 16 MiB pieces straight into the array (no second copy in memory)."""
+    out = np.empty(count, dtype=dtype)
+    view = memoryview(out.view(np.uint8).reshape(-1)) if out.nbytes else memoryview(b"")
+    done = 0
+    while done < out.nbytes:
+        chunk = fh.read(min(1 << 24, out.nbytes - done))
+        if not chunk:
+            raise EOFError(f"{done:,} of {out.nbytes:,} bytes")
+        view[done:done + len(chunk)] = chunk
+        done += len(chunk)
+    return out
+
+
+def _wanted(name: str) -> bool:
+    """Arrays :meth:`Scene.load` uses (others are checked for size, then skipped)."""
+    return name in _REQUIRED_ARRAYS or name in ("normals", "uvs") or name.startswith(("texture/", "texture_name/"))
+
+
+def _npy_header(fh, where: str, name: str) -> tuple[tuple[int, ...], bool, np.dtype, int]:
+    """(shape, Fortran order, dtype, bytes before the data) of a ``.npy`` stream; SceneError unless the dtype is
+    plain numbers or strings."""
+    fmt = np.lib.format
+    try:
+        version = fmt.read_magic(fh)
+        if version == (1, 0):
+            shape, fortran, dtype = fmt.read_array_header_1_0(fh)
+        elif version == (2, 0):
+            shape, fortran, dtype = fmt.read_array_header_2_0(fh)
+        else:
+            shape, fortran, dtype = fmt._read_array_header(fh, version)
+    except (ValueError, EOFError, SyntaxError, TypeError, KeyError) as exc:
+        raise SceneError(f"{where}: array {name!r} must be a .npy array, got an unreadable header ({exc})") from None
+    if dtype.hasobject or dtype.kind not in "biufcUS" or dtype.fields is not None:
+        raise SceneError(f"{where}: array {name!r} must be a numeric or string array (no Python objects), "
+                         f"got dtype {dtype}")
+    return tuple(int(n) for n in shape), bool(fortran), dtype, fh.tell()
+
+
+def _header(value: np.ndarray, where: str) -> dict:
+    """The JSON header of a scene file, checked: materials (list), name, object_names, metadata."""
+    if value.shape != () or value.dtype.kind not in "US":
+        raise SceneError(f"{where}: header must be a single JSON string, got dtype {value.dtype} shape {value.shape}")
+    text = value.item()
+    if isinstance(text, bytes):
+        try:
+            text = text.decode("utf-8")
+        except UnicodeDecodeError:
+            raise SceneError(f"{where}: header must be UTF-8 JSON text, got undecodable bytes") from None
+    try:
+        header = json.loads(text)
+    except (ValueError, RecursionError) as exc:
+        raise SceneError(f"{where}: header must be a JSON object (as Scene.save writes), got text that is not "
+                         f"JSON ({exc}): {text[:60]!r}") from None
+    if not isinstance(header, dict):
+        raise SceneError(f"{where}: header must be a JSON object, got {type(header).__name__} {text[:60]!r}")
+    if "materials" not in header:
+        raise SceneError(f"{where}: header must have the key 'materials' (a list of material parameter objects), "
+                         f"got keys {sorted(header)}")
+    if not isinstance(header["materials"], list):
+        raise SceneError(f"{where}: header materials must be a list of material objects, got {header['materials']!r}")
+    name = header.setdefault("name", Path(where).stem)
+    if not isinstance(name, str):
+        raise SceneError(f"{where}: header name must be a string, got {name!r}")
+    names = header.setdefault("object_names", [])
+    if not isinstance(names, list) or not all(isinstance(n, str) for n in names):
+        raise SceneError(f"{where}: header object_names must be a list of strings, got {names!r}")
+    metadata = header.setdefault("metadata", {})
+    if not isinstance(metadata, dict):
+        raise SceneError(f"{where}: header metadata must be a JSON object, got {metadata!r}")
+    pose = metadata.get("world_from_sensor")
+    if pose is not None:
+        try:
+            matrix = np.asarray(pose, dtype=np.float64)
+        except (TypeError, ValueError):
+            matrix = None
+        if matrix is None or matrix.shape != (4, 4) or not np.isfinite(matrix).all():
+            raise SceneError(f"{where}: header metadata.world_from_sensor must be a 4x4 matrix of finite numbers, "
+                             f"got {pose!r}")
+    return header
 
 
 def _as_array(values, dtype, shape, where: str) -> np.ndarray:

@@ -85,7 +85,7 @@ from typing import Any
 
 import numpy as np
 
-from . import optics
+from . import limits, optics
 from .camera import Camera
 from .errors import ConfigError
 from .led import LED
@@ -140,6 +140,15 @@ def _finite_non_negative(x: float) -> bool:
     return math.isfinite(x) and x >= 0
 
 
+def _scale(value: object, where: str, key: str, rule: str, ok: Callable[[float], bool], unit: str) -> float:
+    """A physical scale factor: :func:`_number`, and at most :data:`tofcore.limits.MAX_MAGNITUDE` so that the
+    radiometric chain (LED intensity x responsivity x exposure x geometry) stays finite in float64."""
+    x = _number(value, where, key, rule, ok)
+    if x > limits.MAX_MAGNITUDE:
+        raise _fail(where, key, f"at most {limits.MAX_MAGNITUDE:g} ({unit})", value)
+    return x
+
+
 def _fraction(x: float) -> bool:
     return 0.0 <= x < 1.0
 
@@ -173,7 +182,7 @@ def _build(cls: type, kwargs: dict[str, Any], where: str) -> Any:
     try:
         return cls(**kwargs)
     except ConfigError as err:
-        raise ConfigError(f"{where}: {str(err).removeprefix(cls.__name__ + ': ')}") from None
+        raise type(err)(f"{where}: {str(err).removeprefix(cls.__name__ + ': ')}") from None
 
 
 def _plain(value: object) -> Any:
@@ -233,10 +242,11 @@ class Readout(_Table):
     @staticmethod
     def _normalised(values: dict[str, Any], where: str) -> dict[str, Any]:
         return {
-            "responsivity": _number(values["responsivity"], where, "responsivity",
-                                    "a finite number > 0 (e-/s per W m^-2 sr^-1)", _finite_positive),
-            "full_well_e": _number(values["full_well_e"], where, "full_well_e",
-                                   "a finite number > 0 (electrons)", _finite_positive),
+            "responsivity": _scale(values["responsivity"], where, "responsivity",
+                                   "a finite number > 0 (e-/s per W m^-2 sr^-1)", _finite_positive,
+                                   "e-/s per W m^-2 sr^-1"),
+            "full_well_e": _scale(values["full_well_e"], where, "full_well_e",
+                                  "a finite number > 0 (electrons)", _finite_positive, "electrons"),
         }
 
 
@@ -252,8 +262,8 @@ class Noise(_Table):
     def _normalised(values: dict[str, Any], where: str) -> dict[str, Any]:
         return {
             "model": _choice(values["model"], where, "model", NOISE_MODELS),
-            "read_noise_e": _number(values["read_noise_e"], where, "read_noise_e",
-                                    "a finite number >= 0 (electrons)", _finite_non_negative),
+            "read_noise_e": _scale(values["read_noise_e"], where, "read_noise_e",
+                                   "a finite number >= 0 (electrons)", _finite_non_negative, "electrons"),
             "modulation_contrast": _number(values["modulation_contrast"], where, "modulation_contrast",
                                            "a number in (0, 1]", lambda x: 0.0 < x <= 1.0),
         }
@@ -318,8 +328,8 @@ class InvalidRules(_Table):
     def _normalised(values: dict[str, Any], where: str) -> dict[str, Any]:
         tolerance = values["unwrap_tolerance_m"]
         return {
-            "min_amplitude_e": _number(values["min_amplitude_e"], where, "min_amplitude_e",
-                                       "a finite number >= 0 (electrons)", _finite_non_negative),
+            "min_amplitude_e": _scale(values["min_amplitude_e"], where, "min_amplitude_e",
+                                      "a finite number >= 0 (electrons)", _finite_non_negative, "electrons"),
             "invalidate_saturated": _typed(values["invalidate_saturated"], where, "invalidate_saturated", bool,
                                            "true or false"),
             "unwrap_tolerance_m": None if tolerance is None else _number(
@@ -344,8 +354,8 @@ def _led_from_dict(data: object, where: str) -> LED:
         values["position_m"] = _numbers(values["position_m"], where, "position_m",
                                         "three finite numbers (metres, sensor frame)", math.isfinite)
     if "intensity_w_sr" in values:
-        values["intensity_w_sr"] = _number(values["intensity_w_sr"], where, "intensity_w_sr",
-                                           "a finite number >= 0 (W/sr)", _finite_non_negative)
+        values["intensity_w_sr"] = _scale(values["intensity_w_sr"], where, "intensity_w_sr",
+                                          "a finite number >= 0 (W/sr)", _finite_non_negative, "W/sr")
     if "kind" in values:
         values["kind"] = _typed(values["kind"], where, "kind", str, "a string")
     return _build(LED, values, where)

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import math
 import os
+import re
 import sys
 import time
 from pathlib import Path
@@ -398,6 +399,38 @@ def test_error_invalid_override_names_field(tof):
     reports = Reports()
     assert operators.prepare_render(bpy.context, reports) is None
     assert "Noise (noise_model)" in reports.of("ERROR")[0]
+
+
+def test_error_bad_preset_file_and_limits_are_reports(tof, tmp_path, monkeypatch):
+    """Issue 12: a hostile preset (huge camera, overflowing physics, not a file) or a render above a resource
+    limit is an ERROR report naming the file, key and value; the operator is CANCELLED, nothing written."""
+    add_plane_and_cube()
+    add_tof_camera(output_dir=str(tmp_path / "out"))
+    settings = bpy.context.scene.camera.data.tof
+    kinect = (tofcore.presets.PRESETS_DIR / "kinect_v2.toml").read_text()
+    huge = tmp_path / "huge.toml"
+    huge.write_text(kinect.replace("width = 512", "width = 100000").replace("height = 424", "height = 100000"))
+    hot = tmp_path / "hot.toml"
+    hot.write_text(kinect.replace("responsivity = 2.4e7", "responsivity = 1e300"))
+    settings.use_resolution = False
+    settings.preset = sensors.CUSTOM
+    for path, needle in ((huge, "[camera]: width x height must be at most 16,777,216 pixels"),
+                         (hot, "[readout]: responsivity must be at most 1e+30"),
+                         (tmp_path, "must be a preset .toml file, got a folder")):
+        settings.preset_path = str(path)
+        with pytest.raises(RuntimeError, match=re.escape(f"{path}")):
+            bpy.ops.tof.render()
+        reports = Reports()
+        assert operators.prepare_render(bpy.context, reports) is None
+        assert len(reports.of("ERROR")) == 1 and needle in reports.of("ERROR")[0]
+    settings.preset = "kinect_v2"
+    settings.use_resolution = True
+    monkeypatch.setenv("TOFCORE_MAX_RENDER_BYTES", "1000")
+    reports = Reports()
+    assert operators.prepare_render(bpy.context, reports) is None
+    assert "the estimated render memory" in reports.of("ERROR")[0] and "TOFCORE_MAX_RENDER_BYTES" in reports.of(
+        "ERROR")[0]
+    assert not (tmp_path / "out").exists()
 
 
 def test_warning_non_mesh_objects_skipped(tof, tmp_path):

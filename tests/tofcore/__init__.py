@@ -1,0 +1,1 @@
+"""Tests of tofcore (a package: tests/batch has modules of the same names)."""

@@ -1,0 +1,159 @@
+"""Resource limits: what one render, scene file or scene set may ask for, checked before allocating.
+
+Every limit is checked where the request is read (argument parsing, preset
+loading, scene-file loading, set-file parsing), before any memory is taken for
+it, and a request above it raises :class:`~tofcore.errors.LimitError` (a
+``ConfigError``) with one line naming the request, the limit and how to raise it.
+Each limit is read from its environment variable when it is checked, so
+``TOFCORE_MAX_PIXELS=50000000 tofcore render …`` raises it for one command.
+
+=========================  ===========================  ===================  ==========================================
+limit                      environment variable         default              what it bounds
+=========================  ===========================  ===================  ==========================================
+:data:`MAX_PIXELS`         ``TOFCORE_MAX_PIXELS``       16,777,216 (4096²)   width × height of a camera (presets,
+                                                                             overrides, resolution scales)
+:data:`MAX_RAW_IMAGES`     ``TOFCORE_MAX_RAW_IMAGES``   64                   raw images per frame (sum of phase_steps)
+:data:`MAX_DEPTH`          ``TOFCORE_MAX_DEPTH``        64                   surface vertices per path (max_depth)
+:data:`MAX_SPP`            ``TOFCORE_MAX_SPP``          1,048,576 (2²⁰)      samples per pixel
+:data:`MAX_RENDER_BYTES`   ``TOFCORE_MAX_RENDER_BYTES`` 3/4 of the RAM       estimated memory of one render's per-pixel
+                                                                             buffers (:func:`render_bytes`)
+:data:`MAX_SCENE_BYTES`    ``TOFCORE_MAX_SCENE_BYTES``  4 GiB                uncompressed size of the arrays of a scene
+                                                                             file (.npz), read from the zip directory
+                                                                             and the .npy headers
+:data:`MAX_SET_FRAMES`     ``TOFCORE_MAX_SET_FRAMES``   100,000              frames of one scene set (poses × frames ×
+                                                                             cameras × presets), and any one pose count
+                                                                             or frame range
+:data:`MAX_WORKERS`        ``TOFCORE_MAX_WORKERS``      256                  worker processes or tracer workers
+=========================  ===========================  ===================  ==========================================
+
+Values are plain integers (``TOFCORE_MAX_RENDER_BYTES=34359738368``); underscores are allowed
+(``TOFCORE_MAX_PIXELS=50_000_000``).
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+
+from .errors import ConfigError, LimitError
+
+
+def _physical_memory_bytes() -> int | None:
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE")) * int(os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+@dataclass(frozen=True)
+class Limit:
+    """One resource limit: its name, environment variable, default, unit and the reason for it."""
+
+    name: str
+    env: str
+    default: int
+    unit: str
+    why: str
+
+    @property
+    def value(self) -> int:
+        """The limit in force: ``$env`` when set (a positive integer), else the default."""
+        text = os.environ.get(self.env)
+        if text is None or not text.strip():
+            return self.default
+        try:
+            value = int(text.strip())
+        except ValueError:
+            value = 0
+        if value < 1:
+            raise ConfigError(f"environment: {self.env} must be a positive integer ({self.unit}), got {text!r}")
+        return value
+
+    def describe(self, value: int | None = None) -> str:
+        """``"at most 64 vertices (TOFCORE_MAX_DEPTH; raise it with TOFCORE_MAX_DEPTH=N)"``."""
+        limit = self.value if value is None else value
+        return f"at most {limit:,} {self.unit} (limit {self.name}; raise it with the environment variable {self.env}=N)"
+
+    def exceeded(self, value: int) -> bool:
+        return value > self.value
+
+    def check(self, value: int, where: str, field: str, shown: object = None) -> None:
+        """Raise :class:`LimitError` ``"{where}: {field} must be at most …, got {shown!r}"`` if value > limit."""
+        if value > self.value:
+            got = value if shown is None else shown
+            shown = got if isinstance(got, str) else repr(got)
+            raise LimitError(f"{where}: {field} must be {self.describe()}, got {shown}")
+
+
+MAX_PIXELS = Limit(
+    "max_pixels", "TOFCORE_MAX_PIXELS", 4096 * 4096, "pixels",
+    "a camera with distortion checks its inverse at every pixel when it is made (~200 B/pixel) and a "
+    "render holds kilobytes per pixel; 4096 x 4096 is 77x the largest preset (512 x 424)")
+MAX_RAW_IMAGES = Limit(
+    "max_raw_images", "TOFCORE_MAX_RAW_IMAGES", 64, "raw images",
+    "every raw image is a per-pixel, per-bounce accumulator; real sensors take 2 to 12")
+MAX_DEPTH = Limit(
+    "max_depth", "TOFCORE_MAX_DEPTH", 64, "surface vertices",
+    "the accumulators hold one bucket per bounce count; after a few bounces nothing measurable is left")
+MAX_SPP = Limit(
+    "max_spp", "TOFCORE_MAX_SPP", 1 << 20, "samples per pixel",
+    "a typo guard: 2^20 spp at 512x424 is months on a CPU; the convergence log keeps one row per pass")
+MAX_RENDER_BYTES = Limit(
+    "max_render_bytes", "TOFCORE_MAX_RENDER_BYTES",
+    (lambda ram: 3 * ram // 4 if ram else 16 << 30)(_physical_memory_bytes()), "bytes",
+    "a render that does not fit in memory is killed by the system, or swaps for hours")
+MAX_SCENE_BYTES = Limit(
+    "max_scene_bytes", "TOFCORE_MAX_SCENE_BYTES", 4 << 30, "bytes",
+    "a small .npz can decompress to gigabytes (a zip bomb); 4 GiB is ~100 M triangles")
+MAX_SET_FRAMES = Limit(
+    "max_set_frames", "TOFCORE_MAX_SET_FRAMES", 100_000, "frames",
+    "jobs are expanded in memory (a few kB each) before rendering starts")
+MAX_WORKERS = Limit(
+    "max_workers", "TOFCORE_MAX_WORKERS", 256, "processes",
+    "every worker process is started at once and imports NumPy (~50 MB each)")
+
+ALL = (MAX_PIXELS, MAX_RAW_IMAGES, MAX_DEPTH, MAX_SPP, MAX_RENDER_BYTES, MAX_SCENE_BYTES, MAX_SET_FRAMES, MAX_WORKERS)
+
+
+def render_bytes(pixels: int, raw_images: int, max_depth: int) -> int:
+    """Estimated peak memory of one render's per-pixel buffers, bytes.
+
+    Notes
+    -----
+    .. math:: B = 8\\,P\\,\\bigl(7\\,K\\,(R + 1) + 8\\,(R + 2)\\bigr)
+
+    P pixels, K = ``max_depth``, R raw images: per bounce bucket the signal and
+    correlation sums and their per-k decoding, per replicate the sums of the
+    error estimate, plus the frame's outputs. Fitted to tracemalloc peaks of
+    the Kinect v2 preset (R = 9) on the room: 3.2 kB/pixel at K = 5, 5.8 kB at
+    K = 10; the formula gives 3.5 and 6.3 kB.
+    """
+    return 8 * int(pixels) * (7 * int(max_depth) * (int(raw_images) + 1) + 8 * (int(raw_images) + 2))
+
+
+def check_render(sensor, *, max_depth: int, where: str, spp: int | None = None) -> None:
+    """Raise :class:`LimitError` if a render of ``sensor`` with these settings is above a limit.
+
+    ``where`` prefixes the message (e.g. ``"render"``, a set file's key path).
+    """
+    if spp is not None:
+        MAX_SPP.check(int(spp), where, "spp")
+    MAX_DEPTH.check(int(max_depth), where, "max_depth")
+    cam = sensor.camera
+    need = render_bytes(cam.width * cam.height, sensor.modulation.raw_count, max_depth)
+    if MAX_RENDER_BYTES.exceeded(need):
+        raise LimitError(f"{where}: the estimated render memory ({cam.width} x {cam.height} pixels, "
+                         f"{sensor.modulation.raw_count} raw images, max_depth {max_depth}) must be "
+                         f"{MAX_RENDER_BYTES.describe()}, got {need:,} bytes; lower the resolution or max_depth")
+
+
+#: Largest magnitude accepted for a physical scale factor (LED intensity, responsivity, exposure, full well,
+#: read noise, ambient radiance). Not adjustable: the charge of a pixel is the product of several of them
+#: and of the geometry (1/r² up to ~1e12 for surfaces a micrometre away), summed over samples; with each
+#: factor at most 1e30 the product stays below ~1e110, far inside float64 (1.8e308), so no setting can
+#: overflow the radiometric chain into inf/NaN deep inside a render.
+MAX_MAGNITUDE = 1e30
+
+#: Largest preset or set file read (TOML text); not adjustable: real ones are a few kilobytes, and a path such
+#: as /dev/zero must not be read into memory.
+MAX_TEXT_FILE_BYTES = 16 << 20
