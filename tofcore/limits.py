@@ -23,7 +23,8 @@ limit                      environment variable         default              wha
 :data:`MAX_SET_FRAMES`     ``TOFCORE_MAX_SET_FRAMES``   100,000              frames of one scene set (poses × frames ×
                                                                              cameras × presets), and any one pose count
                                                                              or frame range
-:data:`MAX_WORKERS`        ``TOFCORE_MAX_WORKERS``      256                  worker processes or tracer workers
+:data:`MAX_WORKERS`        ``TOFCORE_MAX_WORKERS``      4 × usable CPUs,     worker processes or tracer workers
+                                                        at least 8
 =========================  ===========================  ===================  ==========================================
 
 Values are plain integers (``TOFCORE_MAX_RENDER_BYTES=34359738368``); underscores are allowed
@@ -36,6 +37,7 @@ import os
 from dataclasses import dataclass
 
 from .errors import ConfigError, LimitError
+from .workers import usable_cpus
 
 
 def _physical_memory_bytes() -> int | None:
@@ -109,8 +111,8 @@ MAX_SET_FRAMES = Limit(
     "max_set_frames", "TOFCORE_MAX_SET_FRAMES", 100_000, "frames",
     "jobs are expanded in memory (a few kB each) before rendering starts")
 MAX_WORKERS = Limit(
-    "max_workers", "TOFCORE_MAX_WORKERS", 256, "processes",
-    "every worker process is started at once and imports NumPy (~50 MB each)")
+    "max_workers", "TOFCORE_MAX_WORKERS", max(8, 4 * usable_cpus()), "processes",
+    "every worker process is started at once and holds 65-150 MB; more than the CPUs only adds memory")
 
 ALL = (MAX_PIXELS, MAX_RAW_IMAGES, MAX_DEPTH, MAX_SPP, MAX_RENDER_BYTES, MAX_SCENE_BYTES, MAX_SET_FRAMES, MAX_WORKERS)
 

@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import backend, qmc, rng, workers
+from . import backend, limits, qmc, rng, workers
 from .ambient import Ambient
 from .bsdf import eval_bsdf, sample_bsdf
 from .camera import Camera
@@ -370,6 +370,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     workers = usable_cpus() if workers is None else workers
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ConfigError(f"trace: workers must be an integer >= 1, got {workers!r}")
+    limits.MAX_WORKERS.check(int(workers), "trace", "workers")
     if dev.is_gpu:
         workers = 1  # one stream of large wavefronts; threads would only serialise on it
     start = time.perf_counter()

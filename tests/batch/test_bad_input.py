@@ -221,11 +221,13 @@ def test_render_memory_is_checked_per_preset(tmp_path):
 
 
 @pytest.mark.parametrize("flag, value, needle", [
-    ("--workers", "100000", "argument --workers: must be at most 256 processes (limit max_workers; raise it with "
+    ("--workers", "100000", "argument --workers: must be at most {MAX_WORKERS} processes (limit max_workers; raise it with "
                             "the environment variable TOFCORE_MAX_WORKERS=N), got '100000'"),
-    ("--threads-per-worker", "100000", "argument --threads-per-worker: must be at most 256 processes"),
+    ("--threads-per-worker", "100000", "argument --threads-per-worker: must be at most {MAX_WORKERS} processes"),
 ])
 def test_worker_counts_are_checked(tmp_path, flag, value, needle):
+    from tofcore.limits import MAX_WORKERS  # 4 × the usable CPUs here, at least 8
+    needle = needle.replace("{MAX_WORKERS}", f"{MAX_WORKERS.value:,}")
     set_file = one_scene_set(tmp_path, 'demo = "plane"')
     proc = batch("run", str(set_file), "--out", str(tmp_path / "dataset"), flag, value)
     assert_refused(proc, needle, out=tmp_path / "dataset")
