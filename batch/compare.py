@@ -1,6 +1,6 @@
 """Sensor comparison report: one view rendered with several presets, side by side.
 
-``python -m batch compare --scene room --presets kinect_v2,o3d303,xtion2 --out report/`` writes
+``tofcore-batch compare --scene room --presets kinect_v2,o3d303,xtion2 --out report/`` writes
 
 ==================  ===================================================================================
 ``compare.png``     rows: presets; columns: depth (turbo, one range for all rows), error against the
@@ -18,7 +18,7 @@ ground truth (``depth − gt_depth`` over valid pixels), multipath error (RMS of
 ``distance − direct_distance`` over valid pixels: what the indirect light adds,
 noise included).
 
-``--device cpu|gpu|auto`` and ``--workers`` work as for ``python -m batch run``
+``--device cpu|gpu|auto`` and ``--workers`` work as for ``tofcore-batch run``
 (:mod:`batch.devices`): with ``gpu`` the presets render at once, one per GPU.
 
 Every preset sees the same pose; its own intrinsics decide the field of view,
@@ -200,7 +200,7 @@ def markdown_table(rows: list[dict], title: str) -> str:
 # --------------------------------------------------------------------------- the command
 
 def compare(args: argparse.Namespace) -> int:
-    """``python -m batch compare``: render, then write compare.png, compare.md and compare.json."""
+    """``tofcore-batch compare``: render, then write compare.png, compare.md and compare.json."""
     import sys
 
     import tofcore

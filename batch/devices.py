@@ -1,6 +1,6 @@
 """Render devices for a batch run: which GPUs are visible, one worker per GPU, and the CPU fall-back.
 
-``python -m batch run --device cpu|gpu|auto`` (also ``compare`` and the Blender entry):
+``tofcore-batch run --device cpu|gpu|auto`` (also ``compare`` and the Blender entry):
 
 ==========  ============================================================================================
 ``cpu``     NumPy in every worker (the default); ``--workers N`` processes

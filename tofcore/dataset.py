@@ -1,4 +1,4 @@
-"""Reading a dataset folder written by ``python -m batch run``: :class:`Dataset`, :class:`FrameRef`.
+"""Reading a dataset folder written by ``tofcore-batch run``: :class:`Dataset`, :class:`FrameRef`.
 
 A dataset is read with tofcore alone (``pip install 'tofcore[exr]'``); this
 module imports neither the ``batch`` package nor bpy nor PyTorch
@@ -18,7 +18,7 @@ in :mod:`tofcore.writers`. A frame is listed when its index line is a record
 stray edit) are skipped with one warning naming the index and the line
 numbers. When a job has several lines, the last one wins. A frame folder
 without an index line (an index damaged by hand) is not listed: running the
-set again (``python -m batch run``) repairs the index without rendering it.
+set again (``tofcore-batch run``) repairs the index without rendering it.
 
 Channels
 --------
@@ -401,7 +401,7 @@ def _stack(stored: dict[str, np.ndarray], names: Sequence[str], exr: Path) -> np
 # --------------------------------------------------------------------------- the dataset
 
 class Dataset:
-    """A dataset folder written by ``python -m batch run``, opened for reading.
+    """A dataset folder written by ``tofcore-batch run``, opened for reading.
 
     Parameters
     ----------
@@ -437,7 +437,7 @@ class Dataset:
         self.index_path = self.root / INDEX
         if not self.index_path.is_file():
             raise DatasetError(f"{self.root}: not a dataset folder (no {INDEX}; "
-                               f"`python -m batch run SET.toml --out FOLDER` writes one)")
+                               f"`tofcore-batch run SET.toml --out FOLDER` writes one)")
         if not (self.root / FRAMES).is_dir():
             raise DatasetError(f"{self.root}: not a dataset folder (no {FRAMES}/ beside {INDEX})")
         self._refs: dict[str, FrameRef] = {}
