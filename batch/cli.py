@@ -1,4 +1,4 @@
-"""Command line: ``tofcore-batch run | validate | compare`` (in a checkout also ``python -m batch …``).
+"""Command line: ``tofcore-batch run | validate | verify | compare`` (in a checkout also ``python -m batch …``).
 
 The dataset generator; installed, it is the package ``tofcore_batch`` (the
 repository's ``batch/`` folder), and its example sets are in
@@ -7,6 +7,7 @@ repository's ``batch/`` folder), and its example sets are in
 Examples::
 
     tofcore-batch validate batch/examples/demo_set.toml
+    tofcore-batch verify datasets/demo          # checksums of every frame, index lines, stray folders
     tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --workers 2
     tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --dask local --workers 2
     tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --scheduler tcp://10.0.0.5:8786
@@ -21,21 +22,49 @@ else the CPU, the reason printed and stored in every record). On a Dask cluster
 (--scheduler) start each worker with its own CUDA_VISIBLE_DEVICES.
 
 Exit codes: 0 every frame ok; 1 some frames failed (they are in the index with
-their error); 2 bad arguments or set file, or --device gpu without a usable GPU
-(nothing rendered); 130 / 143 interrupted by Ctrl-C / SIGTERM (finished frames
-are kept; rerun to continue).
+their error), or ``verify`` found a problem; 2 bad arguments or set file, or
+--device gpu without a usable GPU (nothing rendered); 130 / 143 interrupted by
+Ctrl-C / SIGTERM at any moment (one line, no traceback; finished frames are
+kept, the lock released; rerun to continue).
 """
 
 from __future__ import annotations
 
+# Nothing heavy at module level: the installed command imports this module before main() can take
+# over Ctrl-C (hold_signals); NumPy and tofcore are imported inside the commands.
 import argparse
+import os
+import signal
 import sys
+import threading
 from collections.abc import Callable
 from pathlib import Path
 
-from tofcore.errors import TofError
-
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
+
+
+def _exit_at_once(signum: int, _frame) -> None:
+    """Before a command writes anything (imports, parsing, reading): say so and exit."""
+    os.write(2, f"\ninterrupted ({signal.Signals(signum).name}): nothing was written\n".encode())
+    os._exit(128 + signum)
+
+
+def _exit_quietly(signum: int, _frame) -> None:
+    """After the command's last line (interpreter shutdown, clean-up hooks): exit with the signal's code."""
+    os._exit(128 + signum)
+
+
+def hold_signals(handler=_exit_at_once) -> dict:
+    """Route SIGINT and SIGTERM to ``handler`` (in the main thread only); the handlers they had before.
+
+    ``python -m batch`` and :func:`main` install :func:`_exit_at_once` first thing, so a Ctrl-C while
+    Python imports NumPy and the simulator, or parses the arguments, gives one line and exit code
+    130 instead of a KeyboardInterrupt traceback. The commands then install their own handlers
+    (:func:`batch.run.install_signal_handlers`: stop cleanly, keep what is finished).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
 
 
 def _number(kind: type, rule: str, ok: Callable[[float], bool]) -> Callable[[str], float]:
@@ -116,6 +145,34 @@ def cmd_validate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_verify(args: argparse.Namespace) -> int:
+    from .dataset import Dataset
+
+    data = Dataset(args.dataset)
+    if not data.index_path.is_file():
+        print(f"error: {data.root}: not a dataset folder (no index.jsonl)", file=sys.stderr)
+        return EXIT_USAGE
+    with data.reading():
+        report = data.check(args.checksum)
+    counts = report["counts"]
+    print(f"{data.root}: {counts['records']} frame(s) indexed ({counts['ok']} ok, {counts['failed']} failed); "
+          f"{args.checksum} of {counts['record_files']} record.json and {counts['files']} file(s) checked")
+    for line in report["problems"][:args.show]:
+        print(f"  {line}")
+    if len(report["problems"]) > args.show:
+        print(f"  … and {len(report['problems']) - args.show} more")
+    for line in report["notes"]:
+        print(f"  note: {line}")
+    if report["problems"]:
+        print(f"{len(report['problems'])} problem(s); running the set again repairs them (damaged frames are "
+              f"rendered again, the index rebuilt from the frame folders): tofcore-batch run SET.toml --out "
+              f"{args.dataset}")
+        return EXIT_FAILED
+    print("ok: the index describes every frame folder and every file matches its checksum"
+          if args.checksum == "sha256" else "ok: the index describes every frame folder and every size matches")
+    return EXIT_OK
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from .jobs import expand
     from .run import install_signal_handlers, run_jobs, summary
@@ -186,7 +243,7 @@ def _executor_options(parser: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tofcore-batch", description=__doc__, formatter_class=_Formatter)
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,validate,compare}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,validate,verify,compare}")
 
     run = sub.add_parser("run", help="render a scene set into a dataset folder (resumable)",
                          description="Render every frame of a scene-set file into DATASET/ (frames/<job_id>/, "
@@ -212,6 +269,20 @@ def build_parser() -> argparse.ArgumentParser:
                      help="also say how many frames an existing dataset already has")
     val.add_argument("--list", action="store_true", help="list every frame: job id, scene/view/preset, seed")
     val.set_defaults(func=cmd_validate)
+
+    ver = sub.add_parser("verify", help="check a dataset folder against its index (changes nothing)",
+                         description="Check every index line (a frame record?), every ok frame (record.json and "
+                                     "each file against the index's sizes and SHA-256), and the frames/ folder "
+                                     "(published folders missing from the index, leftovers of a killed run). "
+                                     "Exit code 0 when all is well, 1 when something is not; running the set "
+                                     "again repairs what it finds.",
+                         formatter_class=_Formatter,
+                         epilog="example:\n  tofcore-batch verify out/demo_dataset --checksum size")
+    ver.add_argument("dataset", type=Path, metavar="DATASET", help="dataset folder")
+    ver.add_argument("--checksum", choices=["sha256", "size"], default="sha256",
+                     help="sha256 reads every file; size only compares sizes")
+    ver.add_argument("--show", type=_non_negative_int, default=20, metavar="N", help="problems listed")
+    ver.set_defaults(func=cmd_verify)
 
     cmp = sub.add_parser("compare", help="render one view with several presets; side-by-side PNG and tables",
                          description="Render one view with each preset and write compare.png (rows: presets; "
@@ -239,13 +310,35 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run the command ``argv`` (default: the program's arguments); the exit code.
+
+    Ctrl-C or SIGTERM at any moment gives one line and 130 / 143, never a traceback (see
+    :func:`hold_signals`). Called as the program (``argv`` None), a signal after the command's last
+    line ends the process quietly with that code; called with ``argv``, the caller's handlers are back
+    on return.
+    """
+    previous = hold_signals()
+    try:
+        return _command(build_parser().parse_args(argv))
+    finally:
+        if argv is None:
+            hold_signals(_exit_quietly)
+        else:
+            for sig, handler in previous.items():
+                if handler is not None:
+                    signal.signal(sig, handler)
+
+
+def _command(args: argparse.Namespace) -> int:
+    from tofcore.errors import TofError
+
     from .run import Interrupted
 
     try:
         return args.func(args)
     except Interrupted as exc:
-        print(f"\ninterrupted ({exc}): finished frames are kept; rerun to continue", file=sys.stderr)
+        hold_signals(_exit_quietly)  # a second Ctrl-C while this is said
+        print(f"\n{exc.message()}", file=sys.stderr)
         return exc.exit_code
     except (TofError, OSError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)
