@@ -118,13 +118,17 @@ def signals_deferred():
 def sigint_blocked():
     """Block SIGINT in this thread for the duration (processes and threads started meanwhile inherit it).
 
-    Used around starting worker processes: a Ctrl-C in their first milliseconds, before they ignore
-    SIGINT (:func:`batch.worker.init_worker`, ``batch/__main__.py``), would print a KeyboardInterrupt
-    traceback from the child. Here it stays pending and reaches this process when unblocked.
+    Used around starting worker processes: a Ctrl-C in their first seconds (imports), before they
+    ignore SIGINT (:func:`batch.worker.init_worker`; a Dask worker keeps it blocked), would print a
+    KeyboardInterrupt traceback from the child, or stop a Dask nanny's start. This process gets it
+    when it is unblocked.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()  # starting its process unblocks SIGINT here: start it first
     previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
@@ -609,6 +613,11 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
         finally:
             with signals_deferred() as caught:
                 data.clean_partials()  # folders of workers stopped or lost (no worker of ours writes now)
+                if todo:  # frames published by workers stopped before they reported them
+                    for job in todo:
+                        if job.job_id not in records and (published := data.published_record(job.job_id)):
+                            records[job.job_id] = published
+                            result.rendered += 1
                 ordered = _ordered(records, jobs)
                 data.rewrite_index(ordered)
                 set_ids = {job.job_id for job in jobs}

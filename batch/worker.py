@@ -39,6 +39,7 @@ out-of-memory GPU does), so the GPU failure paths run on machines without one
 from __future__ import annotations
 
 import fnmatch
+import gc
 import os
 import queue
 import secrets
@@ -71,8 +72,26 @@ _EXIT_STOPPED = 143
 
 def _on_sigterm(signum, frame) -> None:
     if not _BUSY.is_set():
-        os._exit(_EXIT_STOPPED)
+        _exit_stopped()
     _STOP.set()
+
+
+def _exit_stopped() -> None:
+    """Exit at once (code 143), first stopping this process's tracer pool if it has one.
+
+    ``os._exit`` skips the pool's clean-up: its semaphores would stay registered, and Python's
+    resource tracker would print a "leaked semaphore objects" warning on the run's stderr at the end.
+    """
+    workers = sys.modules.get("tofcore.workers")
+    if workers is not None:
+        def stop() -> None:
+            workers.shutdown()
+            gc.collect()  # the pool's queues are freed: their semaphores are unlinked and unregistered
+
+        stopper = threading.Thread(target=stop, daemon=True)
+        stopper.start()
+        stopper.join(timeout=5.0)
+    os._exit(_EXIT_STOPPED)
 
 
 class JobError(RuntimeError):
@@ -329,7 +348,7 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
     except BaseException as exc:
         shutil.rmtree(partial, ignore_errors=True)
         if _STOP.is_set():  # stopped by the parent: not the frame's fault, nothing recorded
-            os._exit(_EXIT_STOPPED)
+            _exit_stopped()
         if not isinstance(exc, Exception):  # KeyboardInterrupt, SystemExit: stop, do not record
             raise
         return failed_record(job, task, exc, time.perf_counter() - started, record)
@@ -368,7 +387,7 @@ def run_view(task: ViewTask) -> list[dict]:
         for job in task.jobs:
             records.append(render_job(job, task, scene, pose, ambient, warnings))
             if _STOP.is_set():  # finished frames are published (their record.json is read back next run)
-                os._exit(_EXIT_STOPPED)
+                _exit_stopped()
         sys.stdout.flush()
         return records
     finally:
