@@ -208,10 +208,13 @@ class LocalExecutor:
                 except Exception as exc:
                     yield task, exc
             if broken is not None:  # a worker died (killed, out of memory): the views in flight fail
-                for future, task in list(running.items()):
-                    yield task, broken
+                in_flight = list(running.values())
                 running.clear()
+                # The other workers are stopped first: a frame one publishes meanwhile is on disk before
+                # the failures are reported (the parent indexes a published frame as published).
                 self.close(kill=True)
+                for task in in_flight:
+                    yield task, broken
                 self.pool = self._new_pool()
 
     def close(self, kill: bool = False) -> None:
@@ -615,7 +618,9 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
                 data.clean_partials()  # folders of workers stopped or lost (no worker of ours writes now)
                 if todo:  # frames published by workers stopped before they reported them
                     for job in todo:
-                        if job.job_id not in records and (published := data.published_record(job.job_id)):
+                        record = records.get(job.job_id)
+                        if (record is None or record["status"] != "ok") \
+                                and (published := data.published_record(job.job_id)) is not None:
                             records[job.job_id] = published
                             result.rendered += 1
                 ordered = _ordered(records, jobs)

@@ -76,6 +76,14 @@ def _quiet():
     return open(os.devnull, "w")
 
 
+def _start(*args: str) -> subprocess.Popen:
+    """``python -m batch ARGS`` started in its own process group (as a terminal would)."""
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    env.pop("TOF_BATCH_FAIL", None)
+    return subprocess.Popen([sys.executable, "-m", "batch", *args], cwd=REPO, env=env, stdout=subprocess.PIPE,
+                            stderr=subprocess.PIPE, start_new_session=True, text=True)
+
+
 def _tasks(set_file: Path, dataset: Path):
     jobs = expand(load_set(set_file)).jobs
     return jobs, group_by_view(jobs, dataset=str(dataset), render_threads=1)
@@ -97,10 +105,6 @@ def _assert_true_index(dataset: Path, n: int) -> list[dict]:
     assert report["problems"] == []
     assert stray_files(dataset) == []
     return records
-
-
-def test_job_ids_match_what_the_dataset_accepts():
-    assert JOB_ID.pattern == f"[0-9a-f]{{{JOB_ID_HEX}}}"
 
 
 # --------------------------------------------------------------------------- exactly once
@@ -186,6 +190,30 @@ def test_the_index_writer_appends_a_frame_once(tmp_path):
         ("0123456789abcdef", "ok", 1), ("fedcba9876543210", "failed", 1), ("fedcba9876543210", "ok", 1)]
 
 
+def test_a_killed_pool_worker_leaves_an_index_that_describes_the_files(tmp_path):
+    """kill -9 of a local pool worker: the views in flight are recorded failed, except frames their worker
+    had published (indexed as published); --retry-failed then completes the set."""
+    set_file = write_set(tmp_path, SLOW)
+    dataset = tmp_path / "dataset"
+    proc = _start("run", str(set_file), "--out", str(dataset), "--quiet", "--workers", "2")
+    index = dataset / "index.jsonl"
+    deadline = time.monotonic() + 120
+    while not (index.exists() and index.read_text().strip()):
+        assert proc.poll() is None and time.monotonic() < deadline, proc.communicate()
+        time.sleep(0.02)
+    os.kill(json.loads(index.read_text().splitlines()[0])["pid"], signal.SIGKILL)
+    _, stderr = proc.communicate(timeout=180)
+    assert proc.returncode in (0, 1) and "Traceback" not in stderr, stderr
+    records = read_index(dataset)
+    assert len(records) == 8 and Dataset(dataset).check("sha256")["problems"] == []
+    assert stray_files(dataset) == []
+    failed = [r for r in records if r["status"] == "failed"]
+    assert all("process pool" in r["error"] and not (dataset / "frames" / r["job_id"]).exists() for r in failed)
+    retry = batch("run", str(set_file), "--out", str(dataset), "--quiet", "--retry-failed")
+    assert retry.returncode == 0, retry.stderr
+    _assert_true_index(dataset, 8)
+
+
 _DRIVER = """
 import json, os, signal, sys, time
 from pathlib import Path
@@ -263,6 +291,7 @@ def _dataset(tmp_path: Path, name: str = "corner-2-presets") -> tuple[Path, Path
      b'"bytes":1,"sha256":"' + b"0" * 64 + b'"}]}', "files[0].name must be a file name"),
 ])
 def test_an_index_line_that_is_not_a_record_is_reported_kept_aside_and_never_stops_a_run(tmp_path, bad, why):
+    assert JOB_ID.pattern == f"[0-9a-f]{{{JOB_ID_HEX}}}"  # the ids batch.jobs makes are the ids accepted
     set_file, dataset = _dataset(tmp_path)
     first = read_index(dataset)
     bad = bad.replace(b"@ID", first[0]["job_id"].encode())
@@ -362,13 +391,6 @@ def test_index_lines_without_the_record_checksum_are_compared_by_content_and_upg
 
 # --------------------------------------------------------------------------- Ctrl-C at any time
 
-def _start(*args: str) -> subprocess.Popen:
-    env = dict(os.environ, PYTHONPATH=str(REPO))
-    env.pop("TOF_BATCH_FAIL", None)
-    return subprocess.Popen([sys.executable, "-m", "batch", *args], cwd=REPO, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, start_new_session=True, text=True)
-
-
 def _interpreter_start_up(returncode: int, stderr: str) -> bool:
     """A Ctrl-C that came while the Python interpreter itself was starting, before any line of batch ran:
     killed before Python handled SIGINT at all, or Python's own report (site, runpy, import machinery)."""
@@ -452,7 +474,7 @@ def test_a_full_disk_fails_frames_or_stops_the_run_cleanly_and_the_rerun_complet
 # --------------------------------------------------------------------------- the verify command
 
 def test_verify_reports_unindexed_folders_and_leftovers_and_refuses_while_a_run_writes(tmp_path):
-    _, dataset = _dataset(tmp_path)
+    set_file, dataset = _dataset(tmp_path)
     records = read_index(dataset)
     (dataset / "index.jsonl").write_text(json.dumps(records[0]) + "\n")
     (dataset / "frames" / ".0123456789abcdef.partial-0badf00d").mkdir()
@@ -466,3 +488,8 @@ def test_verify_reports_unindexed_folders_and_leftovers_and_refuses_while_a_run_
         busy = batch("verify", str(dataset))
     assert busy.returncode == 2 and "a run is writing to this dataset" in busy.stderr
     assert batch("verify", str(tmp_path)).returncode == 2
+    # What verify found, the next run repairs: leftovers removed, the folder indexed again.
+    rerun = batch("run", str(set_file), "--out", str(dataset), "--quiet")
+    assert rerun.returncode == 0 and "nothing to render" in rerun.stderr, rerun.stderr
+    _assert_true_index(dataset, len(records))
+    assert batch("verify", str(dataset)).returncode == 0
