@@ -445,7 +445,7 @@ def _mount_tmpfs(where: Path, size: str) -> bool:
                           capture_output=True).returncode == 0
 
 
-@pytest.mark.parametrize("size", ["200k", "450k"])
+@pytest.mark.parametrize("size", ["8k", "40k", "450k"])  # index full at once, after a few lines, frames only
 def test_a_full_disk_fails_frames_or_stops_the_run_cleanly_and_the_rerun_completes(tmp_path, size):
     """A real full file system (a small tmpfs; needs root): one-line errors, and once there is room, the
     reruns complete a dataset that verifies."""
