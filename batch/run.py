@@ -244,17 +244,19 @@ class DaskExecutor:
 
     def __init__(self, address: str | None = None, workers: int = 1, gpus: tuple[str, ...] = ()):
         try:
-            from distributed import Client, LocalCluster
+            import distributed  # noqa: F401
         except ImportError:
             raise RuntimeError("the Dask executor needs the distributed package: "
                                "pip install 'dask[distributed]'") from None
         self.cluster = None
         with sigint_blocked():  # the cluster's IO thread starts the worker processes: they inherit it
-            self._start(address, workers, gpus, Client, LocalCluster)
+            self._start(address, workers, gpus)
         self.futures: dict = {}
 
-    def _start(self, address, workers, gpus, Client, LocalCluster) -> None:
+    def _start(self, address: str | None, workers: int, gpus: tuple[str, ...]) -> None:
         import logging
+
+        from distributed import Client, LocalCluster
 
         if address is None:
             self.cluster = LocalCluster(n_workers=0 if gpus else workers, threads_per_worker=1, processes=True,
@@ -564,7 +566,11 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
             log(f"{result.recovered} finished frame(s) taken from their record.json (index line missing)")
         progress = Progress(len(todo), quiet=quiet, stream=stream)
         try:
-            if todo:
+            if not todo:
+                log(f"{len(jobs)} frames in the set: nothing to render"
+                    + (f" ({result.skipped_failed} failed earlier; --retry-failed retries them)"
+                       if result.skipped_failed else ""))
+            else:
                 with signals_deferred() as caught:  # an executor is not left half-started (a Dask cluster)
                     executor = executor or make_executor(workers=workers, scheduler=scheduler,
                                                          dask_local=dask_local, inline=inline, gpus=devices.gpus)
@@ -574,11 +580,6 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
                 log(f"{len(jobs)} frames in the set: {result.done_before} done{skipped}; rendering {len(todo)} "
                     f"({len(tasks)} view{'s' if len(tasks) != 1 else ''}) with the {executor.name}, "
                     f"{threads_per_worker or 'default'} tracer worker(s) each")
-            else:
-                log(f"{len(jobs)} frames in the set: nothing to render"
-                    + (f" ({result.skipped_failed} failed earlier; --retry-failed retries them)"
-                       if result.skipped_failed else ""))
-            if todo:
                 try:
                     if caught:
                         raise Interrupted(caught[0])
