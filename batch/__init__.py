@@ -11,7 +11,7 @@ Modules, one concept each:
 * :mod:`batch.devices` — ``--device cpu|gpu|auto``: visible GPUs, one pinned worker per GPU, CPU fall-back
 * :mod:`batch.run` — executors (local spawn pool, Dask, in-process), resume logic, progress, summary
 * :mod:`batch.compare` — the sensor comparison report
-* :mod:`batch.cli` — ``python -m batch run | validate | compare``
+* :mod:`batch.cli` — ``python -m batch run | validate | verify | compare``
 * :mod:`batch/blender_entry.py` — ``blender -b file.blend --python batch/blender_entry.py -- …``
 
 Importing this package never imports bpy, and imports nothing else until a name below is used
