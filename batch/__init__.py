@@ -11,14 +11,29 @@ Modules, one concept each:
 * :mod:`batch.devices` — ``--device cpu|gpu|auto``: visible GPUs, one pinned worker per GPU, CPU fall-back
 * :mod:`batch.run` — executors (local spawn pool, Dask, in-process), resume logic, progress, summary
 * :mod:`batch.compare` — the sensor comparison report
-* :mod:`batch.cli` — ``tofcore-batch run | validate | compare``
+* :mod:`batch.cli` — ``tofcore-batch run | validate | verify | compare``
 * :mod:`batch/blender_entry.py` — ``blender -b file.blend --python batch/blender_entry.py -- …``
 
-Importing this package never imports bpy.
+Importing this package never imports bpy, and imports nothing else until a name below is used
+(``python -m batch`` imports the package first: its Ctrl-C handling must start before NumPy loads).
 """
 
-from .jobs import Job, ViewTask, derive_seed, expand, group_by_view
-from .setfile import SetFileError, SetSpec, load_set, parse_set, scaled_sensor
+import importlib
 
-__all__ = ["Job", "SetFileError", "SetSpec", "ViewTask", "derive_seed", "expand", "group_by_view", "load_set",
-           "parse_set", "scaled_sensor"]
+_EXPORTS = {"Job": "jobs", "ViewTask": "jobs", "derive_seed": "jobs", "expand": "jobs", "group_by_view": "jobs",
+            "SetFileError": "setfile", "SetSpec": "setfile", "load_set": "setfile", "parse_set": "setfile",
+            "scaled_sensor": "setfile"}
+
+__all__ = sorted(_EXPORTS)
+
+
+def __getattr__(name: str):
+    if name not in _EXPORTS:
+        raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    value = getattr(importlib.import_module(f".{_EXPORTS[name]}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(__all__))

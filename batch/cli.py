@@ -1,4 +1,4 @@
-"""Command line: ``tofcore-batch run | validate | compare`` (in a checkout also ``python -m batch …``).
+"""Command line: ``tofcore-batch run | validate | verify | compare`` (in a checkout also ``python -m batch …``).
 
 The dataset generator; installed, it is the package ``tofcore_batch`` (the
 repository's ``batch/`` folder), and its example sets are in
@@ -7,6 +7,7 @@ repository's ``batch/`` folder), and its example sets are in
 Examples::
 
     tofcore-batch validate batch/examples/demo_set.toml
+    tofcore-batch verify datasets/demo          # checksums of every frame, index lines, stray folders
     tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --workers 2
     tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --dask local --workers 2
     tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --scheduler tcp://10.0.0.5:8786
@@ -21,30 +22,54 @@ else the CPU, the reason printed and stored in every record). On a Dask cluster
 (--scheduler) start each worker with its own CUDA_VISIBLE_DEVICES.
 
 Exit codes: 0 every frame ok; 1 some frames failed (they are in the index with
-their error); 2 bad arguments or set file, or --device gpu without a usable GPU
-(nothing rendered); 130 / 143 interrupted by Ctrl-C / SIGTERM (finished frames
-are kept; rerun to continue).
+their error), or ``verify`` found a problem; 2 bad arguments or set file, or
+--device gpu without a usable GPU (nothing rendered); 130 / 143 interrupted by
+Ctrl-C / SIGTERM at any moment (one line, no traceback; finished frames are
+kept, the lock released; rerun to continue).
 """
 
 from __future__ import annotations
 
+# Nothing heavy at module level: the installed command imports this module before main() can take
+# over Ctrl-C (hold_signals); NumPy and tofcore are imported inside the commands.
 import argparse
 import importlib.util
 import math
+import os
 import re
+import signal
 import sys
+import threading
 from pathlib import Path
-
-from tofcore import limits
-from tofcore.cli import (check_output_folder, max_depth_type, metres_type, number_type, radiance_type, seconds_type,
-                         seed_type, spp_type)
-from tofcore.errors import ConfigError, TofError
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
 
-_positive_float = number_type(float, "a finite number > 0", lambda v: 0 < v < math.inf)
-_workers_type = number_type(int, "an integer >= 1", lambda v: v >= 1, limits.MAX_WORKERS)
+def _exit_at_once(signum: int, _frame) -> None:
+    """Before a command writes anything (imports, parsing, reading): say so and exit."""
+    os.write(2, f"\ninterrupted ({signal.Signals(signum).name}): nothing was written\n".encode())
+    os._exit(128 + signum)
+
+
+def _exit_quietly(signum: int, _frame) -> None:
+    """After the command's last line (interpreter shutdown, clean-up hooks): exit with the signal's code."""
+    os._exit(128 + signum)
+
+
+def hold_signals(handler=_exit_at_once) -> dict:
+    """Route SIGINT and SIGTERM to ``handler`` (in the main thread only); the handlers they had before.
+
+    ``python -m batch`` and :func:`main` install :func:`_exit_at_once` first thing, so a Ctrl-C while
+    Python imports NumPy and the simulator, or parses the arguments, gives one line and exit code
+    130 instead of a KeyboardInterrupt traceback. The commands then install their own handlers
+    (:func:`batch.run.install_signal_handlers`: stop cleanly, keep what is finished).
+    """
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+
+
 
 #: Dask scheduler addresses: [tcp|tls|ucx|ws|wss://]HOST:PORT, HOST a name, IPv4 or [IPv6] (Dask needs the port).
 _SCHEDULER = re.compile(r"(?:(?:tcp|tls|ucx|ws|wss)://)?(\[[0-9A-Fa-f:.]+\]|[A-Za-z0-9_.-]+):(\d{1,5})/?")
@@ -89,6 +114,9 @@ def flag_error(text: str, flags: dict[str, str]) -> str:
 def add_quality_options(parser: argparse.ArgumentParser, *, seed_help: str, ambient_help: str,
                         scale_help: str) -> None:
     """The render-quality flags shared by ``compare`` and the Blender entry script."""
+    from tofcore.cli import max_depth_type, metres_type, number_type, radiance_type, seconds_type, seed_type, spp_type
+
+    positive_float = number_type(float, "a finite number > 0", lambda v: 0 < v < math.inf)
     parser.add_argument("--spp", type=spp_type, default=64, metavar="N",
                         help="most samples per pixel (at most TOFCORE_MAX_SPP)")
     parser.add_argument("--max-depth", type=max_depth_type, default=5, metavar="N",
@@ -99,7 +127,7 @@ def add_quality_options(parser: argparse.ArgumentParser, *, seed_help: str, ambi
     parser.add_argument("--target-error", type=metres_type, default=None, metavar="M",
                         help="stop each render at this estimated RMS depth error (metres)")
     parser.add_argument("--ambient", type=radiance_type, default=None, metavar="W_M2_SR", help=ambient_help)
-    parser.add_argument("--resolution-scale", type=_positive_float, default=1.0, metavar="F", help=scale_help)
+    parser.add_argument("--resolution-scale", type=positive_float, default=1.0, metavar="F", help=scale_help)
 
 
 def _vector3(text: str) -> tuple[float, float, float]:
@@ -147,12 +175,42 @@ def cmd_validate(args: argparse.Namespace) -> int:
     return EXIT_OK
 
 
+def cmd_verify(args: argparse.Namespace) -> int:
+    from .dataset import Dataset
+
+    data = Dataset(args.dataset)
+    if not data.index_path.is_file():
+        print(f"error: {data.root}: not a dataset folder (no index.jsonl)", file=sys.stderr)
+        return EXIT_USAGE
+    with data.reading():
+        report = data.check(args.checksum)
+    counts = report["counts"]
+    print(f"{data.root}: {counts['records']} frame(s) indexed ({counts['ok']} ok, {counts['failed']} failed); "
+          f"{args.checksum} of {counts['record_files']} record.json and {counts['files']} file(s) checked")
+    for line in report["problems"][:args.show]:
+        print(f"  {line}")
+    if len(report["problems"]) > args.show:
+        print(f"  … and {len(report['problems']) - args.show} more")
+    for line in report["notes"]:
+        print(f"  note: {line}")
+    if report["problems"]:
+        print(f"{len(report['problems'])} problem(s); running the set again repairs them (damaged frames are "
+              f"rendered again, the index rebuilt from the frame folders): tofcore-batch run SET.toml --out "
+              f"{args.dataset}")
+        return EXIT_FAILED
+    print("ok: the index describes every frame folder and every file matches its checksum"
+          if args.checksum == "sha256" else "ok: the index describes every frame folder and every size matches")
+    return EXIT_OK
+
+
 def cmd_run(args: argparse.Namespace) -> int:
     from .jobs import expand
     from .run import install_signal_handlers, run_jobs, summary
     from .setfile import load_set
 
     install_signal_handlers()
+    from tofcore.cli import check_output_folder
+
     check_output_folder(args.out)
     _check_dask(args)
     spec = load_set(args.set_file)
@@ -172,6 +230,8 @@ def cmd_compare(args: argparse.Namespace) -> int:
     from .run import install_signal_handlers
 
     install_signal_handlers()
+    from tofcore.cli import check_output_folder
+
     check_output_folder(args.out)
     _check_dask(args)
     return compare(args)
@@ -181,6 +241,8 @@ def _check_dask(args: argparse.Namespace) -> None:
     """ConfigError before anything is read or written when --scheduler/--dask asks for a missing package."""
     flag = "--scheduler" if args.scheduler is not None else "--dask" if args.dask is not None else None
     if flag and importlib.util.find_spec("distributed") is None:
+        from tofcore.errors import ConfigError
+
         raise ConfigError(f"{flag}: needs the distributed package, which is not installed: "
                           f"pip install 'dask[distributed]' (or leave {flag} out for the local pool)")
 
@@ -207,13 +269,17 @@ def add_device_option(parser: argparse.ArgumentParser, *, gpu_help: str) -> None
 
 
 def _executor_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument("--workers", type=_workers_type, default=None, metavar="N",
+    from tofcore import limits
+    from tofcore.cli import number_type
+
+    workers_type = number_type(int, "an integer >= 1", lambda v: v >= 1, limits.MAX_WORKERS)
+    parser.add_argument("--workers", type=workers_type, default=None, metavar="N",
                         help="worker processes (local pool, or LocalCluster workers with --dask local); "
                              "each render also uses tracer threads (default: 1; with --device gpu/auto one "
                              "per visible GPU: a smaller N uses the first N GPUs, a larger N is clamped)")
     add_device_option(parser, gpu_help="one worker process per visible GPU, pinned with CUDA_VISIBLE_DEVICES; "
                                        "on a --scheduler cluster each worker uses the GPU its environment shows")
-    parser.add_argument("--threads-per-worker", type=_workers_type, default=None, metavar="N",
+    parser.add_argument("--threads-per-worker", type=workers_type, default=None, metavar="N",
                         help="tracer worker processes per render (threads in a Dask worker; default: usable "
                              "CPUs / workers, so frames x tracer workers never exceed the CPUs; on a --scheduler "
                              "cluster each machine's CPU count); frames do not depend on it")
@@ -229,7 +295,7 @@ def _executor_options(parser: argparse.ArgumentParser) -> None:
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(prog="tofcore-batch", description=__doc__, formatter_class=_Formatter)
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,validate,compare}")
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,validate,verify,compare}")
 
     run = sub.add_parser("run", help="render a scene set into a dataset folder (resumable)",
                          description="Render every frame of a scene-set file into DATASET/ (frames/<job_id>/, "
@@ -255,6 +321,23 @@ def build_parser() -> argparse.ArgumentParser:
                      help="also say how many frames an existing dataset already has")
     val.add_argument("--list", action="store_true", help="list every frame: job id, scene/view/preset, seed")
     val.set_defaults(func=cmd_validate)
+
+    ver = sub.add_parser("verify", help="check a dataset folder against its index (changes nothing)",
+                         description="Check every index line (a frame record?), every ok frame (record.json and "
+                                     "each file against the index's sizes and SHA-256), and the frames/ folder "
+                                     "(published folders missing from the index, leftovers of a killed run). "
+                                     "Exit code 0 when all is well, 1 when something is not; running the set "
+                                     "again repairs what it finds.",
+                         formatter_class=_Formatter,
+                         epilog="example:\n  tofcore-batch verify out/demo_dataset --checksum size")
+    ver.add_argument("dataset", type=Path, metavar="DATASET", help="dataset folder")
+    ver.add_argument("--checksum", choices=["sha256", "size"], default="sha256",
+                     help="sha256 reads every file; size only compares sizes")
+    from tofcore.cli import number_type
+
+    ver.add_argument("--show", type=number_type(int, "an integer >= 0", lambda v: v >= 0), default=20, metavar="N",
+                     help="problems listed")
+    ver.set_defaults(func=cmd_verify)
 
     cmp = sub.add_parser("compare", help="render one view with several presets; side-by-side PNG and tables",
                          description="Render one view with each preset and write compare.png (rows: presets; "
@@ -282,13 +365,35 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run the command ``argv`` (default: the program's arguments); the exit code.
+
+    Ctrl-C or SIGTERM at any moment gives one line and 130 / 143, never a traceback (see
+    :func:`hold_signals`). Called as the program (``argv`` None), a signal after the command's last
+    line ends the process quietly with that code; called with ``argv``, the caller's handlers are back
+    on return.
+    """
+    previous = hold_signals()
+    try:
+        return _command(build_parser().parse_args(argv))
+    finally:
+        if argv is None:
+            hold_signals(_exit_quietly)
+        else:
+            for sig, handler in previous.items():
+                if handler is not None:
+                    signal.signal(sig, handler)
+
+
+def _command(args: argparse.Namespace) -> int:
+    from tofcore.errors import TofError
+
     from .run import Interrupted
 
     try:
         return args.func(args)
     except Interrupted as exc:
-        print(f"\ninterrupted ({exc}): finished frames are kept; rerun to continue", file=sys.stderr)
+        hold_signals(_exit_quietly)  # a second Ctrl-C while this is said
+        print(f"\n{exc.message()}", file=sys.stderr)
         return exc.exit_code
     except (TofError, OSError, RuntimeError) as exc:
         print(f"error: {exc}", file=sys.stderr)

@@ -9,6 +9,8 @@ Layout
       README.md              the dataset card (counts, presets, settings, how to load)
       frames/<job_id>/       tofcore.write_frame outputs + record.json (the frame's done record)
       frames/.<job_id>.partial-XXXXXXXX/   a frame being written (removed by the next run)
+      frames/.<job_id>.stale-XXXXXXXX/     a frame folder being deleted (it failed verification)
+      index.jsonl.rejected   lines of the index that were not records, as they were (if any)
       .lock                  held (flock) while a run writes to the dataset
 
 Records
@@ -28,26 +30,55 @@ NVIDIA H100 … (CuPy 14.0)"``, ``requested`` ``"cpu"``/``"gpu"``/``"auto"``,
 ``fallback_reason`` why ``auto`` used the CPU; a failed frame has only what was
 requested), ``cuda_visible_devices`` (the worker's ``CUDA_VISIBLE_DEVICES`` for
 GPU and auto renders: the GPU it was pinned to), ``error`` and ``traceback``
-when failed (a GPU failure: one line, no traceback), ``host``, ``finished``
-(UTC).
+when failed (a GPU failure: one line, no traceback), ``host``, ``pid``,
+``finished`` (UTC). In the index only, an ok record also has ``record_file``
+(kind ``"record"``, name ``record.json``, bytes, sha256).
 
 Resuming
 --------
-A frame is done when its folder exists, its ``record.json`` says ``ok`` and
-every file matches the size and SHA-256 in the record. The index is appended
-one line per finished job (flush + fsync) and rewritten atomically at the
-start and the end of a run, so after a run it holds exactly one record per
-job; a line cut by a crash is ignored, and a frame whose folder is complete
-but whose index line was lost is taken from its ``record.json``.
+A frame is done when its folder exists, its ``record.json`` says ``ok``, the
+index line's ``record_file`` (size and SHA-256 of ``record.json``, kept only in
+the index: a file cannot hold its own checksum) matches, and every file
+matches the size and SHA-256 in the record. The index is appended one line per
+finished job (one ``write``, then fsync) and rewritten atomically at the start
+and the end of a run, so after a run it holds exactly one record per job.
+
+Exactly once
+------------
+A frame folder is published once: the worker renames its staging folder to
+``frames/<job_id>/`` with ``rename(2)``, which refuses a non-empty target
+(:func:`publish`), so a second execution of the same job (Dask running a view
+again after a worker died, a duplicate task, a zombie task of an earlier run)
+never replaces a published folder: it deletes its staging folder and reports
+the published record instead. The parent, the index's only writer, indexes
+for a job the ``record.json`` of its published folder when there is one
+(:meth:`Dataset.settle`) and appends a job's line once per run
+(:meth:`Dataset.append` skips a line it has already written). A folder that
+must be rendered again (it failed verification) is moved aside and deleted by
+the parent before any worker starts (:meth:`Dataset.discard`).
+
+Index lines that are not records
+--------------------------------
+The index can be rebuilt from the frame folders, so a bad line never stops a
+run (:meth:`Dataset.read_index`): an incomplete last line (a run stopped while
+writing it) is dropped with a note; any other line that is not a record
+(:func:`record_problem`: not JSON, not an object, a record with keys missing
+or of the wrong type) is reported as ``index.jsonl:LINE: ignored (why)``,
+copied verbatim to ``index.jsonl.rejected`` and left out of the rewritten
+index. The frame it would describe is then taken from its folder's
+``record.json`` when every file verifies, else rendered again.
+``tofcore-batch verify DATASET`` checks all of this without changing anything.
 """
 
 from __future__ import annotations
 
+import errno
 import fcntl
 import hashlib
 import json
 import math
 import os
+import re
 import secrets
 import shutil
 import stat
@@ -60,6 +91,16 @@ INDEX = "index.jsonl"
 CARD = "README.md"
 RECORD = "record.json"
 LOCK = ".lock"
+REJECTED = "index.jsonl.rejected"
+#: Values of a record's ``status``.
+STATUSES = ("ok", "failed")
+#: A job id (``batch.jobs.JOB_ID_HEX`` hex digits); also what makes ``frames/<job_id>`` a safe path.
+JOB_ID = re.compile(r"[0-9a-f]{16}")
+_SHA256 = re.compile(r"[0-9a-f]{64}")
+# What a run leaves behind when it is killed: a frame being written or deleted, a temp file of
+# write_bytes_atomic (the index, the card) in the dataset folder.
+_STRAY_FRAME = re.compile(r"\.[0-9a-f]{16}\.(partial|stale)-[0-9a-f]{8}")
+_STRAY_TEMP = re.compile(r"\..+\.tmp-[0-9a-f]{8}")
 
 
 class DatasetLocked(RuntimeError):
@@ -148,12 +189,107 @@ def file_entry(kind: str, path: Path) -> dict:
     return {"kind": kind, "name": path.name, "bytes": path.stat().st_size, "sha256": sha256_of(path)}
 
 
-def publish(partial: Path, final: Path) -> None:
-    """Rename a finished frame folder into place (replacing a stale one), then sync the parent folder."""
-    if final.exists():
-        shutil.rmtree(final)
-    os.rename(partial, final)
+def record_bytes(record: dict) -> bytes:
+    """The bytes of a ``record.json``: indented JSON, NaN/inf as null, a final newline."""
+    return (json.dumps(jsonable(record), indent=1, allow_nan=False) + "\n").encode()
+
+
+def record_file_entry(data: bytes) -> dict:
+    """The index's ``record_file`` entry for a ``record.json`` holding ``data``."""
+    return {"kind": "record", "name": RECORD, "bytes": len(data), "sha256": hashlib.sha256(data).hexdigest()}
+
+
+def write_record(folder: Path, record: dict) -> dict:
+    """Write ``folder/record.json`` atomically; ``record`` with its ``record_file`` entry (for the index)."""
+    data = record_bytes(record)
+    write_bytes_atomic(Path(folder) / RECORD, data)
+    return {**record, "record_file": record_file_entry(data)}
+
+
+def publish(partial: Path, final: Path) -> bool:
+    """Rename a finished frame folder into place unless one is there; True when this call published it.
+
+    ``rename(2)`` replaces an empty folder but refuses a non-empty one (``ENOTEMPTY``, ``EEXIST`` on
+    some systems), in one atomic step: of several executions of the same job exactly one publishes,
+    and a published folder (never empty: it holds ``record.json``) is never replaced. A folder that
+    must be rendered again is removed by the parent first (:meth:`Dataset.discard`).
+    """
+    try:
+        os.rename(partial, final)
+    except OSError as exc:
+        if exc.errno in (errno.ENOTEMPTY, errno.EEXIST):
+            return False
+        raise
     _fsync_dir(final.parent)
+    return True
+
+
+# --------------------------------------------------------------------------- records
+
+def _short(value) -> str:
+    text = repr(value)
+    return text if len(text) <= 60 else text[:57] + "..."
+
+
+def _json_kind(value) -> str:
+    return {list: "list", str: "string", bool: "boolean", int: "number", float: "number",
+            type(None): "null"}.get(type(value), type(value).__name__)
+
+
+def _entry_problem(entry, where: str) -> str | None:
+    """None when ``entry`` is a ``{kind, name, bytes, sha256}`` file entry naming a plain file name."""
+    if not isinstance(entry, dict):
+        return f"{where} must be an object, got {_short(entry)}"
+    name = entry.get("name")
+    if not isinstance(name, str) or name in ("", ".", "..") or any(c in name for c in "/\\\0"):
+        return f"{where}.name must be a file name, got {_short(name)}"
+    size = entry.get("bytes")
+    if not isinstance(size, int) or isinstance(size, bool) or size < 0:
+        return f"{where}.bytes must be an integer >= 0, got {_short(size)}"
+    digest = entry.get("sha256")
+    if not isinstance(digest, str) or not _SHA256.fullmatch(digest):
+        return f"{where}.sha256 must be 64 hex digits, got {_short(digest)}"
+    return None
+
+
+def record_problem(record) -> str | None:
+    """None when ``record`` is a frame record that every reader can use, else what is wrong (one line).
+
+    Checked: ``job_id`` (16 hex digits), ``status`` (``"ok"``/``"failed"``), ``scene`` and ``preset``
+    (strings), ``view`` (an object with a ``label``), ``settings`` (an object with integer ``width`` and
+    ``height``); for an ok record also ``dir`` (``frames/<job_id>``), ``files`` (a non-empty list of
+    ``{kind, name, bytes, sha256}`` with plain file names) and, when present, ``record_file``.
+    """
+    if not isinstance(record, dict):
+        return f"a JSON {_json_kind(record)}, not a record"
+    job_id = record.get("job_id")
+    if not isinstance(job_id, str) or not JOB_ID.fullmatch(job_id):
+        return f"job_id must be 16 hex digits, got {_short(job_id)}"
+    if record.get("status") not in STATUSES:
+        return f"status must be 'ok' or 'failed', got {_short(record.get('status'))}"
+    for key in ("scene", "preset"):
+        if not isinstance(record.get(key), str):
+            return f"{key} must be a string, got {_short(record.get(key))}"
+    view = record.get("view")
+    if not isinstance(view, dict) or not isinstance(view.get("label"), str):
+        return f"view must be an object with a label, got {_short(view)}"
+    settings = record.get("settings")
+    if not isinstance(settings, dict) or not all(isinstance(settings.get(k), int) for k in ("width", "height")):
+        return f"settings must be an object with integer width and height, got {_short(settings)}"
+    if record["status"] == "failed":
+        return None
+    if record.get("dir") != f"{FRAMES}/{job_id}":
+        return f"dir must be {FRAMES}/{job_id!s}, got {_short(record.get('dir'))}"
+    files = record.get("files")
+    if not isinstance(files, list) or not files:
+        return f"files must be a non-empty list, got {_short(files)}"
+    for i, entry in enumerate(files):
+        problem = _entry_problem(entry, f"files[{i}]")
+        if problem is not None:
+            return problem
+    if "record_file" in record:
+        return _entry_problem(record["record_file"], "record_file")
+    return None
 
 
 # --------------------------------------------------------------------------- the dataset
@@ -165,7 +301,8 @@ class Dataset:
         self.root = Path(root).resolve()
         self.frames = self.root / FRAMES
         self.index_path = self.root / INDEX
-        self._index_fh = None
+        self._index_fd: int | None = None
+        self._appended: dict[str, str] = {}  # job id -> status of the line this object appended
 
     def create(self) -> None:
         self.frames.mkdir(parents=True, exist_ok=True)
@@ -194,27 +331,83 @@ class Dataset:
             fcntl.flock(fh.fileno(), fcntl.LOCK_UN)
             fh.close()
 
+    @contextmanager
+    def reading(self):
+        """Hold a shared lock for a reader that must not see a run half-way (``verify``); creates nothing.
+
+        Raises :class:`DatasetLocked` while a run holds the dataset.
+        """
+        try:
+            fd = os.open(self.root / LOCK, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
+        except FileNotFoundError:
+            yield self  # no run has ever written here
+            return
+        except OSError as exc:
+            raise DatasetLocked(f"{self.root / LOCK}: cannot open the lock file ({exc.strerror})") from None
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_SH | fcntl.LOCK_NB)
+            except BlockingIOError:
+                raise DatasetLocked(f"{self.root}: a run is writing to this dataset; check it when the run has "
+                                    f"finished") from None
+            yield self
+        finally:
+            os.close(fd)
+
     # ---------------------------------------------------------------- index
     def read_index(self) -> tuple[dict[str, dict], dict]:
-        """Records by job id (the last line of a job wins) and ``{"lines", "bad_lines", "duplicates"}``."""
+        """Records by job id (the last line of a job wins) and what the other lines were; never raises
+        for the content.
+
+        The second value: ``lines`` (read), ``duplicates`` (records superseded by a later line of the
+        same job), ``problems`` (``(line number, why, the line's bytes)`` of every line that is not a
+        record, :func:`record_problem`), ``truncated`` (the number of an incomplete last line: no
+        newline and not JSON, what a run stopped mid-write leaves; else None) and ``bad_lines`` (both
+        counted). Blank lines are skipped.
+        """
         records: dict[str, dict] = {}
-        info = {"lines": 0, "bad_lines": 0, "duplicates": 0}
-        if not self.index_path.exists():
+        info = {"lines": 0, "bad_lines": 0, "duplicates": 0, "problems": [], "truncated": None}
+        try:
+            fh = open(self.index_path, "rb")
+        except FileNotFoundError:
             return records, info
-        with open(self.index_path, "rb") as fh:
-            for raw in fh:
-                info["lines"] += 1
+        with fh:
+            for number, raw in enumerate(fh, start=1):
+                info["lines"] = number
+                if not raw.strip():
+                    continue
                 try:
                     record = json.loads(raw)
-                    job_id = record["job_id"]
-                except (ValueError, KeyError, TypeError):
-                    info["bad_lines"] += 1  # a line cut by a crash
+                except (ValueError, RecursionError) as exc:  # UnicodeDecodeError is a ValueError
+                    if not raw.endswith(b"\n"):
+                        info["truncated"] = number
+                    else:
+                        why = f"not JSON: {exc.msg}" if isinstance(exc, json.JSONDecodeError) else "not JSON"
+                        info["problems"].append((number, why, raw))
                     continue
+                problem = record_problem(record)
+                if problem is not None:
+                    info["problems"].append((number, problem, raw))
+                    continue
+                job_id = record["job_id"]
                 if job_id in records:
                     info["duplicates"] += 1
                     del records[job_id]  # keep file order = order of the last record
                 records[job_id] = record
+        info["bad_lines"] = len(info["problems"]) + (info["truncated"] is not None)
         return records, info
+
+    def reject(self, problems: list[tuple[int, str, bytes]]) -> Path:
+        """Append the lines of ``problems`` (from :meth:`read_index`) to ``index.jsonl.rejected``, as they
+        were, and make them durable: the rewritten index leaves them out, nothing a person wrote is lost."""
+        path = self.root / REJECTED
+        fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW | os.O_CLOEXEC, 0o644)
+        try:
+            _write_all(fd, b"".join(raw if raw.endswith(b"\n") else raw + b"\n" for _, _, raw in problems))
+            os.fsync(fd)
+        finally:
+            os.close(fd)
+        return path
 
     def rewrite_index(self, records: Iterable[dict]) -> None:
         """Replace the index atomically with ``records`` (one line each)."""
@@ -222,37 +415,90 @@ class Dataset:
         text = "".join(dumps(r) + "\n" for r in records)
         write_bytes_atomic(self.index_path, text.encode())
 
-    def append(self, record: dict) -> None:
-        """Append one record line and make it durable (flush + fsync) before returning."""
-        if self._index_fh is None:
-            self._index_fh = open(self.index_path, "ab")
-        self._index_fh.write((dumps(record) + "\n").encode())
-        self._index_fh.flush()
-        os.fsync(self._index_fh.fileno())
+    def append(self, record: dict) -> bool:
+        """Append one record line and make it durable (one ``write``, then fsync) before returning.
+
+        Idempotent per frame: False, and nothing written, when this object has already appended a line
+        for the job, unless that line said failed and this one ok (the folder appeared). A published
+        frame's line never changes, so a duplicate result of a job adds nothing to the index.
+        """
+        job_id = record["job_id"]
+        before = self._appended.get(job_id)
+        if before is not None and not (before == "failed" and record.get("status") == "ok"):
+            return False
+        if self._index_fd is None:
+            self._index_fd = os.open(self.index_path, os.O_WRONLY | os.O_APPEND | os.O_CREAT | os.O_NOFOLLOW
+                                     | os.O_CLOEXEC, 0o644)
+        _write_all(self._index_fd, (dumps(record) + "\n").encode())
+        os.fsync(self._index_fd)
+        self._appended[job_id] = record.get("status")
+        return True
 
     def close_index(self) -> None:
-        if self._index_fh is not None:
-            self._index_fh.close()
-            self._index_fh = None
+        if self._index_fd is not None:
+            os.close(self._index_fd)
+            self._index_fd = None
 
     # ---------------------------------------------------------------- frames
-    def folder_record(self, job_id: str) -> dict | None:
-        """The ``record.json`` of a published frame folder, or None."""
-        try:
-            return json.loads((self.frames / job_id / RECORD).read_text())
-        except (OSError, ValueError):
+    def published_record(self, job_id: str) -> dict | None:
+        """The record of the published folder ``frames/<job_id>/`` with its ``record_file`` entry, or None.
+
+        None when there is no such folder, or its ``record.json`` is unreadable, not an ok record
+        (:func:`record_problem`), or names another job.
+        """
+        if not JOB_ID.fullmatch(job_id):
             return None
+        try:
+            data = (self.frames / job_id / RECORD).read_bytes()
+            record = json.loads(data)
+        except (OSError, ValueError, RecursionError):
+            return None
+        if record_problem(record) is not None or record["job_id"] != job_id or record["status"] != "ok":
+            return None
+        record["record_file"] = record_file_entry(data)
+        return record
+
+    def folder_record(self, job_id: str) -> dict | None:
+        """Alias of :meth:`published_record` (the name used before it checked the record)."""
+        return self.published_record(job_id)
+
+    def settle(self, record: dict) -> dict:
+        """The record to index for a job a worker reported: its published folder's record when there is one.
+
+        The published folder is the truth: a second execution of a job that lost the race to publish,
+        or a view failed because its worker died after publishing some of its frames, is indexed as
+        what was published. When no folder is visible (none was published, or a shared file system
+        does not show it yet) the worker's record is kept; the next run verifies it.
+        """
+        published = self.published_record(record["job_id"])
+        return record if published is None else published
 
     def verify(self, record: dict, mode: str = "sha256") -> str | None:
         """None when the record's frame is complete on disk, else why not.
 
-        ``mode``: ``"sha256"`` checks sizes and checksums, ``"size"`` only sizes (fast).
+        ``mode``: ``"sha256"`` checks sizes and checksums of ``record.json`` and of every file,
+        ``"size"`` only sizes (fast). A record without ``record_file`` (an index line written before
+        ``record.json`` was checksummed) must equal the folder's ``record.json``.
         """
         if record.get("status") != "ok":
             return f"status {record.get('status')!r}"
         folder = self.frames / record["job_id"]
-        if not (folder / RECORD).is_file():
-            return "no record.json in the frame folder"
+        try:
+            data = (folder / RECORD).read_bytes()
+        except OSError:
+            return f"no {RECORD} in the frame folder"
+        expected = record.get("record_file")
+        if expected is None:
+            try:
+                same = json.loads(data) == json.loads(dumps(record))
+            except (ValueError, RecursionError):
+                same = False
+            if not same:
+                return f"{RECORD} differs from the index line"
+        elif len(data) != expected["bytes"]:
+            return f"{RECORD} has {len(data)} bytes, the index says {expected['bytes']}"
+        elif mode == "sha256" and hashlib.sha256(data).hexdigest() != expected["sha256"]:
+            return f"{RECORD} checksum differs from the index"
         for entry in record.get("files", []):
             path = folder / entry["name"]
             try:
@@ -265,14 +511,87 @@ class Dataset:
                 return f"{entry['name']} checksum differs from the record"
         return None
 
+    def discard(self, job_id: str) -> bool:
+        """Delete ``frames/<job_id>/`` before the job is rendered again; True when there was one.
+
+        The folder is first renamed to ``.<job_id>.stale-XXXXXXXX`` (atomic), so a run killed while
+        deleting leaves no half-deleted folder under the job's name; the next run removes the rest.
+        """
+        folder = self.frames / job_id
+        if not (folder.exists() or folder.is_symlink()):
+            return False
+        stale = self.frames / f".{job_id}.stale-{secrets.token_hex(4)}"
+        os.rename(folder, stale)
+        _fsync_dir(self.frames)
+        _remove(stale)
+        return True
+
     def clean_partials(self) -> int:
-        """Remove frame folders left half-written by a killed run; the number removed."""
+        """Remove what a killed run left: frame folders half-written or half-deleted, temp files of the
+        index and the card; the number removed. Only while no worker writes (under the lock)."""
         removed = 0
-        if self.frames.is_dir():
-            for path in self.frames.glob(".*.partial-*"):
-                shutil.rmtree(path, ignore_errors=True)
-                removed += 1
+        for folder, pattern in ((self.frames, _STRAY_FRAME), (self.root, _STRAY_TEMP)):
+            if not folder.is_dir():
+                continue
+            for path in folder.iterdir():
+                if pattern.fullmatch(path.name):
+                    _remove(path)
+                    removed += 1
         return removed
+
+    def check(self, mode: str = "sha256") -> dict:
+        """Everything :meth:`read_index`, :meth:`verify` and the frames folder say, without changing anything.
+
+        Returns ``{"problems": [one line each], "notes": [...], "counts": {records, ok, failed,
+        record_files, files}}``. Problems: index lines that are not records, ok frames that do not
+        verify (``mode``), published folders missing from the index, leftovers of a killed run.
+        """
+        records, info = self.read_index()
+        problems = [f"{INDEX}:{number}: not a frame record ({why})" for number, why, _ in info["problems"]]
+        if info["truncated"] is not None:
+            problems.append(f"{INDEX}:{info['truncated']}: incomplete last line (a run stopped while writing it)")
+        counts = {"records": len(records), "ok": 0, "failed": 0, "record_files": 0, "files": 0}
+        legacy = 0
+        for job_id, record in records.items():
+            if record["status"] != "ok":
+                counts["failed"] += 1
+                continue
+            counts["ok"] += 1
+            counts["record_files"] += 1
+            counts["files"] += len(record["files"])
+            legacy += "record_file" not in record
+            why = self.verify(record, mode)
+            if why is not None:
+                problems.append(f"{FRAMES}/{job_id}: {why}")
+        if self.frames.is_dir():
+            for path in sorted(self.frames.iterdir()):
+                if _STRAY_FRAME.fullmatch(path.name):
+                    problems.append(f"{FRAMES}/{path.name}: left by an interrupted run")
+                elif JOB_ID.fullmatch(path.name) and path.name not in records:
+                    problems.append(f"{FRAMES}/{path.name}: published but not in the index")
+        for path in sorted(self.root.iterdir()) if self.root.is_dir() else []:
+            if _STRAY_TEMP.fullmatch(path.name):
+                problems.append(f"{path.name}: temporary file left by an interrupted run")
+        notes = []
+        if info["duplicates"]:
+            notes.append(f"{info['duplicates']} index line(s) superseded by a later line of the same frame")
+        if legacy:
+            notes.append(f"{legacy} index line(s) without the checksum of record.json (written by an older "
+                         f"version; compared by content; the next run adds it)")
+        return {"problems": problems, "notes": notes, "counts": counts}
 
     def write_card(self, text: str) -> None:
         write_bytes_atomic(self.root / CARD, text.encode())
+
+
+def _write_all(fd: int, data: bytes) -> None:
+    view = memoryview(data)
+    while view:
+        view = view[os.write(fd, view):]
+
+
+def _remove(path: Path) -> None:
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path, ignore_errors=True)
+    else:
+        path.unlink(missing_ok=True)

@@ -24,10 +24,20 @@ touched, by :func:`batch.devices.plan_devices`; a ``--device gpu`` run without
 a usable GPU stops there with one line (exit code 2).
 
 Every executor calls :func:`batch.worker.run_view` on :class:`~batch.jobs.ViewTask`
-objects and yields their records; the parent appends each record to the index
-as it arrives (flush + fsync). On Ctrl-C or SIGTERM the parent stops the
-workers (they cancel their render between ray chunks and remove their
-half-written folder), rewrites the index, updates the card and exits.
+objects and yields their records; the parent, the index's only writer, indexes
+each job once, as its published folder describes it (:meth:`Dataset.settle`,
+:meth:`Dataset.append`; a duplicate result is dropped). Dask runs a task at
+least once: results are released as soon as they are read, so a worker lost
+later does not make Dask run finished views again, and a view that does run
+twice cannot replace its published folders (:func:`batch.dataset.publish`).
+
+Signals: on Ctrl-C or SIGTERM the parent stops the workers (they cancel their
+render between ray chunks and remove their half-written folder), rewrites the
+index, updates the card and exits with 130 / 143. Workers are started with
+SIGINT blocked (:func:`sigint_blocked`) and then ignore it: the terminal sends
+Ctrl-C to every process of the group, and only the parent acts on it. Starting
+an executor is not cut in half: a signal meanwhile is acted on once it has
+started (:func:`signals_deferred`).
 """
 
 from __future__ import annotations
@@ -51,7 +61,7 @@ from tofcore.progress import tqdm_class, use_bar
 from tofcore.workers import usable_cpus
 
 from .card import dataset_card
-from .dataset import Dataset
+from .dataset import FRAMES, RECORD, Dataset
 from .devices import VISIBLE_ENV, plan_devices
 from .jobs import Job, ViewTask, group_by_view
 from .worker import failed_record, init_worker, run_view
@@ -63,6 +73,13 @@ class Interrupted(BaseException):
     def __init__(self, signum: int):
         super().__init__(signal.Signals(signum).name)
         self.signum = signum
+        self.published: int | None = None  # frames this run published, once the run has begun
+
+    def message(self) -> str:
+        """The one line said when a run stops on this signal."""
+        done = ("before any frame was rendered" if self.published is None
+                else f"{self.published} frame{'s' if self.published != 1 else ''} published by this run")
+        return f"interrupted ({self}): {done}; rerun the same command to resume"
 
     @property
     def exit_code(self) -> int:
@@ -96,6 +113,28 @@ def signals_deferred():
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
+
+
+@contextmanager
+def sigint_blocked():
+    """Block SIGINT in this thread for the duration (processes and threads started meanwhile inherit it).
+
+    Used around starting worker processes: a Ctrl-C in their first seconds (imports), before they
+    ignore SIGINT (:func:`batch.worker.init_worker`; a Dask worker keeps it blocked), would print a
+    KeyboardInterrupt traceback from the child, or stop a Dask nanny's start. This process gets it
+    when it is unblocked.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()  # starting its process unblocks SIGINT here: start it first
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 # --------------------------------------------------------------------------- executors
@@ -153,7 +192,8 @@ class LocalExecutor:
         while pending or running:
             while pending and len(running) < self.workers:
                 task = pending.popleft()
-                running[self.pool.submit(run_view, task)] = task
+                with sigint_blocked():  # submit may start a worker process
+                    running[self.pool.submit(run_view, task)] = task
             done, _ = cf.wait(running, timeout=0.5, return_when=cf.FIRST_COMPLETED)
             if not done:
                 yield None
@@ -169,10 +209,13 @@ class LocalExecutor:
                 except Exception as exc:
                     yield task, exc
             if broken is not None:  # a worker died (killed, out of memory): the views in flight fail
-                for future, task in list(running.items()):
-                    yield task, broken
+                in_flight = list(running.values())
                 running.clear()
+                # The other workers are stopped first: a frame one publishes meanwhile is on disk before
+                # the failures are reported (the parent indexes a published frame as published).
                 self.close(kill=True)
+                for task in in_flight:
+                    yield task, broken
                 self.pool = self._new_pool()
 
     def close(self, kill: bool = False) -> None:
@@ -202,13 +245,20 @@ class DaskExecutor:
 
     def __init__(self, address: str | None = None, workers: int = 1, gpus: tuple[str, ...] = ()):
         try:
-            from distributed import Client, LocalCluster
+            import distributed  # noqa: F401
         except ImportError:
             raise RuntimeError("the Dask executor needs the distributed package: "
                                "pip install 'dask[distributed]'") from None
+        self.cluster = None
+        with sigint_blocked():  # the cluster's IO thread starts the worker processes: they inherit it
+            self._start(address, workers, gpus)
+        self.futures: dict = {}
+
+    def _start(self, address: str | None, workers: int, gpus: tuple[str, ...]) -> None:
         import logging
 
-        self.cluster = None
+        from distributed import Client, LocalCluster
+
         if address is None:
             self.cluster = LocalCluster(n_workers=0 if gpus else workers, threads_per_worker=1, processes=True,
                                         dashboard_address=None, silence_logs=logging.ERROR)
@@ -229,7 +279,6 @@ class DaskExecutor:
             self.client = Client(address, timeout="30s")
             n = len(self.client.scheduler_info().get("workers", {}))
             self.name = f"Dask cluster at {address} ({n} workers now)"
-        self.futures: dict = {}
 
     def results(self, tasks: list[ViewTask]) -> Iterator[Result]:
         from distributed import wait
@@ -245,11 +294,15 @@ class DaskExecutor:
                 yield None
                 continue
             for future in done:
-                task = self.futures[future]
+                task = self.futures.pop(future)
                 try:
-                    yield task, future.result()
+                    outcome = future.result()
                 except Exception as exc:  # KilledWorker, a worker that lost its connection, …
-                    yield task, exc
+                    outcome = exc
+                # Forget the result: Dask would run a finished view again if the worker holding its
+                # result died later (the rerun cannot replace the published folders, but need not run).
+                future.release()
+                yield task, outcome
 
     def close(self, kill: bool = False) -> None:
         try:
@@ -384,6 +437,7 @@ class RunResult:
     skipped_failed: int = 0           # failed earlier and not retried (no --retry-failed)
     redone: int = 0                   # recorded ok but their files did not verify
     recovered: int = 0                # index line lost, taken from the frame's record.json
+    duplicates: int = 0               # results of a job indexed already in this run (dropped)
     pending: int = 0                  # not rendered (interrupted)
     seconds: float = 0.0
     interrupted: Interrupted | None = None
@@ -403,15 +457,42 @@ def _log(message: str, stream: TextIO | None = None) -> None:
     stream.flush()
 
 
+def report_index(data: Dataset, info: dict, log, shown: int = 10) -> None:
+    """Say what :meth:`Dataset.read_index` left out, one line each, and keep the ignored lines.
+
+    Lines that are not records are copied to ``index.jsonl.rejected`` (the index rewritten next
+    leaves them out); their frames are taken from their folders when those verify, else rendered.
+    """
+    problems = info["problems"]
+    for number, why, _ in problems[:shown]:
+        log(f"warning: {data.index_path}:{number}: ignored ({why}); its frame, if any, is checked from its folder")
+    if len(problems) > shown:
+        log(f"warning: {data.index_path}: {len(problems) - shown} more line(s) ignored")
+    if problems:
+        path = data.reject(problems)
+        log(f"warning: {len(problems)} ignored index line(s) kept in {path}")
+    if info["truncated"] is not None:
+        log(f"note: {data.index_path}:{info['truncated']}: incomplete last line (a run stopped while writing "
+            f"it) dropped")
+    if info["duplicates"]:
+        log(f"note: {data.index_path}: {info['duplicates']} record(s) superseded by a later line of the same "
+            f"frame dropped")
+
+
 def plan(jobs: list[Job], data: Dataset, records: dict[str, dict], *, retry_failed: bool, verify: str,
          result: RunResult, log) -> list[Job]:
-    """Jobs to render now; ``records`` is updated (recovered records added, records of frames to redo removed)."""
+    """Jobs to render now; ``records`` is updated (recovered records added, records of frames to redo removed).
+
+    A folder left under the name of a job to render (it failed verification, or its ``record.json``
+    is unreadable) is deleted here, before any worker starts: publishing never replaces a folder.
+    """
     todo: list[Job] = []
+    redone: set[str] = set()
     for job in jobs:
         record = records.get(job.job_id)
         if record is None or record.get("status") != "ok":
-            folder = data.folder_record(job.job_id)
-            if folder is not None and folder.get("status") == "ok":
+            folder = data.published_record(job.job_id)
+            if folder is not None:
                 records[job.job_id] = record = folder
                 result.recovered += 1
         if record is None:
@@ -425,13 +506,19 @@ def plan(jobs: list[Job], data: Dataset, records: dict[str, dict], *, retry_fail
             problem = data.verify(record, verify)
             if problem is None:
                 result.done_before += 1
+                if "record_file" not in record:  # indexed before record.json had a checksum: add it
+                    records[job.job_id] = data.published_record(job.job_id) or record
             else:
                 log(f"redo {job.job_id} ({job.label}): {problem}")
                 del records[job.job_id]
                 result.redone += 1
+                redone.add(job.job_id)
                 todo.append(job)
     if retry_failed:
         todo = [job for job in todo if job.job_id in records and records[job.job_id].get("status") == "failed"]
+    for job in todo:
+        if data.discard(job.job_id) and job.job_id not in redone:
+            log(f"redo {job.job_id} ({job.label}): {FRAMES}/{job.job_id}/ has no readable {RECORD}; deleted")
     return todo
 
 
@@ -479,9 +566,7 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
     data = Dataset(dataset)
     with data.locked():
         records, info = data.read_index()
-        if info["bad_lines"] or info["duplicates"]:
-            log(f"index: dropped {info['bad_lines']} unreadable line(s) and {info['duplicates']} superseded "
-                f"record(s)")
+        report_index(data, info, log)
         removed = data.clean_partials()
         if removed:
             log(f"removed {removed} half-written frame folder(s) left by an interrupted run")
@@ -494,22 +579,24 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
         if result.recovered:
             log(f"{result.recovered} finished frame(s) taken from their record.json (index line missing)")
         progress = Progress(len(todo), quiet=quiet, stream=stream)
-        if todo:
-            executor = executor or make_executor(workers=workers, scheduler=scheduler, dask_local=dask_local,
-                                                 inline=inline, gpus=devices.gpus)
-            result.executor = executor.name
-            skipped = f", {result.skipped_failed} failed earlier (--retry-failed retries them)" \
-                if result.skipped_failed else ""
-            log(f"{len(jobs)} frames in the set: {result.done_before} done{skipped}; rendering {len(todo)} "
-                f"({len(tasks)} view{'s' if len(tasks) != 1 else ''}) with the {executor.name}, "
-                f"{threads_per_worker or 'default'} tracer worker(s) each")
-        else:
-            log(f"{len(jobs)} frames in the set: nothing to render"
-                + (f" ({result.skipped_failed} failed earlier; --retry-failed retries them)"
-                   if result.skipped_failed else ""))
         try:
-            if todo:
+            if not todo:
+                log(f"{len(jobs)} frames in the set: nothing to render"
+                    + (f" ({result.skipped_failed} failed earlier; --retry-failed retries them)"
+                       if result.skipped_failed else ""))
+            else:
+                with signals_deferred() as caught:  # an executor is not left half-started (a Dask cluster)
+                    executor = executor or make_executor(workers=workers, scheduler=scheduler,
+                                                         dask_local=dask_local, inline=inline, gpus=devices.gpus)
+                result.executor = executor.name
+                skipped = f", {result.skipped_failed} failed earlier (--retry-failed retries them)" \
+                    if result.skipped_failed else ""
+                log(f"{len(jobs)} frames in the set: {result.done_before} done{skipped}; rendering {len(todo)} "
+                    f"({len(tasks)} view{'s' if len(tasks) != 1 else ''}) with the {executor.name}, "
+                    f"{threads_per_worker or 'default'} tracer worker(s) each")
                 try:
+                    if caught:
+                        raise Interrupted(caught[0])
                     for item in executor.results(tasks):
                         if item is None:
                             progress.draw()
@@ -519,8 +606,13 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
                             outcome = [failed_record(job, task, outcome) for job in task.jobs]
                         with signals_deferred() as caught:  # a record is kept whole: index and memory
                             for record in outcome:
+                                record = data.settle(record)  # what the published folder says
+                                if not data.append(record):  # indexed already in this run: a duplicate
+                                    result.duplicates += 1
+                                    log(f"duplicate result of {record['job_id']} dropped (the frame is "
+                                        f"indexed already; its folder was not replaced)")
+                                    continue
                                 records[record["job_id"]] = record
-                                data.append(record)
                                 result.rendered += record["status"] == "ok"
                                 progress.record(record)
                         if caught:
@@ -538,6 +630,14 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
                     progress.close()
         finally:
             with signals_deferred() as caught:
+                data.clean_partials()  # folders of workers stopped or lost (no worker of ours writes now)
+                if todo:  # frames published by workers stopped before they reported them
+                    for job in todo:
+                        record = records.get(job.job_id)
+                        if (record is None or record["status"] != "ok") \
+                                and (published := data.published_record(job.job_id)) is not None:
+                            records[job.job_id] = published
+                            result.rendered += 1
                 ordered = _ordered(records, jobs)
                 data.rewrite_index(ordered)
                 set_ids = {job.job_id for job in jobs}
@@ -550,6 +650,8 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
                 result.seconds = time.monotonic() - started
             if caught and result.interrupted is None:
                 result.interrupted = Interrupted(caught[0])
+            if result.interrupted is not None:
+                result.interrupted.published = result.rendered
     return result
 
 
@@ -570,7 +672,6 @@ def summary(result: RunResult, dataset: str | os.PathLike) -> str:
     if result.failures:
         lines.append("  retry them with --retry-failed once the cause is fixed")
     if result.interrupted is not None:
-        lines.append(f"interrupted ({result.interrupted}): finished frames are kept; rerun the same command to "
-                     f"continue")
+        lines.append(result.interrupted.message())
     lines.append(f"dataset: {os.fspath(dataset)} (index.jsonl, README.md, frames/)")
     return "\n".join(lines)

@@ -5,11 +5,14 @@ in-process inside Blender). It never raises for a frame's failure: every job
 gives a record (:mod:`batch.dataset`), ``status`` ``"ok"`` or ``"failed"``
 with the error text.
 
-Frame folders are written all or nothing: the frame is rendered into
-``frames/.<job_id>.partial-XXXXXXXX/`` (``tofcore.write_frame``, every file
-atomic, ``frame.json`` last), then ``record.json`` is written there, then the
-folder is renamed to ``frames/<job_id>/``. A folder named after a job is
-therefore complete; a killed worker leaves only a ``.partial-`` folder, which
+Frame folders are written all or nothing, and published once: the frame is
+rendered into ``frames/.<job_id>.partial-XXXXXXXX/`` (``tofcore.write_frame``,
+every file atomic, ``frame.json`` last), then ``record.json`` is written there,
+then the folder is renamed to ``frames/<job_id>/`` by :func:`batch.dataset.publish`,
+which never replaces a published folder. A folder named after a job is
+therefore complete and written by exactly one execution of the job; a second
+execution (a Dask retry, a duplicate task) deletes its own folder and reports
+the published record. A killed worker leaves only a ``.partial-`` folder, which
 the next run removes.
 
 Devices (:mod:`batch.devices`): every render gets the task's ``device``
@@ -36,6 +39,7 @@ out-of-memory GPU does), so the GPU failure paths run on machines without one
 from __future__ import annotations
 
 import fnmatch
+import gc
 import os
 import queue
 import secrets
@@ -68,8 +72,26 @@ _EXIT_STOPPED = 143
 
 def _on_sigterm(signum, frame) -> None:
     if not _BUSY.is_set():
-        os._exit(_EXIT_STOPPED)
+        _exit_stopped()
     _STOP.set()
+
+
+def _exit_stopped() -> None:
+    """Exit at once (code 143), first stopping this process's tracer pool if it has one.
+
+    ``os._exit`` skips the pool's clean-up: its semaphores would stay registered, and Python's
+    resource tracker would print a "leaked semaphore objects" warning on the run's stderr at the end.
+    """
+    workers = sys.modules.get("tofcore.workers")
+    if workers is not None:
+        def stop() -> None:
+            workers.shutdown()
+            gc.collect()  # the pool's queues are freed: their semaphores are unlinked and unregistered
+
+        stopper = threading.Thread(target=stop, daemon=True)
+        stopper.start()
+        stopper.join(timeout=5.0)
+    os._exit(_EXIT_STOPPED)
 
 
 class JobError(RuntimeError):
@@ -94,6 +116,9 @@ def init_worker(parent_pid: int | None = None, gpu_ids=None) -> None:
     if gpu_ids is not None:
         pin_gpu(gpu_ids)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    # The parent starts workers with SIGINT blocked (batch.run.sigint_blocked), so that a Ctrl-C during
+    # their start-up stays pending instead of printing a KeyboardInterrupt; ignored now, it is dropped.
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     signal.signal(signal.SIGTERM, _on_sigterm)
     if parent_pid is None:
         return
@@ -309,13 +334,21 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
             "seconds": time.perf_counter() - started,
             "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         })
-        ds.write_json_atomic(partial / ds.RECORD, record)
-        ds.publish(partial, frames_dir / job.job_id)
-        return record
+        record = ds.write_record(partial, record)
+        if ds.publish(partial, frames_dir / job.job_id):
+            return record
+        # Published already by another execution of this job (Dask ran the view again after a worker
+        # died, a duplicate task): that folder stays; this one is discarded, the published one reported.
+        shutil.rmtree(partial, ignore_errors=True)
+        published = ds.Dataset(task.dataset).published_record(job.job_id)
+        if published is None:
+            raise JobError(f"{ds.FRAMES}/{job.job_id} is already published but its {ds.RECORD} is unreadable; "
+                           f"it was left as it is (the next run verifies it)")
+        return published
     except BaseException as exc:
         shutil.rmtree(partial, ignore_errors=True)
         if _STOP.is_set():  # stopped by the parent: not the frame's fault, nothing recorded
-            os._exit(_EXIT_STOPPED)
+            _exit_stopped()
         if not isinstance(exc, Exception):  # KeyboardInterrupt, SystemExit: stop, do not record
             raise
         return failed_record(job, task, exc, time.perf_counter() - started, record)
@@ -354,7 +387,7 @@ def run_view(task: ViewTask) -> list[dict]:
         for job in task.jobs:
             records.append(render_job(job, task, scene, pose, ambient, warnings))
             if _STOP.is_set():  # finished frames are published (their record.json is read back next run)
-                os._exit(_EXIT_STOPPED)
+                _exit_stopped()
         sys.stdout.flush()
         return records
     finally:

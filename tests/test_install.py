@@ -147,8 +147,8 @@ def test_tofcore_render(run):
 
 def test_tofcore_batch_help_validate_run(run):
     out = _ok(run("tofcore-batch", "--help"))
-    assert out.startswith("usage: tofcore-batch ") and "{run,validate,compare}" in out
-    for command in ("run", "validate", "compare"):
+    assert out.startswith("usage: tofcore-batch ") and "{run,validate,verify,compare}" in out
+    for command in ("run", "validate", "verify", "compare"):
         assert f"example:\n  tofcore-batch {command} " in _ok(run("tofcore-batch", command, "--help"))
     set_file = run.cwd / "tiny.toml"
     set_file.write_text("""
@@ -172,6 +172,7 @@ suggested = true
     _ok(proc)
     records = [json.loads(line) for line in (run.cwd / "dataset" / "index.jsonl").read_text().splitlines()]
     assert [r["status"] for r in records] == ["ok"], proc.stderr[-2000:]
+    assert "ok: the index describes every frame folder" in _ok(run("tofcore-batch", "verify", "dataset"))
     bad = run("tofcore-batch", "validate", "missing.toml")
     assert bad.returncode == 2 and "missing.toml" in bad.stderr
 
