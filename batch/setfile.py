@@ -736,13 +736,7 @@ def load_set(path: str | Path) -> SetSpec:
     """Read and check a set file; see :func:`parse_set`. TOML syntax errors carry the line and column."""
     path = Path(path).resolve()
     try:
-        if path.exists() and not path.is_file():
-            kind = "a folder" if path.is_dir() else "a special file"
-            raise SetFileError(f"{path}: must be a set file (.toml), got {kind}")
-        if path.exists() and path.stat().st_size > limits.MAX_TEXT_FILE_BYTES:
-            raise SetFileError(f"{path}: must be a set file of at most {limits.MAX_TEXT_FILE_BYTES:,} bytes, got "
-                               f"{path.stat().st_size:,} bytes")
-        text = path.read_text(encoding="utf-8")
+        text = limits.read_text_file(path, "a set file (.toml)", SetFileError)
     except FileNotFoundError:
         raise SetFileError(f"{path}: set file not found") from None
     except (OSError, UnicodeDecodeError) as err:

@@ -159,3 +159,18 @@ MAX_MAGNITUDE = 1e30
 #: Largest preset or set file read (TOML text); not adjustable: real ones are a few kilobytes, and a path such
 #: as /dev/zero must not be read into memory.
 MAX_TEXT_FILE_BYTES = 16 << 20
+
+
+def read_text_file(path, what: str, error: type[Exception]) -> str:
+    """The UTF-8 text of a small configuration file (a preset, a set file), checked before it is read: a
+    regular file (``/dev/zero`` would fill the memory) of at most :data:`MAX_TEXT_FILE_BYTES`.
+
+    Raises ``error("{path}: must be {what}, got …")`` for a folder, a special file or a file too large;
+    ``OSError`` (``FileNotFoundError`` included) and ``UnicodeDecodeError`` reach the caller.
+    """
+    if path.exists() and not path.is_file():
+        raise error(f"{path}: must be {what}, got {'a folder' if path.is_dir() else 'a special file'}")
+    if path.exists() and path.stat().st_size > MAX_TEXT_FILE_BYTES:
+        raise error(f"{path}: must be {what} of at most {MAX_TEXT_FILE_BYTES:,} bytes, got "
+                    f"{path.stat().st_size:,} bytes")
+    return path.read_text(encoding="utf-8")

@@ -81,13 +81,7 @@ def load_preset(name_or_path: str | os.PathLike[str]) -> Sensor:
     """
     path = preset_path(name_or_path)
     try:
-        if path.exists() and not path.is_file():
-            kind = "a folder" if path.is_dir() else "a special file"
-            raise ConfigError(f"{path}: must be a preset .toml file, got {kind}")
-        if path.exists() and path.stat().st_size > limits.MAX_TEXT_FILE_BYTES:
-            raise ConfigError(f"{path}: must be a preset file of at most {limits.MAX_TEXT_FILE_BYTES:,} bytes, got "
-                              f"{path.stat().st_size:,} bytes")
-        text = path.read_text(encoding="utf-8")
+        text = limits.read_text_file(path, "a preset .toml file", ConfigError)
     except (OSError, UnicodeDecodeError) as err:
         reason = err.strerror if isinstance(err, OSError) and err.strerror else str(err)
         raise ConfigError(f"{path}: cannot read the preset file ({reason})") from None
