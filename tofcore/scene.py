@@ -472,7 +472,10 @@ def _origin(vertices: np.ndarray, triangles: np.ndarray, origin_m, where: str) -
     """The scene frame's origin in world coordinates: ``origin_m`` when given, else a whole-metre point
     at the centre of geometry that reaches beyond :data:`RECENTRE_BEYOND_M`, else 0."""
     if origin_m is not None:
-        origin = np.asarray(origin_m, dtype=np.float64)
+        try:
+            origin = np.asarray(origin_m, dtype=np.float64)
+        except (TypeError, ValueError):
+            origin = np.full(1, np.nan)
         if origin.shape != (3,) or not np.isfinite(origin).all():
             raise SceneError(f"{where}: origin_m must be 3 finite numbers (metres), got {origin_m!r}")
         return origin

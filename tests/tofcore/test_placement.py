@@ -96,3 +96,21 @@ def test_render_flush_with_a_wall_gives_a_finite_frame():
                            workers=1, adaptive=False)
     assert np.isfinite(frame.raw).all()
     assert frame.valid.mean() > 0.5
+
+
+@pytest.mark.parametrize("origin", [{"x": 1}, [1.0, 2.0], ["a", "b", "c"], [0.0, float("nan"), 0.0]])
+def test_a_bad_origin_in_a_scene_file_is_named(tmp_path, origin):
+    """A hand-edited header: one SceneError naming the file and origin_m, never a TypeError."""
+    import json
+    import zipfile
+
+    path = ROOM.save(tmp_path / "room.npz")
+    with np.load(path) as data:
+        arrays = {k: data[k] for k in data.files}
+    header = json.loads(str(arrays["header"]))
+    header["origin_m"] = origin
+    arrays["header"] = np.array(json.dumps(header))
+    np.savez(tmp_path / "bad.npz", **arrays)
+    assert zipfile.is_zipfile(tmp_path / "bad.npz")
+    with pytest.raises(tofcore.errors.SceneError, match=r"bad\.npz.*origin_m must be 3 finite numbers"):
+        Scene.load(tmp_path / "bad.npz")
