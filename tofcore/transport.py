@@ -685,8 +685,8 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
     pixel_u, pixel_v = qmc.sample_2d(ctx.key, pixel, sample, _DIM_PIXEL, ctx.sampler)
     lens_u, lens_v = qmc.sample_2d(ctx.key, pixel, sample, _DIM_LENS, ctx.sampler)
     o_s, d_s = cam.generate_rays(pixel, pixel_u, pixel_v, lens_u, lens_v)
-    origin = rotate(o_s, rot) + ctx.lens_center                     # ray origins (offset off the surface after bounce 1)
-    direction = rotate(d_s, rot)                                # unit ray directions, world frame
+    origin = rotate(o_s, rot) + ctx.lens_center                 # ray origins, scene frame (off the surface after bounce 1)
+    direction = rotate(d_s, rot)                                # unit ray directions
     prev_point = origin                                         # true position of the previous vertex (lens point first)
 
     for depth in range(1, ctx.max_depth + 1):
@@ -743,8 +743,9 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
             total_length = path_length + extra
             if ctx.transient_bins:
                 _add_transient(ctx, out, p0, p1, local_pixel, w, total_length)
-            wg = ctx.correlations(total_length / SPEED_OF_LIGHT_M_S) if n_corr else None
+            wg = None
             if n_corr:
+                wg = ctx.correlations(total_length / SPEED_OF_LIGHT_M_S)
                 wg *= w
             _accumulate(ctx, out, p0, p1, depth, local_pixel, slot, w, wg, path_total)
         # Sample the BSDF for the next direction.
