@@ -172,7 +172,8 @@ class CorrelationBank:
 
     Raw images are frequency-major, then step, as in :meth:`Modulation.correlations`, whose values it
     reproduces bit for bit. On the CPU each frequency's steps are one (N_steps, N) block computed in
-    place from :math:`f\tau` formed once (the Kinect's 9 channels: 4.6 → 1.1 ms per 65 k delays);
+    place from :math:`f\tau` formed once (the Kinect's 9 channels: 3.98 → 1.11 ms per 65 k delays,
+    ``bench/bench_kernels.py``);
     device arrays go through the per-channel fused kernels. A frozen dataclass of numbers, so it
     pickles for the tracer's worker processes.
     """
@@ -213,15 +214,16 @@ class CorrelationBank:
             block = out[j:j + len(offsets)]
             j += len(offsets)
             cycles = f_hz * tau_s
+            steps = np.array(offsets).reshape((-1,) + (1,) * tau_s.ndim)  # broadcast against τ of any shape
             if self.kind == "cw_sine":  # ½ + cos(2π(fτ − k/N))/π, eq. 2.47–2.48
-                np.subtract(cycles, np.array(offsets)[:, None], out=block)
+                np.subtract(cycles, steps, out=block)
                 block *= 2.0 * np.pi
                 np.cos(block, out=block)
                 block /= np.pi
                 block += 0.5
                 continue
             # clip(¼ + D/2 − |frac(fτ − k/N + ½) − ½|, max(0, D − ½), min(D, ½)) / D: square_correlation
-            shifted = np.subtract(cycles, np.array(offsets)[:, None])
+            shifted = np.subtract(cycles, steps)
             shifted += 0.5
             np.floor(shifted, out=block)
             np.subtract(shifted, block, out=block)

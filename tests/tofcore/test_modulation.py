@@ -89,6 +89,8 @@ def test_correlation_bank_equals_the_functions_bit_for_bit(modulation):
     assert len(bank) == modulation.raw_count == len(expected)
     np.testing.assert_array_equal(bank(tau), expected)
     np.testing.assert_array_equal(pickle.loads(pickle.dumps(bank))(tau[:5]), expected[:, :5])
+    grid = tau[:21].reshape(3, 7)  # delays of any shape, as the functions take them
+    np.testing.assert_array_equal(bank(grid), np.stack([g(grid) for g in modulation.correlations()]))
 
 
 # ------------------------------------------------------------------ correlation against brute-force integration
