@@ -183,7 +183,10 @@ def install(monkeypatch) -> None:
     """Make ``device="gpu"`` run on this fake, with the CUDA kernels replaced by their NumPy twins."""
     import sys
 
-    from tofcore import backend, bvh, fresnel, modulation, qmc, rng
+    from tofcore import backend
+    from tofcore.scene import bvh, fresnel
+    from tofcore.sensor import modulation
+    from tofcore.tracer import qmc, rng
     from tofcore.gpu import fused, traversal
 
     module = sys.modules[__name__]

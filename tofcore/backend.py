@@ -76,7 +76,7 @@ class Device:
                 "fallback_reason": self.fallback_reason}
 
     def __reduce__(self):
-        """Pickle by name: CPU worker processes (tofcore.workers) get their own NumPy module."""
+        """Pickle by name: CPU worker processes (tofcore.tracer.workers) get their own NumPy module."""
         if self.is_gpu:
             raise TypeError("a GPU Device does not pickle: GPU renders run in one process")
         return cpu_device, (self.requested, self.fallback_reason)

@@ -17,7 +17,7 @@ pair                                   density
 =====================================  ==========================================
 
 The Beckmann distribution D itself (`beckmann_distribution`) lives here because
-it is what the microfacet warps sample; `tofcore.bsdf` evaluates it from here.
+it is what the microfacet warps sample; `tofcore.scene.bsdf` evaluates it from here.
 
 Example
 -------

@@ -9,8 +9,8 @@ with on the GPU machine:
 module                      kernel                                          NumPy twin
 ==========================  ==============================================  ==================================
 :mod:`.traversal`           closest hit / any hit over the BVH records      ``BVH.intersect`` / ``BVH.occluded``
-:mod:`.fused`               counter-based uniforms (SplitMix64 ×2)          :func:`tofcore.rng.uniform`
-:mod:`.fused`               dielectric and conductor Fresnel                :mod:`tofcore.fresnel`
+:mod:`.fused`               counter-based uniforms (SplitMix64 ×2)          :func:`tofcore.tracer.rng.uniform`
+:mod:`.fused`               dielectric and conductor Fresnel                :mod:`tofcore.scene.fresnel`
 :mod:`.fused`               square-wave correlation g_j(τ)                  ``modulation.square_correlation``
 ==========================  ==============================================  ==================================
 
