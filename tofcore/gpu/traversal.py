@@ -2,7 +2,7 @@
 
 The twin of ``BVH.intersect`` (closest hit) and ``BVH.occluded`` (any hit, early exit): same records,
 same watertight triangle test in the same float32 operation order (compiled without FMA contraction),
-same ``ignore_prim`` rule; see ``traversal.cu``. :mod:`tofcore.kernels` dispatches here when the
+same ``ignore_prim`` rule; see ``traversal.cu``. :func:`tofcore.backend.device_twin` dispatches here when the
 rays are CuPy arrays.
 """
 

@@ -108,7 +108,7 @@ from numpy.typing import ArrayLike, NDArray
 from ..errors import SceneError
 from .fresnel import fresnel_conductor, fresnel_dielectric
 from ..backend import asarray, namespace
-from ..sampling import beckmann_distribution, pdf_cosine_hemisphere, pdf_vcavity_visible_normal, sample_cosine_hemisphere, sample_vcavity_visible_normal
+from .sampling import beckmann_distribution, pdf_cosine_hemisphere, pdf_vcavity_visible_normal, sample_cosine_hemisphere, sample_vcavity_visible_normal
 
 FloatArray = NDArray[np.float64]
 
@@ -494,7 +494,7 @@ def pdf_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> FloatArray:
                       + (1 - P_s)\,\frac{\cos\theta_i}{\pi},
 
     :math:`D_{\omega_o}` the V-cavity visible-normal density
-    (`tofcore.sampling.pdf_vcavity_visible_normal`) and 1/(4 ω_o·ω_h) the
+    (`tofcore.scene.sampling.pdf_vcavity_visible_normal`) and 1/(4 ω_o·ω_h) the
     Jacobian of the reflection ω_i = 2(ω_o·ω_h)ω_h − ω_o. A mirror lobe
     contributes no density.
     """

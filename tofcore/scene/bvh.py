@@ -54,7 +54,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..kernels import device_twin
+from ..backend import device_twin
 from ..errors import ConfigError, SceneError
 
 BOX_PAD = 2.0**-16

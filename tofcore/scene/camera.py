@@ -56,7 +56,7 @@ from numpy.typing import ArrayLike, NDArray
 
 from .. import limits
 from ..errors import ConfigError
-from ..sampling import sample_concentric_disk
+from .sampling import sample_concentric_disk
 from ..backend import asarray, device_copy, namespace
 
 #: Newton's method for the inverse distortion stops when every step is

@@ -25,7 +25,7 @@ from __future__ import annotations
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 from ..backend import asarray
-from ..kernels import device_twin
+from ..backend import device_twin
 
 
 @device_twin(on="cos_theta_i")

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..backend import namespace
-from ..sampling import sample_cosine_hemisphere
+from .sampling import sample_cosine_hemisphere
 from ..errors import ConfigError
 from ..limits import MAX_MAGNITUDE
 from .camera import Camera
@@ -80,7 +80,7 @@ class LED:
         """(N, 3) emission directions in the LED frame (+z = optical axis), distributed as I(θ) (pdf above).
 
         Point: uniform on the sphere, z = 1 − 2u₁, φ = 2πu₂. Lambertian: cosine-weighted about +z
-        (:func:`tofcore.sampling.sample_cosine_hemisphere`).
+        (:func:`tofcore.scene.sampling.sample_cosine_hemisphere`).
         """
         if self.kind == "lambertian":
             return sample_cosine_hemisphere(u1, u2)

@@ -55,7 +55,7 @@ from .. import limits
 from ..errors import ConfigError, is_number
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..backend import asarray, is_device_array, namespace
-from ..kernels import device_twin
+from ..backend import device_twin
 
 KINDS = ("pulsed", "cw_square", "cw_sine")
 DEFAULT_PHASE_STEPS = 4

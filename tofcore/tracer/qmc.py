@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from . import rng
-from ..kernels import device_twin
+from ..backend import device_twin
 
 REPLICATES = 4
 """Independent randomizations per pixel (sample i belongs to replicate i mod R); the error estimate of

@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
-from .backend import asarray
+from ..backend import asarray
 
 FloatArray = NDArray[np.float64]
 
