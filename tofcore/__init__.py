@@ -21,6 +21,9 @@ The public API, re-exported from one module per concept. The packages follow the
 from . import limits
 from .constants import SPEED_OF_LIGHT_M_S
 from .errors import Cancelled, ConfigError, LimitError, SceneError, TofError
+from .output.frame import Frame, Reason
+from .output.writers import read_exr, write_frame
+from .render import render, render_progressive
 from .scene.ambient import Ambient
 from .scene.camera import Camera
 from .scene.demo import demo_scene, suggested_pose
@@ -28,13 +31,10 @@ from .scene.led import LED
 from .scene.material import Material, Texture
 from .scene.pose import from_blender_matrix_world, look_at
 from .scene.scene import Scene
-from .tracer.transport import FirstHit, Transport, trace, trace_progressive
 from .sensor.config import Sensor
 from .sensor.modulation import Modulation
 from .sensor.presets import list_presets, load_preset
-from .output.frame import Frame, Reason
-from .output.writers import read_exr, write_frame
-from .render import render, render_progressive
+from .tracer.transport import FirstHit, Transport, trace, trace_progressive
 
 __all__ = [
     "Ambient", "Camera", "Cancelled", "ConfigError", "FirstHit", "Frame", "LED", "LimitError", "Material", "Modulation",

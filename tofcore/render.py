@@ -38,18 +38,19 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from . import backend, limits
-from .sensor import decode as decoding
-from .sensor import noise as noise_models
-from .sensor import optics
-from .sensor.raw import raw_images
-from .scene.ambient import Ambient
 from .backend import gpu_errors, namespace
 from .errors import ConfigError
 from .output.frame import Frame
 from .plan import Plan, make_plan
+from .scene.ambient import Ambient
 from .scene.scene import Scene
+from .sensor import decode as decoding
+from .sensor import noise as noise_models
+from .sensor import optics
+from .sensor.raw import raw_images
 from .tracer.adaptive import allocate_samples
 from .tracer.transport import Transport, pass_schedule, trace_progressive
+
 
 def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray:
     r"""(H, W) Monte Carlo standard error (m) of each pixel's output depth, from the independent replicates.

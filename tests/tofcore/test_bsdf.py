@@ -14,10 +14,16 @@ import math
 import numpy as np
 import pytest
 
-from tofcore.scene.bsdf import SMOOTH_ROUGHNESS_RAD, SurfaceParams, beckmann_alpha, eval_bsdf, eval_pdf_bsdf, oren_nayar, pdf_bsdf, sample_bsdf, specular_fresnel, specular_probability, vcavity_geometry
+from tofcore.scene.bsdf import (
+    SMOOTH_ROUGHNESS_RAD, SurfaceParams, beckmann_alpha, eval_bsdf, eval_pdf_bsdf, oren_nayar, pdf_bsdf, sample_bsdf,
+    specular_fresnel, specular_probability, vcavity_geometry,
+)
 from tofcore.errors import SceneError
 from tofcore.scene.fresnel import fresnel_conductor, fresnel_dielectric
-from tofcore.scene.sampling import beckmann_distribution, pdf_beckmann_normal, pdf_concentric_disk, pdf_cosine_hemisphere, pdf_vcavity_visible_normal, sample_beckmann_normal, sample_concentric_disk, sample_cosine_hemisphere, sample_vcavity_visible_normal
+from tofcore.scene.sampling import (
+    beckmann_distribution, pdf_beckmann_normal, pdf_concentric_disk, pdf_cosine_hemisphere, pdf_vcavity_visible_normal,
+    sample_beckmann_normal, sample_concentric_disk, sample_cosine_hemisphere, sample_vcavity_visible_normal,
+)
 
 # Materials of the checks: (metallic, ior, extinction). A dielectric with the
 # thesis's η = 1.52, a silver-like conductor, a k = 0 "conductor" and a 50 %

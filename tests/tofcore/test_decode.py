@@ -5,7 +5,10 @@ import time
 import numpy as np
 import pytest
 
-from tofcore.sensor.decode import decode, decode_cw, decode_pulsed, default_unwrap_tolerance_m, phase_amplitude_offset, radial_to_z, systematic_error_curve, unwrap
+from tofcore.sensor.decode import (
+    decode, decode_cw, decode_pulsed, default_unwrap_tolerance_m, phase_amplitude_offset, radial_to_z,
+    systematic_error_curve, unwrap,
+)
 from tofcore.errors import ConfigError
 from tofcore.output.frame import Reason
 from tofcore.sensor.modulation import Modulation, ideal_raw
@@ -240,6 +243,7 @@ def test_radial_to_z_is_distance_times_ray_z():
 # ------------------------------------------------------------------ linearisation (distance_gradient)
 from tofcore import load_preset  # noqa: E402
 from tofcore.sensor.decode import distance_gradient, unwrap_weights  # noqa: E402
+
 
 def _random_returns(n, max_m, seed):
     """n single returns: distance in [0.3, max_m) m, signal 200–2000 e⁻, ambient 0–500 e⁻ per unit duty."""

@@ -120,7 +120,7 @@ def test_every_reference_with_a_device_twin_is_in_the_table():
     for module in (rng, qmc, fresnel, modulation, importlib.import_module("tofcore.scene.bvh")):
         for _, obj in inspect.getmembers(module):
             candidates = [obj] + ([m for _, m in inspect.getmembers(obj)] if inspect.isclass(obj) else [])
-            marked |= {c.device_twin for c in candidates if hasattr(c, "device_twin")}
+            marked |= {c.device_twin for c in candidates if isinstance(getattr(c, "device_twin", None), str)}
     assert marked == set(NAMES)
 
 
@@ -129,7 +129,8 @@ def test_table(name):
     reference = _reference(name)
     assert getattr(reference, "device_twin", None) == name, f"{name} is not marked @device_twin"
     kernel = backend.twin(name)
-    assert list(inspect.signature(kernel).parameters) == list(inspect.signature(reference).parameters), \
+    skip = 1 if "BVH." in name else 0  # a method's self is the kernel's first parameter (the BVH)
+    assert list(inspect.signature(kernel).parameters)[skip:] == list(inspect.signature(reference).parameters)[skip:], \
         f"{backend.KERNELS[name]} must take the parameters of {name}"
     short = name.rsplit(".", 2)[-2:] if "BVH" in name else name.rsplit(".", 1)[-1:]
     for doc in (ROOT / "tofcore" / "gpu" / "__init__.py", ROOT / "docs" / "architecture.md"):

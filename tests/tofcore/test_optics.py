@@ -13,7 +13,10 @@ import numpy as np
 import pytest
 
 from tofcore.errors import ConfigError
-from tofcore.sensor.optics import AIRY_FIRST_RING_PEAK, J1_ZERO_1, J1_ZERO_2, MAX_SIZE_PX, TAIL_FRACTION, _convolve_cv2, _convolve_fft, airy_profile, apply_scattering, bessel_j1, psf_kernel
+from tofcore.sensor.optics import (
+    AIRY_FIRST_RING_PEAK, J1_ZERO_1, J1_ZERO_2, MAX_SIZE_PX, TAIL_FRACTION, _convolve_cv2, _convolve_fft, airy_profile,
+    apply_scattering, bessel_j1, psf_kernel,
+)
 
 C_M_S = 299_792_458.0
 

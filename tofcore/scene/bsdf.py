@@ -105,10 +105,13 @@ from dataclasses import dataclass, fields
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
+from ..backend import asarray, namespace
 from ..errors import SceneError
 from .fresnel import fresnel_conductor, fresnel_dielectric
-from ..backend import asarray, namespace
-from .sampling import beckmann_distribution, pdf_cosine_hemisphere, pdf_vcavity_visible_normal, sample_cosine_hemisphere, sample_vcavity_visible_normal
+from .sampling import (
+    beckmann_distribution, pdf_cosine_hemisphere, pdf_vcavity_visible_normal, sample_cosine_hemisphere,
+    sample_vcavity_visible_normal,
+)
 
 FloatArray = NDArray[np.float64]
 

@@ -55,9 +55,9 @@ import numpy as np
 from numpy.typing import ArrayLike, NDArray
 
 from .. import limits
+from ..backend import asarray, device_copy, namespace
 from ..errors import ConfigError
 from .sampling import sample_concentric_disk
-from ..backend import asarray, device_copy, namespace
 
 #: Newton's method for the inverse distortion stops when every step is
 #: smaller than this (normalized image units). Convergence is quadratic, so

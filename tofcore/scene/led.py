@@ -21,10 +21,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..backend import namespace
-from .sampling import sample_cosine_hemisphere
 from ..errors import ConfigError
 from ..limits import MAX_MAGNITUDE
 from .camera import Camera
+from .sampling import sample_cosine_hemisphere
 
 KINDS = ("point", "lambertian")
 

@@ -86,10 +86,10 @@ from typing import Any
 import numpy as np
 
 from .. import limits
-from . import optics
-from ..scene.camera import Camera
 from ..errors import ConfigError, is_number
+from ..scene.camera import Camera
 from ..scene.led import LED
+from . import optics
 from .modulation import Modulation
 
 NOISE_MODELS = ("none", "raw", "li")

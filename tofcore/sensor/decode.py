@@ -29,10 +29,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..backend import asarray, namespace
+from ..constants import SPEED_OF_LIGHT_M_S
 from ..errors import ConfigError
 from .modulation import Modulation, ideal_raw
-from ..constants import SPEED_OF_LIGHT_M_S
-from ..backend import asarray, namespace
 
 NO_RETURN_RELATIVE_AMPLITUDE = 1e-9
 """A ≤ this · B counts as A = 0 (atan2(0, 0)): far above float64 round-off of the DFT sums (~1e-16 N B),

@@ -52,10 +52,10 @@ from dataclasses import dataclass
 import numpy as np
 
 from .. import limits
-from ..errors import ConfigError, is_number
-from ..constants import SPEED_OF_LIGHT_M_S
 from ..backend import asarray, is_device_array, namespace
 from ..backend import device_twin
+from ..constants import SPEED_OF_LIGHT_M_S
+from ..errors import ConfigError, is_number
 
 KINDS = ("pulsed", "cw_square", "cw_sine")
 DEFAULT_PHASE_STEPS = 4

@@ -35,9 +35,9 @@ import math
 
 import numpy as np
 
-from ..errors import ConfigError
-from ..constants import SPEED_OF_LIGHT_M_S
 from ..backend import asarray
+from ..constants import SPEED_OF_LIGHT_M_S
+from ..errors import ConfigError
 
 
 def _check_rng(where: str, rng) -> None:

@@ -41,8 +41,8 @@ import math
 
 import numpy as np
 
-from ..errors import ConfigError
 from ..backend import asarray, namespace
+from ..errors import ConfigError
 
 try:  # OpenCV is optional: a faster convolution when installed, same result as the NumPy path
     import cv2

@@ -33,8 +33,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import qmc
 from ..scene.bsdf import eval_bsdf, eval_pdf_bsdf
+from . import qmc
 from .surface import Surface, dot, leaving, rotate, shadow_ray, surface_at
 
 DIM_LED_CHOICE = 1_000_000   # 1-D sample dimension: which LED emits the light vertex

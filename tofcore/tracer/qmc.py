@@ -35,8 +35,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from . import rng
 from ..backend import device_twin
+from . import rng
 
 REPLICATES = 4
 """Independent randomizations per pixel (sample i belongs to replicate i mod R); the error estimate of

@@ -45,17 +45,17 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from .. import backend, limits
+from ..backend import namespace, scatter_sum
+from ..constants import SPEED_OF_LIGHT_M_S
+from ..errors import Cancelled, ConfigError
 from ..limits import usable_cpus
-from . import qmc, rng, workers
 from ..scene.ambient import Ambient
 from ..scene.bsdf import eval_bsdf, sample_bsdf
 from ..scene.camera import Camera
-from ..constants import SPEED_OF_LIGHT_M_S
-from ..errors import Cancelled, ConfigError
 from ..scene.led import LED, leds_at_pinhole
-from .light_paths import bsdf_strategy_weight, connect, led_probabilities, trace_light_vertices
 from ..scene.scene import Scene
-from ..backend import namespace, scatter_sum
+from . import qmc, rng, workers
+from .light_paths import bsdf_strategy_weight, connect, led_probabilities, trace_light_vertices
 from .surface import MaterialTable, Surface, dot, leaving, rotate, shadow_ray, surface_at
 from .workers import process_support
 
