@@ -115,7 +115,7 @@ def test_numpy_png_encoder_matches_opencv(image):
 
 
 def test_png_without_opencv(frame, tmp_path, monkeypatch):
-    monkeypatch.setattr(writers, "cv2", None)
+    monkeypatch.setattr(png, "cv2", None)
     path = writers.write_frame(frame, tmp_path, "png")["depth_mm"]
     data = path.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR"
@@ -235,7 +235,7 @@ def test_convergence_png_is_written_and_listed(tmp_path):
 def test_convergence_png_without_log_or_plotting_packages(frame, tmp_path, monkeypatch):
     from tofcore.output import convergence_plot
 
-    monkeypatch.setattr(writers, "cv2", None)
+    monkeypatch.setattr(png, "cv2", None)
     monkeypatch.setattr(convergence_plot, "cv2", None)
     monkeypatch.setattr(convergence_plot, "_MATPLOTLIB", [None])
     assert "convergence" not in frame.stats
