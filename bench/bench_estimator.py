@@ -5,7 +5,7 @@ with several seeds for each variant
 
 * ``independent``  — plain counter-based uniforms, every pixel the same spp (the estimator before issue 10),
 * ``sobol``        — randomized QMC (Owen-scrambled Sobol' replicates, :mod:`tofcore.tracer.qmc`),
-* ``sobol+adaptive`` — the same with adaptive sampling after a 16-spp pilot (:mod:`tofcore.tracer.adaptive`),
+* ``sobol+adaptive`` — the same with adaptive sampling after a 16-spp pilot (:mod:`tofcore.tracer.estimator`),
 * ``…+light`` — with light vertices and MIS (:mod:`tofcore.tracer.light_paths`),
 
 all with sensor noise off (the render's own noise only; lens scattering stays as the preset has it).

@@ -9,7 +9,7 @@ The public API, re-exported from one module per concept. The packages follow the
 * :class:`Camera` — intrinsics, OpenCV distortion, thin lens (``camera``)
 * :class:`LED` — IR emitters in the sensor frame (``led``)
 * :class:`Ambient` — unmodulated background light (``ambient``)
-* :func:`trace`, :func:`trace_progressive`, :class:`Transport` — the path tracer (``transport``)
+* :func:`trace`, :func:`trace_progressive`, :class:`Transport` — the path tracer (``tracer``)
 * :func:`look_at` — sensor poses (``pose``)
 * :class:`Sensor`, :func:`load_preset`, :func:`list_presets` — sensor models and presets (``sensor``, ``presets``)
 * :class:`Modulation` — pulsed / square / sine correlation functions (``modulation``)
@@ -34,7 +34,8 @@ from .scene.scene import Scene
 from .sensor.config import Sensor
 from .sensor.modulation import Modulation
 from .sensor.presets import list_presets, load_preset
-from .tracer.transport import FirstHit, Transport, trace, trace_progressive
+from .tracer.trace import trace, trace_progressive
+from .tracer.transport import FirstHit, Transport
 
 __all__ = [
     "Ambient", "Camera", "Cancelled", "ConfigError", "FirstHit", "Frame", "LED", "LimitError", "Material", "Modulation",

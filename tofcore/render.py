@@ -32,8 +32,10 @@ image when one is given.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Callable, Iterator
+from dataclasses import dataclass
 
 import numpy as np
 
@@ -48,8 +50,9 @@ from .sensor import decode as decoding
 from .sensor import noise as noise_models
 from .sensor import optics
 from .sensor.raw import raw_images
-from .tracer.adaptive import allocate_samples
-from .tracer.transport import Transport, pass_schedule, trace_progressive
+from .tracer.estimator import allocate_samples
+from .tracer.trace import pass_schedule, trace_progressive
+from .tracer.transport import Transport
 
 
 def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray:
@@ -147,7 +150,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     every_pass : build and yield a frame after every pass (False: only the final one, which saves
         decoding the intermediate passes).
     adaptive : after a uniform pilot of 16 spp, give each pass's samples to the pixels whose estimated
-        depth error is largest (:mod:`tofcore.tracer.adaptive`); False: every pixel gets ``spp``.
+        depth error is largest (:mod:`tofcore.tracer.estimator`); False: every pixel gets ``spp``.
     sampler : ``"sobol"`` (randomized QMC, default) or ``"independent"`` (:mod:`tofcore.tracer.qmc`).
     light_paths : connect the camera paths to light vertices with MIS (:mod:`tofcore.tracer.light_paths`).
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering and decoding on the GPU;
@@ -160,45 +163,59 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     """
     _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor)
     dev = backend.select_device(device)
-    settings = dict(spp=spp, max_depth=max_depth, seed=seed, time_budget_s=time_budget_s,
-                    target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,
-                    progress=progress, cancel=cancel, workers=workers, every_pass=every_pass,
-                    adaptive=adaptive, sampler=sampler, light_paths=light_paths)
+    settings = RenderSettings(spp=spp, max_depth=max_depth, seed=seed, time_budget_s=time_budget_s,
+                              target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,
+                              progress=progress, cancel=cancel, workers=workers, chunk_size=chunk_size,
+                              every_pass=every_pass, adaptive=adaptive, sampler=sampler, light_paths=light_paths)
     if not dev.is_gpu:
-        yield from _render_passes(scene, sensor, pose, chunk_size=chunk_size, device=dev, **settings)
+        yield from _render_passes(scene, sensor, pose, settings, dev)
         return
     started = False
     try:
         with gpu_errors():
-            for frame in _render_passes(scene, sensor, pose, chunk_size=chunk_size, device=dev, **settings):
+            for frame in _render_passes(scene, sensor, pose, settings, dev):
                 started = True
                 yield frame
     except backend.GpuUnavailable as exc:
         if dev.requested != "auto" or started:
             raise
-        yield from _render_passes(scene, sensor, pose, chunk_size=None,
-                                  device=backend.cpu_device("auto", str(exc)), **settings)
+        yield from _render_passes(scene, sensor, pose, dataclasses.replace(settings, chunk_size=None),
+                                  backend.cpu_device("auto", str(exc)))
 
 
-def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_budget_s, target_error_m, ambient,
-                   reference_distance, progress, cancel, workers, chunk_size, every_pass, adaptive, sampler,
-                   light_paths, device: backend.Device) -> Iterator[Frame]:
+@dataclass(frozen=True)
+class RenderSettings:
+    """The keyword arguments of :func:`render_progressive` (documented there), as one object."""
+
+    spp: int
+    max_depth: int
+    seed: int
+    time_budget_s: float | None
+    target_error_m: float | None
+    ambient: Ambient | None
+    reference_distance: np.ndarray | None
+    progress: Callable[[dict], None] | None
+    cancel: Callable[[], bool] | None
+    workers: int | None
+    chunk_size: int | None
+    every_pass: bool
+    adaptive: bool
+    sampler: str
+    light_paths: bool
+
+
+def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device: backend.Device) -> Iterator[Frame]:
     """:func:`render_progressive` on one resolved device."""
     if sensor.noise.model == "li" and sensor.modulation.kind == "pulsed":
         raise ConfigError(f"render: sensor {sensor.name!r}: noise model 'li' (eq. 2.43) needs a continuous-wave "
                           f"sensor, got modulation kind 'pulsed'; use noise model 'raw'")
     if pose is None:
         pose = np.asarray(scene.metadata.get("world_from_sensor", np.eye(4)), dtype=np.float64)
-    mod = sensor.modulation
-    plan = make_plan(scene, sensor, max_depth=max_depth, ambient=ambient)
-    correlations = mod.correlation_bank()
+    s = settings
+    plan = make_plan(scene, sensor, max_depth=s.max_depth, ambient=s.ambient)
+    correlations = sensor.modulation.correlation_bank()
     n_raw = len(correlations)
-    if reference_distance is not None:
-        reference_distance = np.asarray(reference_distance, dtype=np.float64)
-        if reference_distance.shape != (sensor.camera.height, sensor.camera.width):
-            raise ConfigError(f"render: reference_distance must have shape {(sensor.camera.height, sensor.camera.width)}, "
-                              f"got {reference_distance.shape}")
-
+    reference = _checked_reference(s.reference_distance, sensor)
     log: list[dict] = []
     sigma = None  # the latest per-pixel depth error estimate, which the next pass's allocation reads
 
@@ -206,54 +223,87 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
         counts = backend.to_host(transport.sample_count)
         return None if sigma is None else allocate_samples(sigma, counts, samples_per_pixel)
 
-    progressive = every_pass or time_budget_s is not None or target_error_m is not None
-    n_passes = len(pass_schedule(spp, progressive))
+    progressive = s.every_pass or s.time_budget_s is not None or s.target_error_m is not None
+    n_passes = len(pass_schedule(s.spp, progressive))
     start = time.perf_counter()
     passes = trace_progressive(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
-                               correlations=correlations, ambient=ambient if plan.ambient else None,
-                               spp=spp, max_depth=max_depth, seed=seed, workers=workers, chunk_size=chunk_size,
-                               cancel=cancel, device=device, progressive=progressive, sampler=sampler, light_paths=light_paths,
-                               allocate=allocate if adaptive else None)
+                               correlations=correlations, ambient=s.ambient if plan.ambient else None,
+                               spp=s.spp, max_depth=s.max_depth, seed=s.seed, workers=s.workers,
+                               chunk_size=s.chunk_size, cancel=s.cancel, device=device, progressive=progressive,
+                               sampler=s.sampler, light_paths=s.light_paths, allocate=allocate if s.adaptive else None)
     for transport in passes:
         elapsed = time.perf_counter() - start
-        counts = backend.to_host(transport.sample_count)
-        samples = int(round(counts.mean()))
         sigma = backend.to_host(depth_standard_error(transport, sensor, n_raw))
-        seen = np.isfinite(transport.first_hit.distance_m) & np.isfinite(sigma)
-        row = {"pass": transport.stats.passes, "seconds": elapsed, "spp": samples,
-               "est_depth_error_m": _rms(sigma[seen]), "rays": transport.stats.rays}
-        if reference_distance is not None:
-            current = backend.to_host(_decode_clean(transport, sensor, transport.max_depth, n_raw).distance)
-            both = np.isfinite(current) & np.isfinite(reference_distance)
-            row["rms_error_m"] = _rms(current[both] - reference_distance[both])
+        row = _convergence_row(transport, sensor, n_raw, sigma, reference, elapsed)
         log.append(row)
-        if progress is not None:
-            progress(dict(row, spp_max=spp))
-        done = transport.stats.passes >= n_passes
-        if target_error_m is not None and row["est_depth_error_m"] is not None \
-                and row["est_depth_error_m"] <= target_error_m:
-            done = True
-        if time_budget_s is not None and not done:
-            next_samples = min(samples, 16, spp - samples)  # the pass schedule doubles up to 16
-            done = elapsed + elapsed / samples * next_samples > time_budget_s
-        if not (done or every_pass):
+        if s.progress is not None:
+            s.progress(dict(row, spp_max=s.spp))
+        done = _stop(transport.stats.passes >= n_passes, row, s)
+        if not (done or s.every_pass):
             continue
-        frame = _frame(transport, sensor, pose, plan, seed, n_raw)
-        frame.render_error = sigma.astype(np.float32)
-        frame.samples = counts.reshape(sensor.camera.height, sensor.camera.width).astype(np.int32)
-        frame.stats.update({
-            "final": done, "trace_seconds": elapsed, "seconds": time.perf_counter() - start, "spp": samples,
-            "spp_max": spp, "max_depth": max_depth, "seed": seed, "time_budget_s": time_budget_s,
-            "target_error_m": target_error_m, "plan": plan.as_dict(), "convergence": list(log),
-            "transport": transport.stats.as_dict(), "device": device.as_dict(),
-            "sampler": sampler, "adaptive": adaptive, "light_paths": light_paths,
-            "samples_per_pixel": {"min": int(counts.min()), "median": float(np.median(counts)),
-                                  "max": int(counts.max())},
-        })
+        frame = _frame(transport, sensor, pose, plan, s.seed, n_raw)
+        _add_render_stats(frame, transport, sigma, dict(s.__dict__, final=done, trace_seconds=elapsed,
+                                                        seconds=time.perf_counter() - start, plan=plan.as_dict(),
+                                                        convergence=list(log), device=device.as_dict()))
         yield frame
         if done:
             passes.close()
             return
+
+
+def _checked_reference(reference_distance, sensor) -> np.ndarray | None:
+    if reference_distance is None:
+        return None
+    reference = np.asarray(reference_distance, dtype=np.float64)
+    shape = (sensor.camera.height, sensor.camera.width)
+    if reference.shape != shape:
+        raise ConfigError(f"render: reference_distance must have shape {shape}, got {reference.shape}")
+    return reference
+
+
+def _convergence_row(transport: Transport, sensor, n_raw: int, sigma: np.ndarray, reference,
+                     elapsed: float) -> dict:
+    """One row of the convergence log: pass, seconds, spp, RMS estimated depth error, rays (and RMS error)."""
+    counts = backend.to_host(transport.sample_count)
+    seen = np.isfinite(transport.first_hit.distance_m) & np.isfinite(sigma)
+    row = {"pass": transport.stats.passes, "seconds": elapsed, "spp": int(round(counts.mean())),
+           "est_depth_error_m": _rms(sigma[seen]), "rays": transport.stats.rays}
+    if reference is not None:
+        current = backend.to_host(_decode_clean(transport, sensor, transport.max_depth, n_raw).distance)
+        both = np.isfinite(current) & np.isfinite(reference)
+        row["rms_error_m"] = _rms(current[both] - reference[both])
+    return row
+
+
+def _stop(last_pass: bool, row: dict, s: RenderSettings) -> bool:
+    """Whether the render ends after this pass: the last pass, the target error reached, or the time budget
+    would run out during the next pass (the pass schedule doubles up to 16 samples)."""
+    done = last_pass
+    if s.target_error_m is not None and row["est_depth_error_m"] is not None \
+            and row["est_depth_error_m"] <= s.target_error_m:
+        done = True
+    if s.time_budget_s is not None and not done:
+        samples, elapsed = row["spp"], row["seconds"]
+        next_samples = min(samples, 16, s.spp - samples)
+        done = elapsed + elapsed / samples * next_samples > s.time_budget_s
+    return done
+
+
+def _add_render_stats(frame: Frame, transport: Transport, sigma: np.ndarray, run: dict) -> None:
+    """The render's own error, samples and statistics on the frame (``run``: the settings and timings)."""
+    counts = backend.to_host(transport.sample_count)
+    cam_shape = frame.depth.shape
+    frame.render_error = sigma.astype(np.float32)
+    frame.samples = counts.reshape(cam_shape).astype(np.int32)
+    frame.stats.update({
+        "final": run["final"], "trace_seconds": run["trace_seconds"], "seconds": run["seconds"],
+        "spp": int(round(counts.mean())), "spp_max": run["spp"], "max_depth": run["max_depth"], "seed": run["seed"],
+        "time_budget_s": run["time_budget_s"], "target_error_m": run["target_error_m"], "plan": run["plan"],
+        "convergence": run["convergence"], "transport": transport.stats.as_dict(), "device": run["device"],
+        "sampler": run["sampler"], "adaptive": run["adaptive"], "light_paths": run["light_paths"],
+        "samples_per_pixel": {"min": int(counts.min()), "median": float(np.median(counts)),
+                              "max": int(counts.max())},
+    })
 
 
 def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, sensor=None) -> None:

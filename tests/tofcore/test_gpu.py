@@ -246,65 +246,7 @@ def test_traversal_kernels_equal_numpy_traversal(scene_name):
     np.testing.assert_array_equal(occ, occ_ref)
 
 
-@pytest.mark.gpu
-@cuda_only
-def test_uniform_kernel_equals_numpy_hash():
-    import cupy as cp
-
-    from tofcore.tracer import rng
-
-    key = rng.seed_key(1234)
-    pixel = np.random.default_rng(0).integers(0, 1 << 40, 1_000_000)
-    sample = np.random.default_rng(1).integers(0, 1 << 20, 1_000_000)
-    for dim in (0, 3, 17, 1000):
-        ref = rng.uniform(key, pixel, sample, dim)
-        got = cp.asnumpy(rng.uniform(key, cp.asarray(pixel), cp.asarray(sample), dim))
-        np.testing.assert_array_equal(got, ref)
-
-
-@pytest.mark.gpu
-@cuda_only
-def test_qmc_kernels_equal_numpy_twins():
-    """The scrambled Sobol' points (tofcore.tracer.qmc) bit for bit, 1-D and 2-D, large sample indices included."""
-    import cupy as cp
-
-    from tofcore.tracer import qmc, rng
-
-    key = rng.seed_key(99)
-    pixel = np.random.default_rng(0).integers(0, 1 << 22, 1_000_000)
-    sample = np.concatenate([np.arange(500_000), np.random.default_rng(1).integers(0, 1 << 33, 500_000)])
-    for dim in (0, 1, 7, 1_000_001):
-        u, v = qmc.sample_2d(key, cp.asarray(pixel), cp.asarray(sample), dim)
-        ref_u, ref_v = qmc.sample_2d(key, pixel, sample, dim)
-        np.testing.assert_array_equal(cp.asnumpy(u), ref_u)
-        np.testing.assert_array_equal(cp.asnumpy(v), ref_v)
-        np.testing.assert_array_equal(cp.asnumpy(qmc.sample_1d(key, cp.asarray(pixel), cp.asarray(sample), dim)),
-                                      qmc.sample_1d(key, pixel, sample, dim))
-
-
-@pytest.mark.gpu
-@cuda_only
-def test_fused_kernels_equal_their_numpy_twins():
-    """Fresnel and the square-wave correlation, over the whole domain incl. grazing, TIR and eta < 1."""
-    import cupy as cp
-
-    from tofcore.scene import fresnel
-    from tofcore.sensor.modulation import square_correlation
-
-    rng = np.random.default_rng(3)
-    n = 1_000_000
-    cos = np.concatenate([rng.random(n), [0.0, 1.0, -0.1, 1.1, 1e-300]])
-    eta = np.concatenate([rng.uniform(0.05, 4.0, n), [1.0, 1.52, 0.5, 1.0, 1.0]])
-    k = np.concatenate([rng.uniform(0.0, 8.0, n), [0.0, 0.0, 3.0, 0.0, 0.0]])
-    np.testing.assert_array_equal(cp.asnumpy(fresnel.fresnel_dielectric(cp.asarray(cos), cp.asarray(eta))),
-                                  fresnel.fresnel_dielectric(cos, eta))
-    np.testing.assert_array_equal(
-        cp.asnumpy(fresnel.fresnel_conductor(cp.asarray(cos), cp.asarray(eta), cp.asarray(k))),
-        fresnel.fresnel_conductor(cos, eta, k))
-    tau = np.concatenate([rng.uniform(0, 2e-7, n), [0.0, 1 / 80e6, -1e-9]])
-    for f_hz, offset, duty in ((80e6, 0.0, 0.5), (16e6, 1 / 3, 0.5), (120e6, 2 / 3, 0.3), (30e6, 0.75, 0.7)):
-        np.testing.assert_array_equal(cp.asnumpy(square_correlation(cp.asarray(tau), f_hz, offset, duty)),
-                                      square_correlation(tau, f_hz, offset, duty))
+# The fused kernels against their NumPy references, bit for bit: tests/tofcore/test_kernels.py (the table).
 
 
 @pytest.mark.gpu
@@ -313,7 +255,7 @@ def test_kinect_frame_stays_within_the_gpu_memory_budget():
     """A 512 × 424 frame at 64 spp: peak device memory ≤ one chunk's budget + the accumulators."""
     import cupy as cp
 
-    from tofcore.tracer import transport
+    from tofcore.tracer import parallel
 
     pool = cp.get_default_memory_pool()
     pool.free_all_blocks()
@@ -330,6 +272,6 @@ def test_kinect_frame_stays_within_the_gpu_memory_budget():
     peak = max(peak, pool.total_bytes())
     n_corr = 12
     accumulators = 8 * n_pix * (5 * (n_corr + 1) + n_corr + 4)
-    budget = chunk * transport.GPU_BYTES_PER_PATH + accumulators + 64 * n_pix * 8
+    budget = chunk * parallel.GPU_BYTES_PER_PATH + accumulators + 64 * n_pix * 8
     print(f"peak pool bytes {peak / 2**20:.0f} MiB, budget {budget / 2**20:.0f} MiB")
     assert peak <= budget

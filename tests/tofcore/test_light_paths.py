@@ -17,7 +17,9 @@ import tofcore
 from tofcore import LED, Camera, trace
 from tofcore.tracer import qmc
 from tofcore.tracer import rng as tof_rng
-from tofcore.tracer.light_paths import DIM_EMISSION, bsdf_strategy_weight, led_probabilities
+from tofcore.tracer.estimator import bsdf_strategy_weight
+from tofcore.tracer.light_paths import led_probabilities
+from tofcore.tracer.sampler import EMISSION
 
 LEDS = [LED(kind="point", intensity_w_sr=1.7), LED(kind="lambertian", intensity_w_sr=0.6)]
 
@@ -66,12 +68,12 @@ def test_intensity_over_pdf_is_the_power(led):
 def test_sample_emission_follows_the_pdf(led, source):
     """2^17 directions: unit vectors; the histogram of cos θ (32 bins) against N·2π∫p dμ per bin and the
     azimuth (32 bins) against uniform pass chi-square at 99.9 % (df 31: 61.1 — Lambertian: 15 bins with
-    expected counts, the other 16 must stay empty). ``qmc``: one DIM_EMISSION pair per pixel, as traced."""
+    expected counts, the other 16 must stay empty). ``qmc``: one EMISSION pair per pixel, as traced."""
     n = 1 << 17
     if source == "rng":
         u1, u2 = np.random.default_rng(5).random((2, n))
     else:
-        u1, u2 = qmc.sample_2d(tof_rng.seed_key(5), np.arange(n), np.full(n, 3), DIM_EMISSION)
+        u1, u2 = qmc.sample_2d(tof_rng.seed_key(5), np.arange(n), np.full(n, 3), EMISSION)
     d = led.sample_emission(u1, u2)
     assert d.shape == (n, 3)
     np.testing.assert_allclose(np.linalg.norm(d, axis=1), 1.0, atol=1e-12)

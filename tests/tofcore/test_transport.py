@@ -6,9 +6,9 @@ import pytest
 import tofcore
 from tofcore import LED, Ambient, Camera, ConfigError, Material, Scene
 from tofcore.tracer import rng as tof_rng
-from tofcore.tracer import qmc, transport
+from tofcore.tracer import qmc, sampler
 from tofcore.constants import SPEED_OF_LIGHT_M_S
-from tofcore.tracer.transport import pass_schedule, trace
+from tofcore.tracer.trace import pass_schedule, trace
 
 C = SPEED_OF_LIGHT_M_S
 RHO = 0.8
@@ -61,8 +61,8 @@ def test_direct_path_length_is_exact(led_x):
               spp=1, max_depth=1, seed=7)
     pixel = np.arange(cam.width * cam.height)
     sample = np.zeros_like(pixel)
-    o, d = cam.generate_rays(pixel, *qmc.sample_2d(key, pixel, sample, transport._DIM_PIXEL),
-                             *qmc.sample_2d(key, pixel, sample, transport._DIM_LENS))
+    o, d = cam.generate_rays(pixel, *qmc.sample_2d(key, pixel, sample, sampler.PIXEL),
+                             *qmc.sample_2d(key, pixel, sample, sampler.LENS))
     x = o + d * ((D - o[:, 2]) / d[:, 2])[:, None]
     expected = (np.linalg.norm(x - [led_x, 0, 0], axis=1) + np.linalg.norm(x - o, axis=1)) / C
     measured = (t.correlation()[0] / t.signal()).reshape(-1)

@@ -512,17 +512,22 @@ def _draw_raster(canvas: _RasterCanvas, curves: Curves) -> None:
         for x, y in points:
             canvas.marker(x, y, rgb, 3)
         entries.append((label, rgb))
-    # Legend, top right inside the plot.
     if entries:
-        text_w = max(canvas.text_size(label, 1)[0] for label, _ in entries)
-        box_w, row_h = 6 + 22 + 6 + text_w + 6, label_h + 8
-        x0, y0 = right - 6 - box_w, top + 6
-        canvas.fill(x0, y0, x0 + box_w, y0 + row_h * len(entries) + 4, _WHITE)
-        for j, (label, rgb) in enumerate(entries):
-            y = y0 + 4 + j * row_h + label_h / 2
-            canvas.line(x0 + 6, y, x0 + 28, y, rgb, 2)
-            canvas.marker(x0 + 17, y, rgb, 3)
-            canvas.text(x0 + 34, y - label_h / 2, label, _INK, 1)
+        _draw_legend(canvas, entries, right, top)
     if curves.message:
         w, h = canvas.text_size(curves.message, 2)
         canvas.text((left + right - w) / 2, (top + bottom - h) / 2, curves.message, _SPP_INK, 2)
+
+
+def _draw_legend(canvas: _RasterCanvas, entries: list, right: float, top: float) -> None:
+    """The legend (label, colour) of the drawn curves, top right inside the plot."""
+    _, label_h = canvas.text_size("0", 1)
+    text_w = max(canvas.text_size(label, 1)[0] for label, _ in entries)
+    box_w, row_h = 6 + 22 + 6 + text_w + 6, label_h + 8
+    x0, y0 = right - 6 - box_w, top + 6
+    canvas.fill(x0, y0, x0 + box_w, y0 + row_h * len(entries) + 4, _WHITE)
+    for j, (label, rgb) in enumerate(entries):
+        y = y0 + 4 + j * row_h + label_h / 2
+        canvas.line(x0 + 6, y, x0 + 28, y, rgb, 2)
+        canvas.marker(x0 + 17, y, rgb, 3)
+        canvas.text(x0 + 34, y - label_h / 2, label, _INK, 1)

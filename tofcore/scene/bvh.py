@@ -289,6 +289,46 @@ def _sweep(lo, hi):
     return lo, hi
 
 
+def _ray_records(o, d, t_max, width_leaf: int):
+    """The rays' box records (origin, inverse direction, best t) and leaf records (origin, frame, direction,
+    best t), each repeated per child slot; directions below ``_TINY_DIR`` get a finite inverse."""
+    neg = d < 0
+    safe_d = np.where(np.abs(d) < _TINY_DIR, np.where(neg, -_TINY_DIR, _TINY_DIR), d)
+    columns = functools.partial(np.concatenate, axis=1, dtype=np.float32)
+    ray_box = _repeat_rows(columns([o, 1.0 / safe_d, t_max[:, None]]), WIDTH)
+    ray_leaf = _repeat_rows(columns([o, *_ray_frame(d), d, t_max[:, None]]), width_leaf)
+    return ray_box, ray_leaf
+
+
+def _slab_test(box_rows, segments, pair_node, first):
+    """(t_in, t_out) of every (ray, node) pair's WIDTH child boxes (slab test, clipped to [0, best t])."""
+    t_in, t_out = _gather_planes(segments, 0, pair_node), _gather_planes(segments, 3, pair_node)
+    for a in range(3):
+        o_a = box_rows[a].take(first, 0, None, "clip")
+        inv_a = box_rows[3 + a].take(first, 0, None, "clip")
+        near = t_in if a == 0 else _gather_planes(segments, a, pair_node)
+        near -= o_a
+        near *= inv_a
+        far = t_out if a == 0 else _gather_planes(segments, 3 + a, pair_node)
+        far -= o_a
+        far *= inv_a
+        if a:
+            np.maximum(t_in, near, out=t_in)
+            np.minimum(t_out, far, out=t_out)
+    np.maximum(t_in, np.float32(0.0), out=t_in)
+    np.minimum(t_out, box_rows[-1].take(first, 0, None, "clip"), out=t_out)
+    return t_in, t_out
+
+
+def _nearest_hits(best_t, r, t, u, v, tri):
+    """Of several hits of one ray (rays ``r``, sorted), keep the nearest, the first of equals in traversal order."""
+    nearest = best_t.copy()
+    np.minimum.at(nearest, r, t)
+    w = (t == nearest[r]).nonzero()[0]
+    w = w[np.r_[True, r[w[1:]] != r[w[:-1]]]]
+    return r[w], t[w], u[w], v[w], tri[w]
+
+
 def _gather_planes(segments, k, node):
     """(P, WIDTH) plane ``k`` of the nodes of P pairs; ``segments`` are (rows per plane, start, stop).
 
@@ -410,6 +450,19 @@ def _collapse(left, right, area):
     return np.concatenate(levels), len(levels)
 
 
+def _leaf_records(corners, order, start, count, leaf_size: int) -> np.ndarray:
+    """(L, _LEAF_ROWS, leaf_size) int32 leaf records: v0, v1, v2 per axis (float32 bits, NaN padding), then
+    the triangle index (−1 padding); leaf i holds triangles order[start[i]:start[i] + count[i]]."""
+    k = np.arange(leaf_size)
+    valid = k[None, :] < count[:, None]
+    prim = np.where(valid, order[np.minimum(start[:, None] + k, len(corners) - 1)], -1)
+    pv = np.where(valid[..., None, None], corners[np.maximum(prim, 0)], np.float32(np.nan))
+    leaf_rec = np.empty((len(start), _LEAF_ROWS, leaf_size), np.int32)
+    leaf_rec[:, :_PRIM_ROW].view(np.float32)[...] = pv.reshape(len(start), leaf_size, 9).transpose(0, 2, 1)
+    leaf_rec[:, _PRIM_ROW] = prim
+    return leaf_rec
+
+
 class BVH:
     """4-wide binned-SAH bounding volume hierarchy over a triangle mesh.
 
@@ -485,13 +538,7 @@ class BVH:
         nodes[:, _CHILD_ROW] = np.where(is_leaf[safe] & used[..., 0], ~(leaf_id[safe] * _LEAF_ROWS), to_node)
 
         leaves = np.flatnonzero(is_leaf)
-        k = np.arange(leaf_size)
-        valid = k[None, :] < count[leaves, None]
-        prim = np.where(valid, order[np.minimum(start[leaves, None] + k, len(tri) - 1)], -1)
-        pv = np.where(valid[..., None, None], corners[np.maximum(prim, 0)], np.float32(np.nan))
-        leaf_rec = np.empty((len(leaves), _LEAF_ROWS, leaf_size), np.int32)
-        leaf_rec[:, :_PRIM_ROW].view(np.float32)[...] = pv.reshape(len(leaves), leaf_size, 9).transpose(0, 2, 1)
-        leaf_rec[:, _PRIM_ROW] = prim
+        leaf_rec = _leaf_records(corners, order, start[leaves], count[leaves], leaf_size)
         sizes = count[leaves]
         stats = {
             "triangles": len(tri),
@@ -578,22 +625,13 @@ class BVH:
         ``np.`` functions, whose dispatch costs about a microsecond a call.
         """
         n, width_leaf = len(o), self._leaves.shape[1]
-        neg = d < 0
-        safe_d = np.where(np.abs(d) < _TINY_DIR, np.where(neg, -_TINY_DIR, _TINY_DIR), d)
-        columns = functools.partial(np.concatenate, axis=1, dtype=np.float32)
-        ray_box = _repeat_rows(columns([o, 1.0 / safe_d, t_max[:, None]]), WIDTH)  # ray records
-        ray_leaf = _repeat_rows(columns([o, *_ray_frame(d), d, t_max[:, None]]), width_leaf)
+        ray_box, ray_leaf = _ray_records(o, d, t_max, width_leaf)
         best_box = ray_box[_RAY_BOX_ROWS - 1::_RAY_BOX_ROWS]  # (n, WIDTH) views of the best t rows
         best_leaf = ray_leaf[_RAY_LEAF_ROWS - 1::_RAY_LEAF_ROWS]
         box_rows = [ray_box[k:] for k in range(_RAY_BOX_ROWS)]
         leaf_rows = [ray_leaf[k:] for k in range(_RAY_LEAF_ROWS)]
-        planes = self._nodes.view(np.float32)
         oct_start = np.searchsorted(octant, np.arange(9))  # rays of octant k: oct_start[k]:oct_start[k + 1]
-        plane_rows = {}  # octant -> rows of its entry planes x, y, z and exit planes x, y, z
-        for k in np.flatnonzero(np.diff(oct_start)):
-            flip = [(k >> a) & 1 for a in range(3)]  # negative direction: enter at the box maximum
-            plane_rows[k] = [planes[a + 3 * flip[a]:] for a in range(3)] + [planes[a + 3 - 3 * flip[a]:]
-                                                                             for a in range(3)]
+        plane_rows = self._plane_rows(oct_start)
         child_rows = self._nodes[_CHILD_ROW:]
         tri_rows = [self._leaves.view(np.float32)[k:] for k in range(_PRIM_ROW)] + [self._leaves[_PRIM_ROW:]]
         ignore_rows = None if ignore is None else _repeat_rows(ignore[:, None].astype(np.int32), width_leaf)
@@ -604,28 +642,13 @@ class BVH:
         pair_ray = np.arange(n)  # ray of each (ray, node) pair of the level
         pair_node = np.zeros(n, np.intp)  # first record row of the node (the root)
         n_box = n_tri = 0  # box and triangle tests
-        zero = np.float32(0.0)
         with np.errstate(divide="ignore", invalid="ignore"):  # NaN padding, rays parallel to triangles
             while pair_ray.size:
                 n_box += WIDTH * pair_ray.size
                 first = pair_ray * _RAY_BOX_ROWS
                 cut = pair_ray.searchsorted(oct_start)  # pairs of octant k: cut[k]:cut[k + 1]
                 segments = [(plane_rows[k], cut[k], cut[k + 1]) for k in plane_rows if cut[k + 1] > cut[k]]
-                t_in, t_out = _gather_planes(segments, 0, pair_node), _gather_planes(segments, 3, pair_node)
-                for a in range(3):
-                    o_a = box_rows[a].take(first, 0, None, "clip")
-                    inv_a = box_rows[3 + a].take(first, 0, None, "clip")
-                    near = t_in if a == 0 else _gather_planes(segments, a, pair_node)
-                    near -= o_a
-                    near *= inv_a
-                    far = t_out if a == 0 else _gather_planes(segments, 3 + a, pair_node)
-                    far -= o_a
-                    far *= inv_a
-                    if a:
-                        np.maximum(t_in, near, out=t_in)
-                        np.minimum(t_out, far, out=t_out)
-                np.maximum(t_in, zero, out=t_in)
-                np.minimum(t_out, box_rows[-1].take(first, 0, None, "clip"), out=t_out)
+                t_in, t_out = _slab_test(box_rows, segments, pair_node, first)
                 flat = (t_in <= t_out).ravel().nonzero()[0]  # (pair, child) of every box entered
                 child = child_rows.take(pair_node, 0, None, "clip").take(flat, None, None, "clip")
                 ray = pair_ray.take(flat >> _WIDTH_BITS, None, None, "clip")
@@ -657,12 +680,8 @@ class BVH:
                     pair_ray, pair_node = pair_ray.take(keep), pair_node.take(keep)
                     continue
                 t, u, v, tri = (x.take(f, None, None, "clip") for x in (t, u, v, tc[_PRIM_ROW]))
-                if r.size > 1 and (r[1:] == r[:-1]).any():  # several hits of one ray: keep the nearest,
-                    nearest = best_box[:, 0].copy()  # the first of equals in traversal order
-                    np.minimum.at(nearest, r, t)
-                    w = (t == nearest[r]).nonzero()[0]
-                    w = w[np.r_[True, r[w[1:]] != r[w[:-1]]]]
-                    r, t, u, v, tri = r[w], t[w], u[w], v[w], tri[w]
+                if r.size > 1 and (r[1:] == r[:-1]).any():  # several hits of one ray: keep the nearest
+                    r, t, u, v, tri = _nearest_hits(best_box[:, 0], r, t, u, v, tri)
                 best_box[r] = t[:, None]
                 best_leaf[r] = t[:, None]
                 prim[r], bary_u[r], bary_v[r] = tri, u, v
@@ -671,3 +690,13 @@ class BVH:
             return occluded, counts
         t_hit = np.where(prim >= 0, best_box[:, 0], np.float32(np.inf)).astype(np.float32)
         return t_hit, prim, bary_u, bary_v, counts
+
+    def _plane_rows(self, oct_start: np.ndarray) -> dict:
+        """Octant k → the node-record rows of its entry planes x, y, z and exit planes x, y, z."""
+        planes = self._nodes.view(np.float32)
+        plane_rows = {}
+        for k in np.flatnonzero(np.diff(oct_start)):
+            flip = [(k >> a) & 1 for a in range(3)]  # negative direction: enter at the box maximum
+            plane_rows[k] = [planes[a + 3 * flip[a]:] for a in range(3)] + [planes[a + 3 - 3 * flip[a]:]
+                                                                             for a in range(3)]
+        return plane_rows

@@ -15,7 +15,7 @@ Scrambles are hash-based (Laine & Karras 2011, with Burley's constants): a funct
 which each output bit depends only on the input bits above it — exactly the structure of an Owen scramble.
 Seeds are hashes of (seed key, pixel, replicate, dimension) from :mod:`tofcore.tracer.rng`, so, as with the plain
 counter-based uniforms, a sample depends only on its coordinates, never on chunk size, worker count or
-device (the CUDA twin :func:`tofcore.gpu.fused.qmc_sample` computes the same bits).
+device (the CUDA twins of :func:`scrambled_2d` and :func:`scrambled_1d` compute the same bits).
 
 **Replicates.** Sample i of a pixel belongs to replicate r = i mod R and is point j = ⌊i / R⌋ of that
 replicate's scrambled sequence; the R replicates are independent randomizations. Their per-pixel means are

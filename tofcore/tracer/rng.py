@@ -10,7 +10,7 @@ coordinates — the approach of counter-based generators (Salmon et al. 2011,
 64-bit key comes from ``numpy.random.SeedSequence(seed)`` so that nearby seeds
 give unrelated streams.
 
-Dimensions are allocated by the tracer (see ``transport.Dim``); they never
+Dimensions are allocated by the sampler (:mod:`tofcore.tracer.sampler`, one table); they never
 collide because each consumer owns a fixed range.
 """
 

@@ -9,7 +9,7 @@ Processes do not share a GIL. Each render:
    dtype — the scene, BVH and material tables exist once in memory, not once per worker;
 2. sends each chunk as (render key, pixel range) to a persistent pool of ``spawn``-ed processes, which
    unpickle the context once per render onto views of the shared blocks and trace the chunk with the
-   same function as the in-process path (:func:`tofcore.tracer.transport._trace_chunk`);
+   same function as the in-process path (:func:`tofcore.tracer.integrator.trace_chunk`);
 3. chunks own disjoint pixels and write their sums straight into the shared accumulators, so the result
    is the same bit for bit whatever the number of workers.
 

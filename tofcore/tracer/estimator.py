@@ -1,4 +1,20 @@
-"""Adaptive sampling: spend each pass's samples where the estimated depth error is largest.
+r"""The estimator in one place: replicates and their error, the MIS weights, adaptive sample allocation.
+
+**Replicates.** Sample i of a pixel belongs to replicate r = i mod R (:mod:`tofcore.tracer.qmc`); the R
+replicate means m_r are independent unbiased estimates, so the variance of the pixel mean is estimated by
+
+.. math:: \widehat{\mathrm{Var}}[\bar m] = \sum_r (m_r - \bar m_R)^2 / (R (R - 1))
+
+(:func:`variance_of_mean`). The depth the camera outputs is a function of these means through the sensor's
+decoder: ``tofcore.render.depth_standard_error`` projects each replicate's raw images through the decoder's
+linearisation (it needs the sensor model, which the tracer does not import).
+
+**MIS.** A path through a light vertex can be sampled by the BSDF + next event (strategy A, area density
+p_A) or by the light vertex (strategy B, p_B); both are weighted by the balance heuristic,
+w_A ← w_A p_A/(p_A + p_B), w_B ← w_B p_B/(p_A + p_B) (Veach 1997; :mod:`tofcore.tracer.light_paths`):
+:func:`bsdf_strategy_weight`, :func:`light_strategy_weight`.
+
+**Adaptive sampling**: spend each pass's samples where the estimated depth error is largest.
 
 After a uniform pilot (``PILOT_SPP`` samples per pixel) every pass distributes its budget of n·P samples
 over the pixels so that the sum of the pixels' error variances falls fastest. With per-sample variance
@@ -23,8 +39,51 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..backend import namespace
 from .qmc import REPLICATES
 
+
+# ------------------------------------------------------------------ replicates
+def replicate_counts(sample_count: np.ndarray) -> np.ndarray:
+    """(R, P) samples of each replicate per pixel: samples i < n with i ≡ r (mod R)."""
+    xp = namespace(sample_count)
+    r = xp.arange(REPLICATES)[:, None]
+    return (sample_count[None, :] - r + REPLICATES - 1) // REPLICATES
+
+
+def variance_of_mean(means: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """(C, H, W) variance of each pixel mean from replicate means (R, C, H, W) and counts (R, H, W).
+
+    The replicates are weighted equally (their counts differ by at most one sample); NaN until every
+    replicate has a sample.
+    """
+    r = means.shape[0]
+    with np.errstate(invalid="ignore"):
+        centred = means - means.mean(axis=0)
+        var = (centred**2).sum(axis=0) / (r * (r - 1))
+    return np.where((counts.min(axis=0) >= 1)[None], var, np.nan)
+
+
+# ------------------------------------------------------------------ MIS
+def bsdf_strategy_weight(p_bsdf_area, prev_delta, led, q_led: float, cos_axis, cos_geo, dist):
+    """Balance-heuristic weight of strategy A for next-event estimates at y to one LED.
+
+    ``p_bsdf_area`` is p_A (the previous bounce's solid-angle pdf × cos at y / segment²); paths whose
+    previous bounce was a mirror (``prev_delta``) only A can sample (weight 1).
+    """
+    p_light = q_led * led.emission_pdf(cos_axis) * np.maximum(cos_geo, 0.0) / dist**2
+    with np.errstate(invalid="ignore", divide="ignore"):
+        share = np.where(p_bsdf_area + p_light > 0, p_bsdf_area / (p_bsdf_area + p_light), 1.0)
+    return np.where(prev_delta, 1.0, share)
+
+
+def light_strategy_weight(w, p_bsdf, p_light):
+    """Strategy B's contribution w_B weighted by the balance heuristic: w_B p_B / (p_A + p_B)."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return w * p_light / (p_bsdf + p_light)
+
+
+# ------------------------------------------------------------------ adaptive allocation
 PILOT_SPP = 16
 """Uniform samples per pixel before the first adaptive pass (4 per replicate)."""
 FLOOR = 0.1

@@ -1,0 +1,186 @@
+"""Parallel execution of a trace: chunks of pixels, worker processes over shared memory, GPU chunk sizes.
+
+A pass's samples are cut into chunks of whole pixels (:func:`chunks`), about ``chunk_size`` paths each
+and at least 4 per worker; each chunk is traced by :func:`~tofcore.tracer.integrator.trace_chunk` on a
+worker process (:mod:`tofcore.tracer.workers`: the set-up and the accumulators live once in shared
+memory), on a thread where no process can start, or in this process. Chunks own disjoint pixels and sum
+their samples in order, so the frame is the same bit for bit whatever the split or the worker count.
+On the GPU one chunk is as large as the free device memory allows (:func:`gpu_chunk_paths`).
+"""
+
+from __future__ import annotations
+
+import functools
+import pickle
+import uuid
+from collections.abc import Callable
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+
+import numpy as np
+
+from .. import backend
+from ..errors import Cancelled
+from . import workers
+from .integrator import trace_chunk
+from .setup import TraceSetup
+from .transport import TraceStats, Transport
+from .workers import process_support
+
+_ACCUMULATORS = ("sample_count", "signal_sum", "correlation_sum", "ambient_sum", "replicate_sum", "transient_sum")
+
+
+@dataclass
+class SharedTrace:
+    """A render's context and accumulators in shared memory, and the per-pass sample plan the workers read."""
+
+    shared: workers.Shared
+    key: str
+    first: np.ndarray   # (P,) samples each pixel had before this pass (shared view)
+    counts: np.ndarray  # (P,) samples each pixel gets in this pass (shared view)
+
+
+def start_workers(n_workers: int) -> str:
+    """Start (or reuse) the pool of ``n_workers`` processes; returns "" or why processes cannot run here
+    (no interpreter to start them with, a daemonic parent, ``TOFCORE_PARALLEL=threads``)."""
+    possible, why = process_support()
+    if not possible:
+        return why
+    try:
+        workers.pool(n_workers, warm_up=__name__)
+    except Exception as exc:  # e.g. "daemonic processes are not allowed to have children", no fork/spawn here
+        return f"worker processes could not start ({type(exc).__name__}: {exc})"
+    return ""
+
+
+def share(setup: TraceSetup, transport: Transport) -> tuple[SharedTrace | None, str]:
+    """Put the context and the accumulators into shared memory; the transport then holds the shared views.
+
+    Returns (None, why) where worker processes cannot run this trace: a correlation function that does
+    not pickle (a lambda: use ``functools.partial`` of a module-level function, as
+    :meth:`~tofcore.sensor.modulation.Modulation.correlations` does) or no room in /dev/shm.
+    """
+    n_pix = transport.width * transport.height
+    first, counts = np.zeros(n_pix, np.int64), np.zeros(n_pix, np.int64)
+    written = [getattr(transport, name) for name in _ACCUMULATORS if getattr(transport, name) is not None]
+    try:
+        shared = workers.Shared((setup, transport, first, counts), always=written + [first, counts])
+    except (pickle.PicklingError, TypeError, AttributeError) as exc:
+        return None, f"the trace context does not pickle for worker processes ({exc})"
+    except OSError as exc:  # no room in /dev/shm
+        return None, f"no shared memory for worker processes ({exc})"
+    for name in _ACCUMULATORS:
+        if getattr(transport, name) is not None:
+            setattr(transport, name, shared.view(getattr(transport, name)))
+    return SharedTrace(shared, uuid.uuid4().hex, shared.view(first), shared.view(counts)), ""
+
+
+def unshare(run: SharedTrace, transport: Transport) -> None:
+    """Give the transport private copies of its sums and release the shared memory."""
+    for name in _ACCUMULATORS:
+        if getattr(transport, name) is not None:
+            setattr(transport, name, np.array(getattr(transport, name)))
+    run.shared.close()
+
+
+def run_in_processes(run: SharedTrace, n: int, done: np.ndarray, counts: np.ndarray, chunks, cancel):
+    """Trace one pass's chunks on the worker processes; yields each chunk's TraceStats."""
+    run.first[:] = done
+    run.counts[:] = counts
+    return workers.run(n, run.shared, run.key, _trace_shared_chunk, chunks, cancel)
+
+
+def _trace_shared_chunk(shared_objects, p0: int, p1: int) -> TraceStats:
+    """In a worker process: trace pixels [p0, p1) of the pass described in the shared memory."""
+    setup, out, first, counts = shared_objects
+    return trace_chunk(setup, out, p0, p1, first=first, counts=counts)
+
+
+@dataclass
+class PassRunner:
+    """Runs the chunks of each pass: on the worker processes (``shared``), else on ``threads``, else here."""
+
+    setup: TraceSetup
+    transport: Transport
+    shared: SharedTrace | None
+    threads: ThreadPoolExecutor
+    workers: int
+    chunk_size: int
+    cancel: Callable[[], bool] | None
+
+    def run(self, done: np.ndarray, counts: np.ndarray) -> None:
+        """Trace samples [done[p], done[p] + counts[p]) of every pixel; raises Cancelled when asked to stop."""
+        xp = self.setup.xp
+        pieces = chunks(counts, pass_chunk_paths(int(counts.sum()), self.chunk_size, self.workers))
+        if self.shared is not None and len(pieces) > 1:
+            results = run_in_processes(self.shared, self.workers, done, counts, pieces, self.cancel)
+        else:
+            run = functools.partial(trace_chunk, self.setup, self.transport, first=xp.asarray(done),
+                                    counts=xp.asarray(counts))
+
+            def job(chunk: tuple[int, int]) -> TraceStats | None:
+                return None if self.cancel is not None and self.cancel() else run(*chunk)
+
+            results = self.threads.map(job, pieces) if self.shared is None else map(job, pieces)
+        finished = 0
+        for chunk_stats in results:
+            if chunk_stats is None:
+                raise Cancelled("trace: cancelled")
+            self.transport.stats.add(chunk_stats)
+            finished += 1
+        if finished < len(pieces):
+            raise Cancelled("trace: cancelled")
+
+
+MIN_CHUNK_PATHS = 1 << 13
+"""Paths per chunk at least, when a pass is split finer to keep every worker busy (NumPy's per-call
+overhead grows below a few thousand elements)."""
+
+
+def pass_chunk_paths(pass_paths: int, chunk_size: int, workers: int) -> int:
+    """Paths per chunk for a pass: ``chunk_size``, or less so that the pass has ≥ 4 chunks per worker.
+
+    A 1-spp pass of a 512 × 424 frame is 217 k paths: 4 chunks of 65 k would leave 12 of 16 workers idle.
+    The frame does not depend on the split (chunks hold whole pixels).
+    """
+    if workers == 1:
+        return chunk_size
+    return max(min(chunk_size, MIN_CHUNK_PATHS), min(chunk_size, -(-pass_paths // (4 * workers))))
+
+
+def chunks(counts: np.ndarray, chunk_size: int) -> list[tuple[int, int]]:
+    """Pixel ranges [p0, p1) of about ``chunk_size`` paths each (whole pixels; at least one pixel)."""
+    ends = np.cumsum(counts)
+    out, p0 = [], 0
+    while p0 < len(counts):
+        before = ends[p0 - 1] if p0 else 0
+        p1 = max(p0 + 1, int(np.searchsorted(ends, before + chunk_size, side="right")))
+        out.append((p0, min(p1, len(counts))))
+        p0 = p1
+    return out
+
+
+CPU_CHUNK_PATHS = 1 << 16
+"""Paths per chunk on the CPU: the per-bounce temporaries of 65,536 paths stay in L2/L3."""
+
+GPU_BYTES_PER_PATH = 2048
+"""Peak device memory per path in flight (all path state and per-bounce temporaries, 12 correlation
+channels), measured with CuPy's memory pool on the GPU benchmark frame (docs/benchmarks.md)."""
+
+GPU_MEMORY_FRACTION = 0.5
+"""Share of the free device memory one chunk may take (the rest: CuPy's pool slack, other processes)."""
+
+GPU_MAX_CHUNK_PATHS = 1 << 23
+"""At most 8.4 M paths per chunk: a whole 512 × 424 × 16 spp pass fits; more adds nothing but memory."""
+
+
+def gpu_chunk_paths(xp, n_correlations: int) -> int:
+    """Paths per chunk on the GPU: as many as fit in ``GPU_MEMORY_FRACTION`` of the free device memory.
+
+    Memory per path grows with the correlation channels (8 bytes each, per-path totals and per-bounce
+    sums); ``GPU_BYTES_PER_PATH`` holds 12. The chunk never drops below ``CPU_CHUNK_PATHS``, so a
+    nearly full GPU fails with a clear out-of-memory error rather than crawling.
+    """
+    free = backend.free_device_bytes(xp) or 0
+    per_path = GPU_BYTES_PER_PATH + 24 * max(0, n_correlations - 12)
+    return int(min(GPU_MAX_CHUNK_PATHS, max(CPU_CHUNK_PATHS, free * GPU_MEMORY_FRACTION // per_path)))
