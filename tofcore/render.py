@@ -81,7 +81,7 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     replicates = means.shape[0]
     raw = namespace(means).stack([raw_images(m[1:1 + n_raw], m[-1], sensor) for m in means])
     centre = raw.mean(axis=0)
-    grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation)
+    grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation, sensor.processing.unwrap_weights)
     deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
     var = (deviation**2).sum(axis=0) / (replicates * (replicates - 1))
     ok = (counts.min(axis=0) >= 1) & (np.abs(grad).sum(axis=0) > 0)
@@ -295,10 +295,13 @@ def _rms(values: np.ndarray) -> float | None:
 
 
 def _decode_clean(transport: Transport, sensor, max_k: int, n_raw: int):
-    """Decode the noise-free, scatter-free raw images of bounces ≤ max_k (ground-truth decompositions)."""
+    """Decode the noise-free, scatter-free raw images of bounces ≤ max_k (ground-truth decompositions).
+
+    The camera's frequency weights apply; its spatial phasor filter does not (ground truth is per pixel)."""
     raw = raw_images(transport.correlation(max_k)[:n_raw], transport.ambient(), sensor)
     return decoding.decode(raw, sensor.modulation, min_amplitude_e=0.0, saturation_e=None,
-                           range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+                           range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
+                           unwrap_weights=sensor.processing.unwrap_weights)
 
 
 def _decode_clean_per_k(transport: Transport, sensor, n_raw: int):
@@ -315,8 +318,17 @@ def _decode_clean_per_k(transport: Transport, sensor, n_raw: int):
     ambient = xp.broadcast_to(transport.ambient(), (k, h, w)).reshape(k * h, w)
     raw = raw_images(cumulative.reshape(-1, k * h, w), ambient, sensor)
     decoded = decoding.decode(raw, sensor.modulation, min_amplitude_e=0.0, saturation_e=None,
-                              range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+                              range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
+                              unwrap_weights=sensor.processing.unwrap_weights)
     return decoded.distance.reshape(k, h, w)
+
+
+def _range_scale(sensor) -> np.ndarray | None:
+    """What ``range_m`` limits: the output depth, so z for a z-depth camera (libfreenect2 compares z with its
+    min_depth/max_depth), the radial distance otherwise (None)."""
+    if sensor.depth_output != "z":
+        return None
+    return np.abs(sensor.camera.pixel_center_directions()[..., 2]).astype(np.float64)
 
 
 def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int, n_raw: int) -> Frame:
@@ -331,13 +343,17 @@ def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int
     noise_rng = np.random.default_rng(np.random.SeedSequence([seed, 0x70F]))  # apart from the tracer's stream
     xp = namespace(raw)
     if plan.raw_noise:  # drawn on the CPU from one stream, so both devices give the same frame
-        raw = xp.asarray(noise_models.add_raw_noise(backend.to_host(raw), read_noise_e=sensor.noise.read_noise_e,
-                                                    rng=noise_rng))
+        noisy = noise_models.add_raw_noise(backend.to_host(raw), read_noise_e=sensor.noise.read_noise_e, rng=noise_rng)
+        if sensor.noise.gain_noise > 0:  # Keller's β (eq. 3.1), after the shot and read noise of the same stream
+            noisy = noise_models.keller_amplitude_noise(noisy, alpha_e=0.0, beta=sensor.noise.gain_noise, rng=noise_rng)
+        raw = xp.asarray(noisy)
     full_well = sensor.readout.full_well_e
     raw = np.minimum(raw, full_well)
     decoded = decoding.decode(raw, mod, min_amplitude_e=sensor.invalid.min_amplitude_e,
                               saturation_e=full_well if sensor.invalid.invalidate_saturated else None,
-                              range_m=tuple(sensor.range_m), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+                              range_m=tuple(sensor.range_m), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
+                              unwrap_weights=sensor.processing.unwrap_weights,
+                              phasor_filter=sensor.processing.phasor_filter, range_scale=_range_scale(sensor))
     decoded = decoding.Decoded(**{k: backend.to_host(v) for k, v in vars(decoded).items()})
     raw = backend.to_host(raw)
     distance = np.asarray(decoded.distance, dtype=np.float64)
