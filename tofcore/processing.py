@@ -121,6 +121,25 @@ def bilateral_phasor_filter(real: np.ndarray, imag: np.ndarray, *, min_amplitude
     return out_re, out_im
 
 
+def kernel_mean(image: np.ndarray) -> np.ndarray:
+    """:data:`BILATERAL_KERNEL`-weighted 3 × 3 mean over the last two axes, the border unchanged.
+
+    The linearisation of :func:`bilateral_phasor_filter` on a smooth surface (range terms ≈ 1): what the
+    filter does to small independent per-pixel errors, e.g. the render's Monte Carlo error of the depth.
+    """
+    xp = namespace(image)
+    out = xp.asarray(image, dtype=np.float64).copy()
+    height, width = out.shape[-2:]
+    if height < 3 or width < 3:
+        return out
+    acc = xp.zeros(out[..., 1:-1, 1:-1].shape)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            acc = acc + BILATERAL_KERNEL[1 + dy, 1 + dx] * image[..., 1 + dy:height - 1 + dy, 1 + dx:width - 1 + dx]
+    out[..., 1:-1, 1:-1] = acc / BILATERAL_KERNEL.sum()
+    return out
+
+
 def check_choice(value: str, choices: tuple[str, ...], where: str, key: str) -> str:
     """``value`` if it is one of ``choices``; else ConfigError naming ``where``, ``key`` and the choices."""
     if value not in choices:

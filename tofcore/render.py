@@ -40,6 +40,7 @@ import numpy as np
 from . import backend, limits
 from . import decode as decoding
 from . import noise as noise_models
+from . import processing
 from . import optics
 from .ambient import Ambient
 from .backend import gpu_errors, namespace
@@ -75,7 +76,9 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     is the RMS error of the output depth; for a z-depth sensor it is scaled by the pixel ray's z
     component (z = d·ω_z). NaN where a pixel has no signal or
     a replicate no sample yet. Scattering and sensor noise are not part of it: this is the render's own
-    noise.
+    noise. A camera that filters its phasors (``processing.phasor_filter``) averages each replicate's
+    deviation over the 3 × 3 neighbours too (:func:`tofcore.processing.kernel_mean`, the filter's
+    linearisation on smooth surfaces).
     """
     means, counts = transport.replicate_means()         # (R, J+2, H, W), (R, H, W)
     replicates = means.shape[0]
@@ -83,6 +86,8 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     centre = raw.mean(axis=0)
     grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation, sensor.processing.unwrap_weights)
     deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
+    if sensor.processing.phasor_filter == "bilateral":  # the camera's filter averages neighbours' errors too
+        deviation = processing.kernel_mean(deviation)
     var = (deviation**2).sum(axis=0) / (replicates * (replicates - 1))
     ok = (counts.min(axis=0) >= 1) & (np.abs(grad).sum(axis=0) > 0)
     if sensor.modulation.is_cw:
