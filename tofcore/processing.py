@@ -86,58 +86,65 @@ def bilateral_phasor_filter(real: np.ndarray, imag: np.ndarray, *, min_amplitude
     :math:`\sum k^2 / (\sum k)^2 = 0.1115` (σ × 0.334). Across an edge (φ differing by π) a
     neighbour's weight falls by :math:`e^{-b} = 1/32`.
     """
-    xp = namespace(real)
-    re = xp.asarray(real, dtype=np.float64)
-    im = xp.asarray(imag, dtype=np.float64)
-    if re.shape != im.shape or re.ndim < 2:
-        raise ConfigError(f"bilateral_phasor_filter: real and imag must have one shape (..., H, W), "
-                          f"got {re.shape} and {im.shape}")
+    re, im = _phasor_pair(real, imag)
+    weights = bilateral_weights(re, im, min_amplitude=min_amplitude)
+    return neighbour_mean(re, weights), neighbour_mean(im, weights)
+
+
+def bilateral_weights(real: np.ndarray, imag: np.ndarray, *, min_amplitude: float = 0.0) -> np.ndarray | None:
+    """(3, 3, ..., H − 2, W − 2) normalised weights of :func:`bilateral_phasor_filter` for every inner pixel
+    (neighbour offset dy, dx first); None for an image smaller than 3 × 3 (nothing is filtered).
+
+    With the weights of the noise-free phasors held fixed, :func:`neighbour_mean` is the filter's
+    linearisation: what it does to small errors of the pixels (e.g. the render's Monte Carlo error).
+    """
+    re, im = _phasor_pair(real, imag)
+    xp = namespace(re)
     height, width = re.shape[-2:]
     if height < 3 or width < 3:
-        return re, im
+        return None
     norm = np.hypot(re, im)
     safe = np.where(norm > 0, norm, 1.0)
     unit_re, unit_im = re / safe, im / safe
     strong = norm >= min_amplitude
     centre = (..., slice(1, -1), slice(1, -1))
     bilateral = strong[centre]
-    acc_re = BILATERAL_KERNEL[1, 1] * re[centre]
-    acc_im = BILATERAL_KERNEL[1, 1] * im[centre]
-    acc_w = xp.full(re[centre].shape, BILATERAL_KERNEL[1, 1])
+    weights = xp.zeros((3, 3) + re[centre].shape)
     for dy in (-1, 0, 1):
         for dx in (-1, 0, 1):
-            if dy == 0 and dx == 0:
-                continue
             other = (..., slice(1 + dy, height - 1 + dy), slice(1 + dx, width - 1 + dx))
             dist = 0.5 * (1.0 - (unit_re[centre] * unit_re[other] + unit_im[centre] * unit_im[other]))
             weight = BILATERAL_KERNEL[1 + dy, 1 + dx] * np.exp(-BILATERAL_EXPONENT * np.where(bilateral, dist, 0.0))
-            weight = np.where(strong[other] | ~bilateral, weight, 0.0)
-            acc_re = acc_re + weight * re[other]
-            acc_im = acc_im + weight * im[other]
-            acc_w = acc_w + weight
-    out_re, out_im = re.copy(), im.copy()
-    out_re[centre] = acc_re / acc_w
-    out_im[centre] = acc_im / acc_w
-    return out_re, out_im
+            if dy or dx:  # the centre always counts, without a range term
+                weight = np.where(strong[other] | ~bilateral, weight, 0.0)
+            weights[1 + dy, 1 + dx] = weight
+    return weights / weights.sum(axis=(0, 1))
 
 
-def kernel_mean(image: np.ndarray) -> np.ndarray:
-    """:data:`BILATERAL_KERNEL`-weighted 3 × 3 mean over the last two axes, the border unchanged.
-
-    The linearisation of :func:`bilateral_phasor_filter` on a smooth surface (range terms ≈ 1): what the
-    filter does to small independent per-pixel errors, e.g. the render's Monte Carlo error of the depth.
-    """
+def neighbour_mean(image: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
+    """Σ_q w_q x_q over each inner pixel's 3 × 3 neighbours (``weights`` from :func:`bilateral_weights`,
+    broadcast against ``image``'s leading axes); the border and images smaller than 3 × 3 unchanged."""
     xp = namespace(image)
     out = xp.asarray(image, dtype=np.float64).copy()
-    height, width = out.shape[-2:]
-    if height < 3 or width < 3:
+    if weights is None:
         return out
-    acc = xp.zeros(out[..., 1:-1, 1:-1].shape)
+    height, width = out.shape[-2:]
+    acc = 0.0
     for dy in (-1, 0, 1):
         for dx in (-1, 0, 1):
-            acc = acc + BILATERAL_KERNEL[1 + dy, 1 + dx] * image[..., 1 + dy:height - 1 + dy, 1 + dx:width - 1 + dx]
-    out[..., 1:-1, 1:-1] = acc / BILATERAL_KERNEL.sum()
+            acc = acc + weights[1 + dy, 1 + dx] * out[..., 1 + dy:height - 1 + dy, 1 + dx:width - 1 + dx]
+    out[..., 1:-1, 1:-1] = acc
     return out
+
+
+def _phasor_pair(real, imag) -> tuple[np.ndarray, np.ndarray]:
+    xp = namespace(real)
+    re = xp.asarray(real, dtype=np.float64)
+    im = xp.asarray(imag, dtype=np.float64)
+    if re.shape != im.shape or re.ndim < 2:
+        raise ConfigError(f"bilateral_phasor_filter: real and imag must have one shape (..., H, W), "
+                          f"got {re.shape} and {im.shape}")
+    return re, im
 
 
 def check_choice(value: str, choices: tuple[str, ...], where: str, key: str) -> str:

@@ -77,17 +77,18 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     component (z = d·ω_z). NaN where a pixel has no signal or
     a replicate no sample yet. Scattering and sensor noise are not part of it: this is the render's own
     noise. A camera that filters its phasors (``processing.phasor_filter``) averages each replicate's
-    deviation over the 3 × 3 neighbours too (:func:`tofcore.processing.kernel_mean`, the filter's
-    linearisation on smooth surfaces).
+    deviation over the 3 × 3 neighbours too, frequency by frequency, with the filter's weights at the
+    replicates' mean (:func:`_filtered_deviation`).
     """
     means, counts = transport.replicate_means()         # (R, J+2, H, W), (R, H, W)
     replicates = means.shape[0]
     raw = namespace(means).stack([raw_images(m[1:1 + n_raw], m[-1], sensor) for m in means])
     centre = raw.mean(axis=0)
     grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation, sensor.processing.unwrap_weights)
-    deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
-    if sensor.processing.phasor_filter == "bilateral":  # the camera's filter averages neighbours' errors too
-        deviation = processing.kernel_mean(deviation)
+    if sensor.processing.phasor_filter == "none" or not sensor.modulation.is_cw:
+        deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
+    else:
+        deviation = _filtered_deviation(raw - centre[None], np.nan_to_num(centre), sensor)
     var = (deviation**2).sum(axis=0) / (replicates * (replicates - 1))
     ok = (counts.min(axis=0) >= 1) & (np.abs(grad).sum(axis=0) > 0)
     if sensor.modulation.is_cw:
@@ -102,6 +103,41 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     if sensor.depth_output == "z":
         sigma = sigma * namespace(sigma).asarray(np.abs(sensor.camera.pixel_center_directions()[..., 2]))
     return sigma
+
+
+def _filtered_deviation(delta, centre, sensor):
+    r"""(R, H, W) distance deviation of each replicate, through the camera's phasor filter, linearised.
+
+    Notes
+    -----
+    Per frequency i the replicate's phasor deviation :math:`\delta Z = \sum_k \delta Q_k e^{i\theta_k}`
+    (``delta`` = Q^{(r)} − Q̄, ``centre`` = Q̄) is averaged like the phasors,
+    :math:`\delta Z' = \sum_q w_q \delta Z_q` with the filter's weights at the mean
+    (:func:`tofcore.processing.bilateral_weights`), and turned into a phase deviation of the filtered phasor
+    :math:`Z' = \sum_q w_q \bar Z_q`: :math:`\delta\varphi' = \operatorname{Im}(\delta Z' \bar Z'^*)/|Z'|^2`;
+    the distance deviation is :math:`\sum_i w_i\, c\, \delta\varphi'_i / (4\pi f_i)` with the unwrapping
+    weights :math:`w_i` (:func:`tofcore.decode.unwrap_weights`).
+    """
+    mod = sensor.modulation
+    xp = namespace(delta)
+    unwrap_w = decoding.unwrap_weights(decoding.decode_cw(centre, mod), mod, sensor.processing.unwrap_weights)
+    deviation = 0.0
+    start = 0
+    for i, (f_hz, n) in enumerate(zip(mod.frequencies_hz, mod.phase_steps)):
+        theta = 2.0 * np.pi * np.arange(n) / n
+        cos_k = xp.asarray(np.round(np.cos(theta), 15))[:, None, None]
+        sin_k = xp.asarray(np.round(np.sin(theta), 15))[:, None, None]
+        mean_re = (cos_k * centre[start:start + n]).sum(axis=0)
+        mean_im = (sin_k * centre[start:start + n]).sum(axis=0)
+        weights = processing.bilateral_weights(mean_re, mean_im, min_amplitude=sensor.invalid.min_amplitude_e * n / 2)
+        z_re, z_im = processing.neighbour_mean(mean_re, weights), processing.neighbour_mean(mean_im, weights)
+        d_re = processing.neighbour_mean((cos_k[None] * delta[:, start:start + n]).sum(axis=1), weights)
+        d_im = processing.neighbour_mean((sin_k[None] * delta[:, start:start + n]).sum(axis=1), weights)
+        norm2 = z_re * z_re + z_im * z_im
+        d_phase = np.where(norm2 > 0, (z_re * d_im - z_im * d_re) / np.where(norm2 > 0, norm2, 1.0), 0.0)
+        deviation = deviation + unwrap_w[i] * SPEED_OF_LIGHT_M_S / (4.0 * np.pi * f_hz) * d_phase
+        start += n
+    return deviation
 
 
 def _normal_tail(x):
