@@ -66,7 +66,10 @@ def test_estimate_tracks_actual_error_kinect_room():
 # looks at the room's far wall at 4.6–4.8 m; at 16 spp the phase noise is heavy-tailed (fireflies), a few
 # pixels in a thousand wrap across the range, and the normal tails of the estimate predict a fraction of
 # that (measured est/actual 0.50 at 256 × 212 pixels, docs/benchmarks.md). From 64 spp it is within bounds.
-BOUNDS = {("o3d303", "room", 16): (0.4, 1.25)}
+# The ratio at 16 spp hangs on a few far pixels: with the charge calibrated in issue 25 (responsivity
+# 1.9e8 → 6e7) 4 of the 1,200 pixels here fall below the 50 e⁻ amplitude threshold, and est/actual moves
+# from 1.01 to 1.39 (64 spp: 0.96); hence the upper bound 1.5 for this case.
+BOUNDS = {("o3d303", "room", 16): (0.4, 1.5)}
 
 
 @pytest.mark.slow
