@@ -459,40 +459,9 @@ def parse_frames(text: str) -> tuple[int, ...]:
 
 # --------------------------------------------------------------------------- sensors
 
-def scaled_sensor(sensor, factor: float):
-    """``sensor`` with its image scaled by ``factor`` and the intrinsics scaled consistently.
-
-    Parameters
-    ----------
-    sensor : tofcore.Sensor
-    factor : image size factor > 0 (e.g. 0.25 for a quarter of the width and height).
-
-    Notes
-    -----
-    Width and height are rounded (half up, at least 1 px); the focal lengths
-    scale with the actual size ratios :math:`s_x = w'/w`, :math:`s_y = h'/h`,
-    and the principal point keeps its place on the sensor with pixel centres at
-    integer coordinates: :math:`c_x' = (c_x + 1/2)\\,s_x - 1/2`. Distortion
-    coefficients act on normalised coordinates and stay as they are, so the
-    field of view is unchanged.
-    """
-    if factor == 1:
-        return sensor
-    cam = sensor.camera
-    exact_w, exact_h = cam.width * factor, cam.height * factor
-    if not math.isfinite(exact_w * exact_h) or exact_w * exact_h > 4 * limits.MAX_PIXELS.value:  # before rounding
-        limits.MAX_PIXELS.check(math.inf, "Camera", "width x height", f"{exact_w:.4g} x {exact_h:.4g}")
-    width = max(1, int(math.floor(exact_w + 0.5)))
-    height = max(1, int(math.floor(exact_h + 0.5)))
-    sx, sy = width / cam.width, height / cam.height
-    return sensor.replace(**{
-        "camera.width": width, "camera.height": height, "camera.fx": cam.fx * sx, "camera.fy": cam.fy * sy,
-        "camera.cx": (cam.cx + 0.5) * sx - 0.5, "camera.cy": (cam.cy + 0.5) * sy - 0.5})
-
-
 def _preset(ctx: _Context, entry: object, path: list, default_scale: float):
     import tofcore
-    from tofcore.presets import list_presets
+    from tofcore.presets import list_presets, preset_path
 
     if isinstance(entry, str):
         entry = {"preset": entry}
@@ -507,17 +476,18 @@ def _preset(ctx: _Context, entry: object, path: list, default_scale: float):
             raise ctx.error(path + ["preset"] if "label" in table or len(table) > 1 else path,
                             f"preset file not found: {source}")
     else:
-        if name not in list_presets():
-            close = difflib.get_close_matches(name, list_presets(), n=1)
+        try:
+            source = preset_path(name).stem   # any case: "Kinect_V2" is kinect_v2
+        except ConfigError:
+            close = difflib.get_close_matches(name.casefold(), list_presets(), n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             raise ctx.error(path, f"unknown preset {name!r}{hint}; presets are {list_presets()} "
-                                  f"or a path to a .toml file")
-        source = name
+                                  f"or a path to a .toml file") from None
     try:
         sensor = tofcore.load_preset(source)
     except ConfigError as err:
         raise ctx.error(path, f"invalid preset: {err}") from None
-    label = _string(ctx, table["label"], path + ["label"]) if "label" in table else Path(name).stem
+    label = _string(ctx, table["label"], path + ["label"]) if "label" in table else Path(source).stem
     overrides = table.get("overrides", {})
     if not isinstance(overrides, Mapping):
         raise ctx.fail(path + ["overrides"], 'a table of "table.field" = value (tofcore.Sensor.replace keys)',
@@ -530,10 +500,10 @@ def _preset(ctx: _Context, entry: object, path: list, default_scale: float):
     scale = (_positive(ctx, table["resolution_scale"], path + ["resolution_scale"])
              if "resolution_scale" in table else default_scale)
     try:
-        sensor = scaled_sensor(sensor, scale)
+        sensor = sensor.scaled(scale)
     except ConfigError as err:
         key = path + ["resolution_scale"] if "resolution_scale" in table else ["resolution_scale"]
-        reason = str(err).removeprefix("Camera: ")
+        reason = str(err).removeprefix("Camera: ").removeprefix("Sensor.scaled: ").removeprefix("Sensor.resized: ")
         raise ctx.error(key, f"cannot scale the sensor {label!r} by {scale}: {reason}") from None
     return PresetSpec(label=label, source=source, sensor=sensor, resolution_scale=scale,
                       overrides=dict(overrides))
