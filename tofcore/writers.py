@@ -221,9 +221,11 @@ def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
     return {name: np.asarray(channel.pixels, dtype=np.float32) for name, channel in channels.items()}
 
 
-def exr_channel_names(frame: Frame) -> list[str]:
-    """The channel names ``frame.exr`` holds for ``frame`` (what ``exr_channels`` may choose from)."""
-    return list(_exr_channels(frame))
+def exr_channel_names(raw_labels: Iterable[str], bounces: int) -> list[str]:
+    """The channels ``frame.exr`` holds for a frame with these raw images and ``bounces`` distance_k images
+    (what ``exr_channels`` may choose from); ``render_error`` and ``samples`` come with every render."""
+    return [*_EXR_IMAGES, *(f"raw.{label}" for label in raw_labels),
+            *(f"distance_k{k}" for k in range(1, bounces + 1)), "render_error", "samples"]
 
 
 def opencv_yaml(intrinsics: Mapping) -> str:
