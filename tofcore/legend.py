@@ -4,8 +4,8 @@
 function                    what it adds
 ==========================  ===================================================================
 :func:`with_colour_bar`     a vertical bar of the colour map on the right, its upper and lower
-                            limit and the unit beside it (``depth.png``, ``error.png``,
-                            ``compare.png``)
+                            limit and the unit beside it (``depth.png``, ``error.png``)
+:func:`horizontal_bar`      the same as a strip, its limits underneath (``compare.png``)
 :func:`with_legend`         rows of a colour swatch and a name below the image (``reason.png``)
 ==========================  ===================================================================
 
@@ -51,6 +51,20 @@ def with_colour_bar(image: np.ndarray, lut: np.ndarray, low: float, high: float,
     x_text = x0 + _BAR_WIDTH_PX + _GAP_PX
     canvas.text(x_text, top, labels[0], _INK, 1)
     canvas.text(x_text, bottom - label_h, labels[1], _INK, 1)
+    return canvas.image
+
+
+def horizontal_bar(lut: np.ndarray, width: int, low: float, high: float, unit: str) -> np.ndarray:
+    """(h, ``width``, 3) uint8 white strip: ``lut`` left (``low``) to right (``high``) as a bar, the limits
+    and the unit written under its ends (``compare.png``'s columns)."""
+    probe = text_canvas(8, 8)
+    label_h = probe.text_size("0", 1)[1]
+    canvas = text_canvas(width, 4 + 12 + 4 + label_h + 4)
+    columns = np.linspace(0, len(lut) - 1, width - 2 * _GAP_PX).round().astype(np.intp)
+    canvas.image[4:16, _GAP_PX:width - _GAP_PX] = lut[columns][None, :, :]
+    low_text, high_text = f"{_number(low)} {unit}", f"{_number(high)} {unit}"
+    canvas.text(_GAP_PX, 20, low_text, _INK, 1)
+    canvas.text(width - _GAP_PX - probe.text_size(high_text, 1)[0], 20, high_text, _INK, 1)
     return canvas.image
 
 

@@ -40,6 +40,9 @@ file                 kind          content
 ``camera_opencv.yml``  json        OpenCV ``FileStorage`` YAML: ``camera_matrix``,
                                    ``distortion_coefficients`` (k1, k2, p1, p2, k3), image size
 ``camera_info.yaml``   json        ROS ``sensor_msgs/CameraInfo`` YAML (``plumb_bob``)
+``camera.json``      json          BOP ``camera.json``: fx, fy, cx, cy, width, height, depth_scale 1
+                                   (``depth_mm.png`` is in mm); BOP has no distortion field, the
+                                   coefficients are in the two YAML files
 ``frame.json``       json          frame metadata (with ``objects``: the ``object_id`` → object
                                    name and materials table), stats, units, preview limits, and
                                    every file above with its size and SHA-256; written last
@@ -135,7 +138,7 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
     -------
     ``{kind: path}`` with kinds ``exr``, ``depth_exr``, ``depth_mm``, ``ir``, ``depth``, ``intensity``,
     ``error``, ``reason``, ``convergence``, ``ply``, ``transient``, ``opencv_yaml``, ``ros_yaml``,
-    ``json`` for the formats asked (see the module docstring).
+    ``bop_camera``, ``json`` for the formats asked (see the module docstring).
 
     Raises
     ------
@@ -205,7 +208,8 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
         intrinsics = frame.metadata.get("intrinsics")
         if intrinsics:
             for kind, name, text in (("opencv_yaml", "camera_opencv.yml", opencv_yaml(intrinsics)),
-                                     ("ros_yaml", "camera_info.yaml", ros_camera_info_yaml(intrinsics))):
+                                     ("ros_yaml", "camera_info.yaml", ros_camera_info_yaml(intrinsics)),
+                                     ("bop_camera", "camera.json", bop_camera_json(intrinsics))):
                 data = text.encode("utf-8")
                 written[kind] = _atomic_write(out / f"{prefix}{name}", lambda tmp: tmp.write_bytes(data))
         text = _frame_json(document, written, previews)
@@ -257,6 +261,15 @@ def ros_camera_info_yaml(intrinsics: Mapping, camera_name: str = "tof") -> str:
             f"camera_name: {camera_name}\n" + matrix("camera_matrix", 3, 3, k) + "distortion_model: plumb_bob\n"
             + matrix("distortion_coefficients", 1, 5, dist) + matrix("rectification_matrix", 3, 3, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
             + matrix("projection_matrix", 3, 4, p))
+
+
+def bop_camera_json(intrinsics: Mapping) -> str:
+    """BOP toolkit ``camera.json``: ``cx, cy, fx, fy, width, height`` and ``depth_scale`` 1.0 (the 16-bit
+    ``depth_mm.png`` times depth_scale is millimetres, as BOP reads depth images)."""
+    data = {"cx": float(intrinsics["cx"]), "cy": float(intrinsics["cy"]), "depth_scale": 1.0,
+            "fx": float(intrinsics["fx"]), "fy": float(intrinsics["fy"]),
+            "height": int(intrinsics["height"]), "width": int(intrinsics["width"])}
+    return json.dumps(data, indent=2) + "\n"
 
 
 def _camera_matrix(intrinsics: Mapping) -> list[float]:
