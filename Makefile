@@ -46,7 +46,7 @@ test-numpy2:
 	@if [ -z "$(PYTHON313)" ]; then echo "python3.13 not found: NumPy 2 check skipped"; else \
 	  [ -x $(VENV313)/bin/python ] || $(PYTHON313) -m venv $(VENV313); \
 	  $(call drop_other_opencv,$(VENV313)/bin/python); \
-	  $(VENV313)/bin/python -m pip install --quiet "numpy>=2" pytest tqdm opencv-contrib-python-headless "OpenEXR>=3.3" && \
+	  $(VENV313)/bin/python -m pip install --quiet "numpy>=2" pytest tqdm opencv-contrib-python-headless "OpenEXR>=3.3" trimesh && \
 	  $(VENV313)/bin/python -m pip install --quiet --no-deps -e . && \
 	  $(VENV313)/bin/python -m pytest -q -m "not slow" tests; fi
 

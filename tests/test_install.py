@@ -194,7 +194,7 @@ def test_installed_progress_and_blend_child_commands(run):
                "--device", "cpu", "--formats", "json", "--out", "out")
     _ok(proc)
     assert "\r" not in proc.stderr and proc.stderr.startswith("pass 1: 2/2 spp"), proc.stderr
-    assert "wrote 1 files to out/" in proc.stdout
+    assert "wrote 4 files to out/" in proc.stdout  # frame.json and the three camera files
     spec = importlib.util.spec_from_file_location("child_commands", REPO / "tests" / "batch" / "test_child_commands.py")
     child = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(child)

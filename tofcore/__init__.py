@@ -12,7 +12,8 @@ The public API, re-exported from one module per concept:
 * :class:`Sensor`, :func:`load_preset`, :func:`list_presets` — sensor models and presets (``sensor``, ``presets``)
 * :class:`Modulation` — pulsed / square / sine correlation functions (``modulation``)
 * :func:`render` → :class:`Frame` — the camera's output with ground truth (``render``, ``frame``)
-* :func:`write_frame`, :func:`read_exr` — EXR, PNG, PLY and JSON outputs (``writers``)
+* :func:`write_frame`, :func:`read_exr` — EXR, PNG, PLY, JSON and camera-file outputs (``writers``)
+* :func:`load_mesh` — scenes from OBJ, PLY, glTF/GLB and STL files, through trimesh (``mesh_files``)
 * ``limits`` — resource limits checked before allocating (:class:`LimitError`)
 """
 
@@ -32,11 +33,12 @@ from .sensor import Sensor
 from .presets import list_presets, load_preset
 from .render import render, render_progressive
 from .writers import read_exr, write_frame
+from .mesh_files import load_mesh
 
 __all__ = [
     "Ambient", "Camera", "Cancelled", "ConfigError", "FirstHit", "Frame", "LED", "LimitError", "Material", "Modulation",
     "Reason", "SPEED_OF_LIGHT_M_S", "Scene", "SceneError", "Sensor", "Texture", "TofError", "Transport", "demo_scene",
-    "from_blender_matrix_world", "list_presets", "load_preset", "look_at", "read_exr", "render", "render_progressive",
+    "from_blender_matrix_world", "list_presets", "load_mesh", "load_preset", "look_at", "read_exr", "render", "render_progressive",
     "suggested_pose", "trace", "trace_progressive", "write_frame",
 ]
 __version__ = "0.1.0"

@@ -118,7 +118,7 @@ class OneLineParser(argparse.ArgumentParser):
 
 def formats_type(text: str) -> tuple[str, ...]:
     """``"exr,png"`` → ("exr", "png"): a non-empty comma list of known output formats."""
-    from .writers import FORMATS
+    FORMATS = ("exr", "png", "ply", "json")   # transient.npy comes with --transient-bin
 
     names = [f.strip() for f in text.split(",")]
     unknown = [f for f in names if f and f not in FORMATS]

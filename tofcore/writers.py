@@ -205,8 +205,8 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
                                  "quantity": "optical path length LED -> scene -> lens",
                                  "unit": "W m^-2 sr^-1 (mean radiance at the lens per bin)"}
     if "json" in formats:
-        intrinsics = frame.metadata.get("intrinsics")
-        if intrinsics:
+        intrinsics = frame.metadata.get("intrinsics") or {}
+        if all(key in intrinsics for key in ("width", "height", "fx", "fy", "cx", "cy")):
             for kind, name, text in (("opencv_yaml", "camera_opencv.yml", opencv_yaml(intrinsics)),
                                      ("ros_yaml", "camera_info.yaml", ros_camera_info_yaml(intrinsics)),
                                      ("bop_camera", "camera.json", bop_camera_json(intrinsics))):
@@ -237,7 +237,7 @@ def opencv_yaml(intrinsics: Mapping) -> str:
     ``image_width``, ``image_height``, ``camera_matrix`` (3×3), ``distortion_coefficients`` (1×5: k1, k2,
     p1, p2, k3, OpenCV's order); pixel centres at integer coordinates, as in OpenCV."""
     k = _camera_matrix(intrinsics)
-    dist = [float(intrinsics[name]) for name in ("k1", "k2", "p1", "p2", "k3")]
+    dist = [float(intrinsics.get(name, 0.0)) for name in ("k1", "k2", "p1", "p2", "k3")]
 
     def matrix(name: str, rows: int, cols: int, data: list[float]) -> str:
         return (f"{name}: !!opencv-matrix\n   rows: {rows}\n   cols: {cols}\n   dt: d\n"
@@ -251,7 +251,7 @@ def ros_camera_info_yaml(intrinsics: Mapping, camera_name: str = "tof") -> str:
     """ROS ``sensor_msgs/CameraInfo`` YAML (camera_calibration_parsers' layout): ``plumb_bob`` distortion
     [k1, k2, p1, p2, k3], identity rectification, projection ``[K | 0]``."""
     k = _camera_matrix(intrinsics)
-    dist = [float(intrinsics[name]) for name in ("k1", "k2", "p1", "p2", "k3")]
+    dist = [float(intrinsics.get(name, 0.0)) for name in ("k1", "k2", "p1", "p2", "k3")]
     p = k[:3] + [0.0] + k[3:6] + [0.0] + k[6:] + [0.0]
 
     def matrix(name: str, rows: int, cols: int, data: list[float]) -> str:

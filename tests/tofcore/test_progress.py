@@ -87,7 +87,7 @@ def test_a_terminal_without_tqdm_gets_plain_lines(monkeypatch):
 
 def _render_cli(tmp_path: Path, *flags: str, python_code: str | None = None) -> subprocess.CompletedProcess:
     args = ["render", "--scene", "corner", "--preset", "kinect_v2", "--spp", "4", "--max-depth", "1",
-            "--target-error", "1e-9", "--device", "cpu", "--formats", "json", "--out", str(tmp_path / "out"), *flags]
+            "--target-error", "1e-9m", "--device", "cpu", "--formats", "json", "--out", str(tmp_path / "out"), *flags]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO)] + ([os.environ["PYTHONPATH"]]
                                                                       if os.environ.get("PYTHONPATH") else [])))
     cmd = [sys.executable, "-m", "tofcore", *args] if python_code is None else \
@@ -99,11 +99,15 @@ def test_render_command_logs_plain_lines_when_stderr_is_not_a_terminal(tmp_path)
     proc = _render_cli(tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "\r" not in proc.stderr and "\r" not in proc.stdout
-    lines = proc.stderr.splitlines()
+    warning, *lines = proc.stderr.splitlines()   # a target of 1 nm (never reached: every pass runs) is implausible
+    assert warning.startswith("warning: --target-error 1e-06 mm is implausible for a depth error")
     assert lines[0].startswith("pass 1: 1/4 spp  est. error ") and lines[-1].startswith("pass 3: 4/4 spp")
-    # The summary the command prints at the end is kept.
+    # The summary the command prints at the end is kept: one named line per number.
     assert "| pass | spp | seconds | est. depth error mm |" in proc.stdout
-    assert "wrote 1 files to" in proc.stdout and "RMS depth error vs ground truth" in proc.stdout
+    assert "wrote 4 files to" in proc.stdout  # frame.json and the camera files
+    for name in ("samples per pixel:", "render time:", "render noise (estimated):", "sensor noise:", "valid pixels:",
+                 "invalid pixels by reason:", "depth error vs ground truth:"):
+        assert sum(line.startswith(name) for line in proc.stdout.splitlines()) == 1, name
 
 
 def test_render_command_quiet_prints_nothing(tmp_path):
@@ -121,7 +125,7 @@ def test_tofcore_renders_without_tqdm_and_never_imports_it(tmp_path):
             "sys.exit(tofcore.cli.main(sys.argv[1:]))\n")
     proc = _render_cli(tmp_path, python_code=code)
     assert proc.returncode == 0, proc.stderr
-    assert "\r" not in proc.stderr and proc.stderr.startswith("pass 1: 1/4 spp")
+    assert "\r" not in proc.stderr and proc.stderr.splitlines()[1].startswith("pass 1: 1/4 spp")
     code = ("import sys, tofcore, tofcore.cli, tofcore.progress\n"
             "tofcore.render(tofcore.demo_scene('corner'), tofcore.load_preset('kinect_v2'), spp=1, max_depth=1)\n"
             "assert 'tqdm' not in sys.modules, 'tofcore imported tqdm'\n")

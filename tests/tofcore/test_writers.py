@@ -98,10 +98,23 @@ def test_depth_mm_clips_far_depth():
 
 
 def test_previews_are_rgb8(written):
+    """The image is the top-left H x W of every preview; depth and error carry a colour bar on the right,
+    reason its legend below (one swatch per Reason, in the reason colours)."""
     cv2 = pytest.importorskip("cv2")
     for kind in ("depth", "intensity", "error", "reason"):
         image = cv2.imread(str(written[kind]), cv2.IMREAD_UNCHANGED)
-        assert image.dtype == np.uint8 and image.shape == (H, W, 3), kind
+        assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3, kind
+        assert image.shape[:2] == (H, W) if kind == "intensity" else image.shape[0] >= H and image.shape[1] >= W
+    for kind, lut in (("depth", writers._TURBO), ("error", writers._DIVERGING)):
+        rgb = cv2.imread(str(written[kind]), cv2.IMREAD_UNCHANGED)[..., ::-1]
+        assert rgb.shape[1] > W + 16
+        bar_column = rgb[:, W + 6 + 8]           # the middle of the bar: top = highest entry, bottom = lowest
+        np.testing.assert_array_equal(bar_column[0], lut[-1])
+        np.testing.assert_array_equal(bar_column[-1], lut[0])
+    reason = cv2.imread(str(written["reason"]), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    legend = reason[H:].reshape(-1, 3)
+    for colour in writers._REASON_RGB.values():
+        assert (legend == colour).all(axis=1).any(), colour
     depth_bgr = cv2.imread(str(written["depth"]), cv2.IMREAD_UNCHANGED)
     assert (depth_bgr[0, 0] == 0).all() and depth_bgr[1, 1].any()
 
@@ -174,7 +187,7 @@ def test_json_checksums_units_and_no_nan(frame, written):
 
 
 def test_unknown_format_raises_before_writing(frame, tmp_path):
-    valid = r"\('exr', 'png', 'ply', 'json'\)"
+    valid = r"\('exr', 'png', 'ply', 'json', 'transient'\)"
     with pytest.raises(ValueError, match=rf"formats must be among {valid}, got unknown \['tiff'\]"):
         writers.write_frame(frame, tmp_path / "out", ("png", "tiff"))
     assert not (tmp_path / "out").exists()
