@@ -1,6 +1,9 @@
 """Writers: EXR round trip, PNG depth and previews, PLY, JSON checksums, atomic writes."""
 
 import hashlib
+import os
+import subprocess
+import sys
 import json
 import re
 import zlib
@@ -256,3 +259,85 @@ def test_convergence_png_without_log_or_plotting_packages(frame, tmp_path, monke
     data = written["convergence"].read_bytes()
     assert data[12:16] == b"IHDR" and np.frombuffer(data[16:24], ">u4").tolist() == [640, 400]
     assert "convergence" not in writers.write_frame(frame, tmp_path / "json", "json")
+
+
+# --------------------------------------------------------------------------- files the user's tools read
+
+def test_depth_exr_is_one_y_channel_that_opencv_opens(frame, tmp_path):
+    """OpenCV reads EXR only with OPENCV_IO_ENABLE_OPENEXR set before its first EXR call: a child process."""
+    pytest.importorskip("cv2")
+    pytest.importorskip("OpenEXR")
+    written = writers.write_frame(frame, tmp_path, ("exr",))
+    assert set(writers.read_exr(written["depth_exr"])) == {"Y"}
+    code = ("import sys, cv2, numpy as np; d = cv2.imread(sys.argv[1], cv2.IMREAD_UNCHANGED); "
+            "f = cv2.imread(sys.argv[2], cv2.IMREAD_UNCHANGED); np.save(sys.argv[3], d); print(d.dtype, d.shape, f)")
+    out = tmp_path / "depth.npy"
+    proc = subprocess.run([sys.executable, "-c", code, str(written["depth_exr"]), str(written["exr"]), str(out)],
+                          env={**os.environ, "OPENCV_IO_ENABLE_OPENEXR": "1"}, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split()[:3] == ["float32", f"({H},", f"{W})"]   # frame.exr (26 channels): None
+    np.testing.assert_array_equal(np.load(out), frame.depth)           # NaN where invalid, bit for bit
+
+
+def test_exr_half_and_a_channel_subset(frame, tmp_path):
+    pytest.importorskip("OpenEXR")
+    import OpenEXR
+
+    written = writers.write_frame(frame, tmp_path, ("exr",), exr_half=True, exr_channels=["depth", "valid"])
+    stored = OpenEXR.File(str(written["exr"]), separate_channels=True).channels()
+    assert set(stored) == {"depth", "valid"} and all(c.pixels.dtype == np.float16 for c in stored.values())
+    np.testing.assert_array_equal(stored["depth"].pixels, frame.depth.astype(np.float16))
+    depth = OpenEXR.File(str(written["depth_exr"]), separate_channels=True).channels()["Y"].pixels
+    assert depth.dtype == np.float16
+    with pytest.raises(ValueError, match=r"exr_channels must be a non-empty subset of \['depth', .*got unknown "
+                                         r"\['dpeth'\]"):
+        writers.write_frame(frame, tmp_path / "bad", ("exr",), exr_channels=["dpeth"])
+    assert not (tmp_path / "bad").exists()
+    names = writers.exr_channel_names(LABELS, K)
+    assert names[:-2] == list(writers._exr_channels(frame)) and names[-2:] == ["render_error", "samples"]
+
+
+def test_ir_png_is_16_bit_amplitude_in_full_well_counts(frame, tmp_path):
+    cv2 = pytest.importorskip("cv2")
+    with_well = Frame(**{**vars(frame), "metadata": {**frame.metadata, "sensor": {"readout": {"full_well_e": 65535.0 * 2}}}})
+    written = writers.write_frame(with_well, tmp_path, ("png", "json"))
+    ir = cv2.imread(str(written["ir"]), cv2.IMREAD_UNCHANGED)
+    assert ir.dtype == np.uint16 and ir.shape == (H, W)
+    np.testing.assert_array_equal(ir, np.clip(np.rint(np.nan_to_num(frame.amplitude) / 2.0), 0, 65535))
+    document = json.loads(written["json"].read_text())
+    assert document["previews"]["ir"]["e_per_count"] == 2.0 and document["previews"]["ir"]["file"] == "ir.png"
+
+
+def test_camera_files_open_in_opencv_ros_and_bop(tmp_path):
+    cv2 = pytest.importorskip("cv2")
+    yaml = pytest.importorskip("yaml")
+    intrinsics = {"width": 512, "height": 424, "fx": 365.5, "fy": 366.25, "cx": 255.75, "cy": 205.5,
+                  "k1": 0.09, "k2": -0.27, "p1": 0.001, "p2": -0.002, "k3": 0.097}
+    frame = Frame(**{**vars(make_frame()), "metadata": {"intrinsics": intrinsics}})
+    written = writers.write_frame(frame, tmp_path, ("json",))
+    k = np.array([[365.5, 0, 255.75], [0, 366.25, 205.5], [0, 0, 1]])
+    dist = [0.09, -0.27, 0.001, -0.002, 0.097]
+    storage = cv2.FileStorage(str(written["opencv_yaml"]), cv2.FILE_STORAGE_READ)
+    np.testing.assert_array_equal(storage.getNode("camera_matrix").mat(), k)
+    np.testing.assert_array_equal(storage.getNode("distortion_coefficients").mat(), [dist])
+    assert (storage.getNode("image_width").real(), storage.getNode("image_height").real()) == (512, 424)
+    ros = yaml.safe_load(written["ros_yaml"].read_text())
+    assert (ros["image_width"], ros["image_height"], ros["distortion_model"]) == (512, 424, "plumb_bob")
+    assert ros["camera_matrix"]["data"] == k.ravel().tolist() and ros["distortion_coefficients"]["data"] == dist
+    assert ros["projection_matrix"]["data"] == np.hstack([k, np.zeros((3, 1))]).ravel().tolist()
+    bop = json.loads(written["bop_camera"].read_text())
+    assert bop == {"cx": 255.75, "cy": 205.5, "depth_scale": 1.0, "fx": 365.5, "fy": 366.25, "height": 424,
+                   "width": 512}
+    listed = {entry["name"] for entry in json.loads(written["json"].read_text())["files"]}
+    assert {"camera_opencv.yml", "camera_info.yaml", "camera.json"} <= listed
+
+
+def test_transient_histogram_file_and_its_bin_width(frame, tmp_path):
+    hist = np.random.default_rng(1).random((H, W, 5)).astype(np.float32)
+    with_hist = Frame(**{**vars(frame), "transient": hist, "transient_bin_m": 0.05})
+    written = writers.write_frame(with_hist, tmp_path, ("transient", "json"))
+    np.testing.assert_array_equal(np.load(written["transient"]), hist)
+    entry = json.loads(written["json"].read_text())["previews"]["transient"]
+    assert (entry["bin_width_m"], entry["bins"], entry["shape"]) == (0.05, 5, [H, W, 5])
+    assert "transient" not in writers.write_frame(frame, tmp_path / "none", ("transient",))
