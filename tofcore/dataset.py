@@ -1,6 +1,6 @@
 """Reading a dataset folder written by ``tofcore-batch run``: :class:`Dataset`, :class:`FrameRef`.
 
-A dataset is read with tofcore alone (``pip install 'tofcore[exr]'``); this
+A dataset is read with tofcore alone (``pip install OpenEXR``); this
 module imports neither the ``batch`` package nor bpy nor PyTorch
 (:mod:`tofcore.torch_dataset` is the optional PyTorch adapter).
 

@@ -7,6 +7,7 @@ import io
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -72,6 +73,24 @@ def test_a_terminal_gets_a_tqdm_bar_with_the_estimated_error():
             show(row)
     text = terminal.getvalue()
     assert "\r" in text and "32/32" in text and "est. error 3.33 mm" in text and text.endswith("\n")
+
+
+def test_the_bar_is_drawn_at_once_timed_from_the_start_and_redrawn_every_pass(monkeypatch):
+    """Given the render's spp, the bar shows 0/32 before the first pass ends, its clock starts then (not at the
+    first pass), and every pass is drawn, however quickly the passes come."""
+    pytest.importorskip("tqdm")
+    terminal = _Terminal()
+    before = time.time()                        # tqdm's clock
+    show = PassProgress(stream=terminal, total=32)
+    assert "0/32" in terminal.getvalue() and "est. error – mm" in terminal.getvalue()
+    assert before <= show._tqdm.start_t <= time.time()
+    draws = []
+    for row in _rows(32):
+        show(row)
+        draws.append(terminal.getvalue().rsplit("\r", 1)[-1])
+    show.close()
+    assert show._tqdm is None
+    assert [d.split("|")[2].split()[0] for d in draws] == [f"{row['spp']}/32" for row in _rows(32)]
 
 
 def test_a_terminal_without_tqdm_gets_plain_lines(monkeypatch):
