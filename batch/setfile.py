@@ -161,7 +161,8 @@ DEFAULT_MAX_DEPTH = 5
 _TOP_KEYS = ("description", "seed", "presets", "resolution_scale", "quality", "output", "scenes")
 _QUALITY_KEYS = ("spp", "max_depth", "time_budget_s", "target_error_m")
 _OUTPUT_KEYS = ("formats", "exr_half", "exr_channels", "transient_bin_m", "transient_max_m")
-_SCENE_KEYS = ("name", "demo", "npz", "blend", "mesh", "presets", "ambient_w_m2_sr", "cameras", "frames", "quality", "poses")
+_SCENE_KEYS = ("name", "demo", "npz", "blend", "mesh", "presets", "ambient_w_m2_sr", "cameras", "frames", "quality",
+               "poses")
 _PRESET_KEYS = ("preset", "label", "overrides", "resolution_scale")
 _POSE_KEYS = {
     "suggested": ("suggested",),

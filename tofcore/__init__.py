@@ -38,7 +38,8 @@ from .mesh_files import load_mesh
 __all__ = [
     "Ambient", "Camera", "Cancelled", "ConfigError", "FirstHit", "Frame", "LED", "LimitError", "Material", "Modulation",
     "Reason", "SPEED_OF_LIGHT_M_S", "Scene", "SceneError", "Sensor", "Texture", "TofError", "Transport", "demo_scene",
-    "from_blender_matrix_world", "list_presets", "load_mesh", "load_preset", "look_at", "read_exr", "render", "render_progressive",
+    "from_blender_matrix_world", "list_presets", "load_mesh", "load_preset", "look_at", "read_exr", "render",
+    "render_progressive",
     "suggested_pose", "trace", "trace_progressive", "write_frame",
 ]
 __version__ = "0.1.0"

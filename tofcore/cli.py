@@ -64,7 +64,6 @@ spp_type = number_type(int, "an integer >= 1", lambda v: v >= 1, limits.MAX_SPP)
 max_depth_type = number_type(int, "an integer >= 1", lambda v: v >= 1, limits.MAX_DEPTH)
 seed_type = number_type(int, "an integer >= 0", lambda v: v >= 0)
 seconds_type = number_type(float, "a finite number > 0 (seconds)", _finite_positive)
-metres_type = number_type(float, "a finite number > 0 (metres)", _finite_positive)
 radiance_type = number_type(float, f"a finite number >= 0, at most {limits.MAX_MAGNITUDE:g} (W m^-2 sr^-1)",
                             lambda v: 0 <= v <= limits.MAX_MAGNITUDE)
 scale_type = number_type(float, "a finite number > 0 (image size factor)", _finite_positive)
@@ -325,8 +324,8 @@ def summary(frame) -> str:
         f"render noise (estimated):   {'–' if est is None else f'{est * 1000:.2f} mm'} RMS Monte Carlo error of the "
         f"depth over the pixels that see a surface",
         f"sensor noise:               {'on (shot and read noise, as the preset says)' if noise else 'off'}",
-        f"valid pixels:               {100 * valid.mean():.1f} % of all, {100 * valid[seen].mean() if seen.any() else 0:.1f} % "
-        f"of those that see a surface",
+        f"valid pixels:               {100 * valid.mean():.1f} % of all, "
+        f"{100 * valid[seen].mean() if seen.any() else 0:.1f} % of those that see a surface",
         f"invalid pixels by reason:   {reasons}",
         f"depth error vs ground truth: {rms} RMS over the valid pixels (render noise + sensor noise + multipath)",
     ]
@@ -360,14 +359,15 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("render", help="render one frame of a scene with a sensor preset",
                        formatter_class=_HelpFormatter,
                        epilog="example:\n  tofcore render --scene room --preset kinect_v2 --spp 32 --out out/demo "
-                              "--verbose\n  tofcore render --scene chair.glb --resolution-scale 0.25 --target-error 5mm "
-                              "--out out/chair\n\nwrites frame.exr, depth.exr, PNGs, points.ply, camera YAML files and "
+                              "--verbose\n  tofcore render --scene chair.glb --resolution-scale 0.25 "
+                              "--target-error 5mm --out out/chair\n\nwrites frame.exr, depth.exr, PNGs, points.ply, camera YAML files and "
                               "frame.json to the folder;\nEXR needs the OpenEXR package (pip install OpenEXR), else "
                               "use --formats png,ply,json")
     r.add_argument("--scene", required=True,
                    help="demo scene (plane, corner, box_on_wall, room), a .npz scene, a mesh file (.obj, .ply, .gltf, "
                         ".glb, .stl; needs trimesh) or a .blend file (needs bpy)")
-    r.add_argument("--preset", default="kinect_v2", help="preset name (see `tofcore presets`; any case) or a .toml file")
+    r.add_argument("--preset", default="kinect_v2",
+                   help="preset name (see `tofcore presets`; any case) or a .toml file")
     r.add_argument("--out", type=Path, required=True, help="output folder")
     r.add_argument("--spp", type=spp_type, default=64, help="most samples per pixel (at most TOFCORE_MAX_SPP)")
     r.add_argument("--max-depth", type=max_depth_type, default=5,
@@ -395,7 +395,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--target", type=vector3_type, default=None, metavar="X,Y,Z", help="point looked at (with --eye)")
     r.add_argument("--formats", type=formats_type, default="exr,png,ply,json",
                    help="comma list of exr (frame.exr + depth.exr), png, ply, json (+ camera YAML files), transient")
-    r.add_argument("--exr-half", action="store_true", help="EXR channels as 16-bit half floats (about 4 mm steps at 4 m)")
+    r.add_argument("--exr-half", action="store_true",
+                   help="EXR channels as 16-bit half floats (about 4 mm steps at 4 m)")
     r.add_argument("--exr-channels", type=lambda text: tuple(c.strip() for c in text.split(",") if c.strip()),
                    default=None, metavar="NAMES", help="only these channels in frame.exr, e.g. depth,amplitude,valid")
     r.add_argument("--transient-bin", type=length_type, default=None, metavar="LENGTH",

@@ -66,7 +66,8 @@ def preset_path(name_or_path: str | os.PathLike[str]) -> Path:
 
 
 def _folded(name: str) -> str:
-    """A preset name as compared: case and the separators ``-``, ``_``, space ignored (``Kinect-V2`` = ``kinect_v2``)."""
+    """A preset name as compared: case and the separators ``-``, ``_``, space ignored (``Kinect-V2`` is
+    ``kinect_v2``)."""
     return "".join(ch for ch in name.casefold() if ch not in "-_ ")
 
 

@@ -198,7 +198,8 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
     if "ply" in formats:
         written["ply"] = _atomic_write(out / f"{prefix}points.ply", lambda tmp: _write_ply(tmp, frame))
     if "transient" in formats and frame.transient is not None:
-        written["transient"] = _atomic_write(out / f"{prefix}transient.npy", lambda tmp: _write_npy(tmp, frame.transient))
+        written["transient"] = _atomic_write(out / f"{prefix}transient.npy",
+                                             lambda tmp: _write_npy(tmp, frame.transient))
         previews["transient"] = {"file": written["transient"].name, "shape": list(frame.transient.shape),
                                  "bin_width_m": frame.transient_bin_m, "bins": int(frame.transient.shape[-1]),
                                  "bin_centre_m": "(b + 0.5) * bin_width_m, b = 0 .. bins - 1",
@@ -243,8 +244,9 @@ def opencv_yaml(intrinsics: Mapping) -> str:
         return (f"{name}: !!opencv-matrix\n   rows: {rows}\n   cols: {cols}\n   dt: d\n"
                 f"   data: [ {', '.join(repr(v) for v in data)} ]\n")
 
-    return ("%YAML:1.0\n---\n" f"image_width: {int(intrinsics['width'])}\n" f"image_height: {int(intrinsics['height'])}\n"
-            + matrix("camera_matrix", 3, 3, k) + matrix("distortion_coefficients", 1, 5, dist))
+    size = f"image_width: {int(intrinsics['width'])}\nimage_height: {int(intrinsics['height'])}\n"
+    return ("%YAML:1.0\n---\n" + size + matrix("camera_matrix", 3, 3, k)
+            + matrix("distortion_coefficients", 1, 5, dist))
 
 
 def ros_camera_info_yaml(intrinsics: Mapping, camera_name: str = "tof") -> str:
@@ -259,7 +261,8 @@ def ros_camera_info_yaml(intrinsics: Mapping, camera_name: str = "tof") -> str:
 
     return (f"image_width: {int(intrinsics['width'])}\nimage_height: {int(intrinsics['height'])}\n"
             f"camera_name: {camera_name}\n" + matrix("camera_matrix", 3, 3, k) + "distortion_model: plumb_bob\n"
-            + matrix("distortion_coefficients", 1, 5, dist) + matrix("rectification_matrix", 3, 3, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
+            + matrix("distortion_coefficients", 1, 5, dist)
+            + matrix("rectification_matrix", 3, 3, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
             + matrix("projection_matrix", 3, 4, p))
 
 

@@ -121,8 +121,8 @@ def test_the_suggested_front_view_sees_the_whole_box_and_renders_at_the_right_di
 def test_tofcore_render_takes_a_mesh_file(tmp_path):
     path = _glb(tmp_path / "crate.glb", {"baseColorFactor": [0.9, 0.9, 0.9, 1.0]})
     proc = subprocess.run([sys.executable, "-m", "tofcore", "render", "--scene", str(path), "--resolution-scale",
-                           "0.0625", "--spp", "1", "--max-depth", "1", "--formats", "json", "--out", str(tmp_path / "o"),
-                           "--quiet"], capture_output=True, text=True, timeout=240)
+                           "0.0625", "--spp", "1", "--max-depth", "1", "--formats", "json",
+                           "--out", str(tmp_path / "o"), "--quiet"], capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr
     import json
 

@@ -300,7 +300,8 @@ def test_exr_half_and_a_channel_subset(frame, tmp_path):
 
 def test_ir_png_is_16_bit_amplitude_in_full_well_counts(frame, tmp_path):
     cv2 = pytest.importorskip("cv2")
-    with_well = Frame(**{**vars(frame), "metadata": {**frame.metadata, "sensor": {"readout": {"full_well_e": 65535.0 * 2}}}})
+    sensor = {"readout": {"full_well_e": 65535.0 * 2}}
+    with_well = Frame(**{**vars(frame), "metadata": {**frame.metadata, "sensor": sensor}})
     written = writers.write_frame(with_well, tmp_path, ("png", "json"))
     ir = cv2.imread(str(written["ir"]), cv2.IMREAD_UNCHANGED)
     assert ir.dtype == np.uint16 and ir.shape == (H, W)
