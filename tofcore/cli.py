@@ -177,7 +177,7 @@ BPY_HINT = "pip install bpy \"numpy<2\" (Python 3.11), or render the file in Ble
 
 
 def _blend_scene(path: Path):
-    """The add-on's export of a .blend's active camera view, read in a child process (this one stays free of
+    """The add-on's export of a .blend seen from its active camera, read in a child process (this one stays free of
     bpy, as for set files): (scene, the camera's pose, the world's ambient light)."""
     import importlib.util
     import pickle
@@ -274,6 +274,9 @@ def cmd_render(args: argparse.Namespace) -> int:
                               f"{', '.join(unknown) or '(none given)'}")
     check_output_folder(args.out)
     scene, file_pose, file_ambient = _scene(args.scene)
+    if args.scene.lower().endswith(".blend") and file_pose is None and args.eye is None:
+        raise ConfigError(f"--scene {args.scene}: the file has no active camera; set one in Blender, or give "
+                          f"--eye X,Y,Z --target X,Y,Z")
     pose = look_at(np.array(args.eye), np.array(args.target)) if args.eye is not None else file_pose
     ambient = Ambient(radiance_w_m2_sr=args.ambient) if args.ambient else file_ambient
     device = select_device(args.device)
