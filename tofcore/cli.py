@@ -255,14 +255,17 @@ def cmd_render(args: argparse.Namespace) -> int:
         if warning:
             print(warning, file=sys.stderr)
     sensor = _sensor(args)
-    limits.check_render(sensor, max_depth=args.max_depth, spp=args.spp,
-                        where=f"--preset {args.preset} with --max-depth {args.max_depth}")
     transient_max = None
     if args.transient_bin is not None:
         transient_max = args.transient_max if args.transient_max is not None else 4 * sensor.range_m[1]
         if transient_max <= args.transient_bin:
             raise ConfigError(f"--transient-max must be longer than --transient-bin, got {transient_max:g} m "
                               f"and {args.transient_bin:g} m")
+    from .render import transient_bins
+
+    limits.check_render(sensor, max_depth=args.max_depth, spp=args.spp,
+                        where=f"--preset {args.preset} with --max-depth {args.max_depth}",
+                        transient_bins=transient_bins(args.transient_bin, transient_max))
     check_exr(formats)
     if args.exr_channels is not None:
         from .writers import exr_channel_names

@@ -182,7 +182,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
         :class:`~tofcore.backend.GpuUnavailable` with one line naming the cause; with ``"auto"``
         a failure before the first frame falls back to the CPU (recorded in ``fallback_reason``).
     """
-    _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor)
+    _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor,
+                    transient_bins=transient_bins(transient_bin_m, transient_max_m))
     dev = backend.select_device(device)
     settings = dict(spp=spp, max_depth=max_depth, seed=seed, time_budget_s=time_budget_s,
                     target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,
@@ -286,7 +287,16 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
             return
 
 
-def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, sensor=None) -> None:
+def transient_bins(bin_m: float | None, max_m: float | None) -> int:
+    """Bins of a transient histogram of width ``bin_m`` up to ``max_m`` (0 without one, or for values the
+    tracer refuses with its own message)."""
+    if bin_m is None or max_m is None or not 0 < bin_m < max_m < np.inf:
+        return 0
+    return int(np.ceil(max_m / bin_m))
+
+
+def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, sensor=None,
+                    transient_bins: int = 0) -> None:
     """Every setting checked, and the resource limits (:mod:`tofcore.limits`), before anything is allocated."""
     for name, value, lowest in (("spp", spp, 1), ("max_depth", max_depth, 1), ("seed", seed, 0)):
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < lowest:
@@ -294,7 +304,7 @@ def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, 
     limits.MAX_SPP.check(int(spp), "render", "spp")
     limits.MAX_DEPTH.check(int(max_depth), "render", "max_depth")
     if sensor is not None and hasattr(sensor, "camera") and hasattr(sensor, "modulation"):
-        limits.check_render(sensor, max_depth=int(max_depth), where="render")
+        limits.check_render(sensor, max_depth=int(max_depth), where="render", transient_bins=transient_bins)
     for name, value in (("time_budget_s", time_budget_s), ("target_error_m", target_error_m)):
         if value is not None and (not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0):
             raise ConfigError(f"render: {name} must be a number > 0, got {value!r}")

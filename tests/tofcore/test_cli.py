@@ -105,3 +105,12 @@ def test_readme_quotes_the_demo_command_of_the_makefile():
     render = next(line for line in (REPO / "Makefile").read_text().splitlines() if "tofcore render" in line)
     command = render.split("-m tofcore ", 1)[1]
     assert f".venv/bin/tofcore {command}" in (REPO / "README.md").read_text()
+
+
+def test_a_transient_histogram_beyond_the_memory_limit_is_refused_before_rendering(tmp_path, capsys, monkeypatch):
+    """512 x 424 pixels x 10 m / 1 mm = 10,000 bins: 20 bytes each is 43 GB; with a 1 GB limit it is refused."""
+    monkeypatch.setenv("TOFCORE_MAX_RENDER_BYTES", str(1 << 30))
+    code, _, err = _run(["render", "--scene", "plane", "--out", str(tmp_path / "out"), "--transient-bin", "1mm",
+                         "--transient-max", "10m", "--formats", "json"], capsys)
+    assert code == 2 and err.count("\n") == 1 and "10000 transient bins" in err and "widen the transient bins" in err
+    assert not (tmp_path / "out").exists()
