@@ -323,6 +323,8 @@ def summary(frame) -> str:
     noise = (stats.get("plan") or {}).get("raw_noise") or (stats.get("plan") or {}).get("distance_noise")
     reasons = ", ".join(f"{r.name.lower().replace('_', ' ')} {100 * np.mean(frame.reason == r):.1f} %"
                         for r in Reason if r and np.any(frame.reason == r)) or "none"
+    causes = ["render noise", *(["sensor noise"] if noise else []), *(["multipath"] if stats.get("max_depth", 1) > 1
+                                                                       else [])]
     lines = [
         f"samples per pixel:          {stats['spp']} (mean over the pixels)",
         f"render time:                {stats['seconds']:.1f} s ({stats['transport']['rays_per_second'] / 1e6:.2f} "
@@ -333,7 +335,7 @@ def summary(frame) -> str:
         f"valid pixels:               {100 * valid.mean():.1f} % of all, "
         f"{100 * valid[seen].mean() if seen.any() else 0:.1f} % of those that see a surface",
         f"invalid pixels by reason:   {reasons}",
-        f"depth error vs ground truth: {rms} RMS over the valid pixels (render noise + sensor noise + multipath)",
+        f"depth error vs ground truth: {rms} RMS over the valid pixels ({' + '.join(causes)})",
     ]
     return "\n".join(lines)
 

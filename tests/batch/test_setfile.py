@@ -132,7 +132,7 @@ def test_syntax_error_carries_the_line(tmp_path):
 
 
 @pytest.mark.parametrize("body, fragment", [
-    ("[[scenes]]\ndemo = 'corner'\nnpz = 'a.npz'\n", "scenes[0]: needs exactly one of 'demo', 'npz', 'blend'"),
+    ("[[scenes]]\ndemo = 'corner'\nnpz = 'a.npz'\n", "scenes[0]: needs exactly one of 'demo', 'npz', 'mesh', 'blend'"),
     ("[[scenes]]\ndemo = 'kitchen'\n", "scenes[0].demo: must be one of ['plane', 'corner', 'box_on_wall', 'room']"),
     ("seed = -1\n[[scenes]]\ndemo = 'corner'\n", "seed: must be an integer >= 0, got -1"),
     ("[[scenes]]\ndemo = 'corner'\ncameras = ['Cam']\n", "scenes[0].cameras: only a blend scene has cameras"),
