@@ -159,7 +159,7 @@ def random_poses(pose: PoseSpec) -> list[np.ndarray]:
 
     Reproducible: the generator is seeded with the entry's ``seed`` only.
     """
-    from tofcore.pose import look_at
+    from tofcore.scene.pose import look_at
 
     rng = np.random.default_rng(np.random.SeedSequence([pose.seed, 0x905E]))
     lo, hi = np.asarray(pose.box_min), np.asarray(pose.box_max)
@@ -180,7 +180,7 @@ def suggested_pose(scene: SceneSpec, where: str) -> np.ndarray:
 
     if scene.kind == "demo":
         return tofcore.suggested_pose(tofcore.demo_scene(scene.source))
-    from tofcore.mesh_files import load_mesh
+    from tofcore.scene.mesh_files import load_mesh
 
     loaded = load_mesh(scene.source) if scene.kind == "mesh" else tofcore.Scene.load(scene.source)
     pose = loaded.metadata.get("world_from_sensor")

@@ -82,7 +82,7 @@ def _exit_stopped() -> None:
     ``os._exit`` skips the pool's clean-up: its semaphores would stay registered, and Python's
     resource tracker would print a "leaked semaphore objects" warning on the run's stderr at the end.
     """
-    workers = sys.modules.get("tofcore.workers")
+    workers = sys.modules.get("tofcore.tracer.workers")
     if workers is not None:
         def stop() -> None:
             workers.shutdown()
@@ -168,7 +168,7 @@ def _load_scene(task: ViewTask):
         if source["kind"] == "demo":
             _SCENE_CACHE[key] = tofcore.demo_scene(source["name"])
         elif source["kind"] == "mesh":
-            from tofcore.mesh_files import load_mesh
+            from tofcore.scene.mesh_files import load_mesh
 
             _check_unchanged(source)
             _SCENE_CACHE[key] = load_mesh(source["path"])

@@ -131,7 +131,7 @@ def formats_type(text: str) -> tuple[str, ...]:
 
 def check_exr(formats, flag: str = "--formats") -> None:
     """ConfigError unless the OpenEXR package is importable when ``formats`` holds "exr" (before rendering)."""
-    from . import writers
+    from .output import writers
 
     if "exr" in formats and writers.OpenEXR is None:
         raise ConfigError(f"{flag}: 'exr' needs the OpenEXR package, which is not installed: "
@@ -154,9 +154,9 @@ def check_output_folder(path: Path, flag: str = "--out") -> None:
 
 def _scene(name: str):
     """(scene, pose or None, ambient or None) of ``--scene``: a demo scene, .npz, mesh file or .blend."""
-    from .demo import NAMES, demo_scene
-    from .mesh_files import MESH_SUFFIXES, load_mesh
-    from .scene import Scene
+    from .scene.demo import NAMES, demo_scene
+    from .scene.mesh_files import MESH_SUFFIXES, load_mesh
+    from .scene.scene import Scene
 
     if name in NAMES:
         return demo_scene(name), None, None
@@ -203,7 +203,7 @@ def _blend_scene(path: Path):
 
 def _sensor(args: argparse.Namespace):
     """The preset, resized by ``--resolution-scale`` or ``--width``/``--height``."""
-    from .presets import load_preset
+    from .sensor.presets import load_preset
 
     sensor = load_preset(args.preset)
     if args.no_noise:
@@ -233,10 +233,10 @@ def _convergence_table(log: list[dict]) -> str:
 
 def cmd_render(args: argparse.Namespace) -> int:
     from .render import render
-    from .writers import write_frame
-    from .ambient import Ambient
+    from .output.writers import write_frame
+    from .scene.ambient import Ambient
     from .backend import select_device
-    from .pose import look_at
+    from .scene.pose import look_at
 
     # Everything that can be checked is checked before the scene is loaded or a ray traced.
     formats = args.formats
@@ -268,7 +268,7 @@ def cmd_render(args: argparse.Namespace) -> int:
                         transient_bins=transient_bins(args.transient_bin, transient_max))
     check_exr(formats)
     if args.exr_channels is not None:
-        from .writers import exr_channel_names
+        from .output.writers import exr_channel_names
 
         names = exr_channel_names(sensor.modulation.raw_labels(), args.max_depth)
         unknown = [c for c in args.exr_channels if c not in names]
@@ -285,7 +285,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     device = select_device(args.device)
     if args.verbose:
         from .plan import make_plan
-        from .qmc import REPLICATES
+        from .tracer.qmc import REPLICATES
 
         print(f"scene {scene.name!r}: {scene.triangle_count:,} triangles, {len(scene.materials)} materials")
         print(f"sensor {sensor.name!r}: {sensor.camera.width}x{sensor.camera.height}, {sensor.modulation.kind}, "
@@ -312,7 +312,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def summary(frame) -> str:
     """The render's numbers, one named line each (what ``tofcore render`` prints after the table)."""
-    from .frame import Reason
+    from .output.frame import Reason
 
     stats = frame.stats
     seen = np.isfinite(frame.gt_depth)
@@ -341,7 +341,7 @@ def summary(frame) -> str:
 
 
 def cmd_presets(args: argparse.Namespace) -> int:
-    from .presets import list_presets, load_preset
+    from .sensor.presets import list_presets, load_preset
 
     for name in list_presets():
         s = load_preset(name)

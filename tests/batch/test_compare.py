@@ -53,7 +53,7 @@ def test_comparison_image_rows_share_colour_limits():
 
 def test_the_comparison_image_has_colour_bars_and_the_table_says_what_rows_and_columns_are():
     from batch.compare import _HEADER_HEIGHT, _LABEL_WIDTH, markdown_table
-    from tofcore.writers import _DIVERGING, _TURBO
+    from tofcore.output.png import DIVERGING as _DIVERGING, TURBO as _TURBO
 
     h, w = 10, 20
     depth = np.linspace(1.0, 2.0, h * w, dtype=np.float32).reshape(h, w)

@@ -64,9 +64,9 @@ def test_a_mesh_scene_with_output_options_writes_what_the_tools_read(tmp_path):
     assert hist.shape == (27, 32, 240) and hist.dtype == np.float32
     bop = json.loads((folder / "camera.json").read_text())
     assert (bop["width"], bop["height"], bop["depth_scale"]) == (32, 27, 1.0)
-    import tofcore.dataset
+    import tofcore.output.dataset
 
-    ref = tofcore.dataset.Dataset(tmp_path / "ds").frames()[0]
+    ref = tofcore.output.dataset.Dataset(tmp_path / "ds").frames()[0]
     assert ref.objects == {0: {"name": "crate", "materials": ["cardboard"]}}
     histogram, bin_m = ref.transient
     assert bin_m == 0.05 and np.array_equal(histogram, hist)

@@ -11,7 +11,7 @@ import pytest
 
 import tofcore
 from tofcore.errors import SceneError
-from tofcore.mesh_files import front_view, load_mesh
+from tofcore.scene.mesh_files import front_view, load_mesh
 
 trimesh = pytest.importorskip("trimesh")
 
