@@ -108,7 +108,7 @@ def test_previews_are_rgb8(written):
         image = cv2.imread(str(written[kind]), cv2.IMREAD_UNCHANGED)
         assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3, kind
         assert image.shape[:2] == (H, W) if kind == "intensity" else image.shape[0] >= H and image.shape[1] >= W
-    for kind, lut in (("depth", writers._TURBO), ("error", writers._DIVERGING)):
+    for kind, lut in (("depth", png.TURBO), ("error", png.DIVERGING)):
         rgb = cv2.imread(str(written[kind]), cv2.IMREAD_UNCHANGED)[..., ::-1]
         assert rgb.shape[1] > W + 16
         bar_column = rgb[:, W + 6 + 8]           # the middle of the bar: top = highest entry, bottom = lowest
@@ -131,7 +131,7 @@ def test_numpy_png_encoder_matches_opencv(image):
 
 
 def test_png_without_opencv(frame, tmp_path, monkeypatch):
-    monkeypatch.setattr(writers, "cv2", None)
+    monkeypatch.setattr(png, "cv2", None)
     path = writers.write_frame(frame, tmp_path, "png")["depth_mm"]
     data = path.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR"
@@ -251,7 +251,7 @@ def test_convergence_png_is_written_and_listed(tmp_path):
 def test_convergence_png_without_log_or_plotting_packages(frame, tmp_path, monkeypatch):
     from tofcore.output import convergence_plot
 
-    monkeypatch.setattr(writers, "cv2", None)
+    monkeypatch.setattr(png, "cv2", None)
     monkeypatch.setattr(convergence_plot, "cv2", None)
     monkeypatch.setattr(convergence_plot, "_MATPLOTLIB", [None])
     assert "convergence" not in frame.stats
