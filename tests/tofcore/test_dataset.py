@@ -375,8 +375,8 @@ def test_the_torch_adapter_refuses_mixed_presets_in_one_line(dataset, monkeypatc
     fake = _fake_torch()
     for name, module in (("torch", fake), ("torch.utils", fake.utils), ("torch.utils.data", fake.utils.data)):
         monkeypatch.setitem(sys.modules, name, module)
-    monkeypatch.delitem(sys.modules, "tofcore.torch_dataset", raising=False)
-    from tofcore.torch_dataset import TorchDataset
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset", raising=False)
+    from tofcore.output.torch_dataset import TorchDataset
 
     with pytest.raises(ValueError) as info:
         TorchDataset(dataset, channels=["depth"])
@@ -385,7 +385,7 @@ def test_the_torch_adapter_refuses_mixed_presets_in_one_line(dataset, monkeypatc
     assert "kinect_v2 16x13 (3 frames)" in message and "o3d303 11x8 (2 frames)" in message
     assert "preset='kinect_v2'" in message
     assert len(TorchDataset(dataset, channels=["depth"], allow_mixed=True)) == 5
-    monkeypatch.delitem(sys.modules, "tofcore.torch_dataset")
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset")
 
 
 def test_object_ids_have_names_and_materials_in_the_record_frame_json_and_reader(dataset):
