@@ -31,7 +31,7 @@ import numpy as np
 
 import _common as C
 import tofcore
-from tofcore import noise
+from tofcore.sensor import noise
 
 DISTANCES_M = (0.5, 1.0, 1.5, 2.0, 2.5, 3.0, 3.5, 4.0)
 WHITE_REFLECTANCE = 0.85

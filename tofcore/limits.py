@@ -35,9 +35,37 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 from .errors import ConfigError, LimitError
-from .workers import usable_cpus
+
+
+def usable_cpus() -> int:
+    """CPUs this process may use: its affinity mask, capped by a cgroup v2/v1 CPU quota where one is set."""
+    try:
+        count = len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        count = os.cpu_count() or 1
+    quota = _cgroup_quota()
+    return max(1, min(count, quota) if quota else count)
+
+
+def _cgroup_quota(root: Path = Path("/sys/fs/cgroup")) -> int | None:
+    """Whole CPUs allowed by the cgroup's quota (cpu.max or cfs_quota/period), rounded up; None if unlimited."""
+    try:
+        text = (root / "cpu.max").read_text().split()
+        if text and text[0] != "max":
+            return max(1, -(-int(text[0]) // int(text[1])))
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        quota = int((root / "cpu" / "cpu.cfs_quota_us").read_text())
+        period = int((root / "cpu" / "cpu.cfs_period_us").read_text())
+        if quota > 0 and period > 0:
+            return max(1, -(-quota // period))
+    except (OSError, ValueError):
+        pass
+    return None
 
 
 def _physical_memory_bytes() -> int | None:
@@ -114,10 +142,9 @@ MAX_WORKERS = Limit(
     "max_workers", "TOFCORE_MAX_WORKERS", max(8, 4 * usable_cpus()), "processes",
     "every worker process is started at once and holds 65-150 MB; more than the CPUs only adds memory")
 
-ALL = (MAX_PIXELS, MAX_RAW_IMAGES, MAX_DEPTH, MAX_SPP, MAX_RENDER_BYTES, MAX_SCENE_BYTES, MAX_SET_FRAMES, MAX_WORKERS)
 
 
-def render_bytes(pixels: int, raw_images: int, max_depth: int) -> int:
+def render_bytes(pixels: int, raw_images: int, max_depth: int, transient_bins: int = 0) -> int:
     """Estimated peak memory of one render's per-pixel buffers, bytes.
 
     Notes
@@ -128,12 +155,14 @@ def render_bytes(pixels: int, raw_images: int, max_depth: int) -> int:
     correlation sums and their per-k decoding, per replicate the sums of the
     error estimate, plus the frame's outputs. Fitted to tracemalloc peaks of
     the Kinect v2 preset (R = 9) on the room: 3.2 kB/pixel at K = 5, 5.8 kB at
-    K = 10; the formula gives 3.5 and 6.3 kB.
+    K = 10; the formula gives 3.5 and 6.3 kB. A transient histogram of T bins adds its buffers,
+    20 P T bytes: the float64 sums, their float64 mean and the frame's float32 copy.
     """
-    return 8 * int(pixels) * (7 * int(max_depth) * (int(raw_images) + 1) + 8 * (int(raw_images) + 2))
+    return (8 * int(pixels) * (7 * int(max_depth) * (int(raw_images) + 1) + 8 * (int(raw_images) + 2))
+            + 20 * int(pixels) * int(transient_bins))
 
 
-def check_render(sensor, *, max_depth: int, where: str, spp: int | None = None) -> None:
+def check_render(sensor, *, max_depth: int, where: str, spp: int | None = None, transient_bins: int = 0) -> None:
     """Raise :class:`LimitError` if a render of ``sensor`` with these settings is above a limit.
 
     ``where`` prefixes the message (e.g. ``"render"``, a set file's key path).
@@ -142,11 +171,13 @@ def check_render(sensor, *, max_depth: int, where: str, spp: int | None = None) 
         MAX_SPP.check(int(spp), where, "spp")
     MAX_DEPTH.check(int(max_depth), where, "max_depth")
     cam = sensor.camera
-    need = render_bytes(cam.width * cam.height, sensor.modulation.raw_count, max_depth)
+    need = render_bytes(cam.width * cam.height, sensor.modulation.raw_count, max_depth, transient_bins)
     if MAX_RENDER_BYTES.exceeded(need):
+        transient = f", {transient_bins} transient bins" if transient_bins else ""
         raise LimitError(f"{where}: the estimated render memory ({cam.width} x {cam.height} pixels, "
-                         f"{sensor.modulation.raw_count} raw images, max_depth {max_depth}) must be "
-                         f"{MAX_RENDER_BYTES.describe()}, got {need:,} bytes; lower the resolution or max_depth")
+                         f"{sensor.modulation.raw_count} raw images, max_depth {max_depth}{transient}) must be "
+                         f"{MAX_RENDER_BYTES.describe()}, got {need:,} bytes; lower the resolution or max_depth"
+                         + (" or widen the transient bins" if transient_bins else ""))
 
 
 #: Largest magnitude accepted for a physical scale factor (LED intensity, responsivity, exposure, full well,

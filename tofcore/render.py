@@ -1,20 +1,20 @@
-"""From light transport to what the camera delivers: :func:`render` → :class:`~tofcore.frame.Frame`.
+"""From light transport to what the camera delivers: :func:`render` → :class:`~tofcore.output.frame.Frame`.
 
 The stages (DESIGN.md, "The flow"):
 
 1. **plan** what the scene and sensor need (:mod:`tofcore.plan`);
 2. **trace** progressive passes, each contribution correlated with the
-   sensor's g_j (:mod:`tofcore.modulation`), bucketed by bounce count;
+   sensor's g_j (:mod:`tofcore.sensor.modulation`), bucketed by bounce count;
    after each pass estimate the depth standard error from the per-pixel
    variances, and stop at ``target_error_m`` or ``time_budget_s``;
 3. **raw images** per frequency and phase step: charge in electrons =
    responsivity × exposure × (LED signal correlation + ambient × gate duty),
    :func:`raw_images`;
 4. **post-process** the raw images before decoding: lens scattering
-   (:mod:`tofcore.optics`), shot and read noise (:mod:`tofcore.noise`),
+   (:mod:`tofcore.sensor.optics`), shot and read noise (:mod:`tofcore.sensor.noise`),
    full-well saturation;
 5. **decode** phase, amplitude, offset, distance, unwrapping, invalid pixels
-   (:mod:`tofcore.decode`); radial distance → z-depth.
+   (:mod:`tofcore.sensor.decode`); radial distance → z-depth.
 
 Besides the camera's output the frame carries noise-free ground truth: the
 first-hit distance, the direct-only (k = 1) decoded distance and the decoded
@@ -38,20 +38,19 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from . import backend, limits
-from . import decode as decoding
-from . import noise as noise_models
-from . import processing
-from . import optics
-from .ambient import Ambient
 from .backend import gpu_errors, namespace
 from .errors import ConfigError
-from .frame import Frame
+from .output.frame import Frame
 from .plan import Plan, make_plan
-from .scene import Scene
-from .adaptive import allocate_samples
-from .transport import SPEED_OF_LIGHT_M_S, Transport, pass_schedule, trace_progressive
-
-C = SPEED_OF_LIGHT_M_S
+from .scene.ambient import Ambient
+from .scene.scene import Scene
+from .sensor import decode as decoding
+from .sensor import noise as noise_models
+from .sensor import optics
+from .sensor import processing
+from .sensor.raw import raw_images
+from .tracer.adaptive import allocate_samples
+from .tracer.transport import Transport, pass_schedule, trace_progressive
 
 
 def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray:
@@ -60,15 +59,15 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     Notes
     -----
     The tracer keeps the channel sums of R independent randomized-QMC replicates per pixel
-    (:mod:`tofcore.qmc`). Each replicate's mean gives raw images :math:`Q^{(r)}` (ambient included,
+    (:mod:`tofcore.tracer.qmc`). Each replicate's mean gives raw images :math:`Q^{(r)}` (ambient included,
     :func:`raw_images`); the decoder's linearisation :math:`g = \partial d/\partial Q`
-    (:func:`tofcore.decode.distance_gradient`: all frequencies and their unwrapping weights, or the
+    (:func:`tofcore.sensor.decode.distance_gradient`: all frequencies and their unwrapping weights, or the
     pulsed ratio) projects each replicate's deviation onto the decoded distance,
 
     .. math:: \hat\sigma_d^2 = \frac{1}{R(R-1)} \sum_r \big(g \cdot (Q^{(r)} - \bar Q)\big)^2,
 
     the variance of the mean of R independent estimates. A CW distance wraps at the unambiguous range
-    U (:meth:`~tofcore.modulation.Modulation.unambiguous_range_m`): noise that carries a distance d near
+    U (:meth:`~tofcore.sensor.modulation.Modulation.unambiguous_range_m`): noise that carries a distance d near
     0 or U across the boundary changes the output by U, so the expected squared error adds
     :math:`P\,U^2` with :math:`P = \Phi(-d/\hat\sigma_d) + \Phi(-(U - d)/\hat\sigma_d)` (normal tails,
     the central limit of the pixel mean; d from the noise-free first hit). At 16 spp the phase noise of
@@ -113,10 +112,10 @@ def _filtered_deviation(delta, centre, sensor):
     Per frequency i the replicate's phasor deviation :math:`\delta Z = \sum_k \delta Q_k e^{i\theta_k}`
     (``delta`` = Q^{(r)} − Q̄, ``centre`` = Q̄) is averaged like the phasors,
     :math:`\delta Z' = \sum_q w_q \delta Z_q` with the filter's weights at the mean
-    (:func:`tofcore.processing.bilateral_weights`), and turned into a phase deviation of the filtered phasor
+    (:func:`tofcore.sensor.processing.bilateral_weights`), and turned into a phase deviation of the filtered phasor
     :math:`Z' = \sum_q w_q \bar Z_q`: :math:`\delta\varphi' = \operatorname{Im}(\delta Z' \bar Z'^*)/|Z'|^2`;
     the distance deviation is :math:`\sum_i w_i\, c\, \delta\varphi'_i / (4\pi f_i)` with the unwrapping
-    weights :math:`w_i` (:func:`tofcore.decode.unwrap_weights`).
+    weights :math:`w_i` (:func:`tofcore.sensor.decode.unwrap_weights`).
     """
     mod = sensor.modulation
     xp = namespace(delta)
@@ -149,25 +148,6 @@ def _normal_tail(x):
     return np.where(x >= 0, upper, 1.0 - upper)
 
 
-def raw_images(correlation_means: np.ndarray, ambient_mean: np.ndarray, sensor) -> np.ndarray:
-    """Noise-free raw images (R, H, W) in electrons, before scattering and saturation.
-
-    Notes
-    -----
-    .. math:: Q_j = R \\, T_j \\, (\\bar{c}_j + L_{amb} \\, \\delta_j)
-
-    R the responsivity (e⁻ s⁻¹ per W m⁻² sr⁻¹), T_j the raw image's exposure,
-    :math:`\\bar c_j` the pixel's mean Σ w g_j (radiance-weighted correlation),
-    :math:`L_{amb}` the ambient radiance and δ_j the gate duty: unmodulated
-    light adds to every bucket the charge its gate lets through (SPEC §3).
-    """
-    mod = sensor.modulation
-    xp = namespace(correlation_means)
-    exposure = xp.asarray(mod.raw_exposure_s())[:, None, None]
-    duty = xp.asarray(mod.gate_duty())[:, None, None]
-    return sensor.readout.responsivity * exposure * (correlation_means + ambient_mean[None] * duty)
-
-
 def render(scene: Scene, sensor, pose: np.ndarray | None = None, **settings) -> Frame:
     """Render one ToF frame; the parameters are those of :func:`render_progressive`."""
     frame = None
@@ -183,7 +163,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                        progress: Callable[[dict], None] | None = None, cancel: Callable[[], bool] | None = None,
                        workers: int | None = None, chunk_size: int | None = None,
                        every_pass: bool = True, device: str | backend.Device = "cpu",
-                       adaptive: bool = True, sampler: str = "sobol", light_paths: bool = True) -> Iterator[Frame]:
+                       adaptive: bool = True, sampler: str = "sobol", light_paths: bool = True,
+                       transient_bin_m: float | None = None, transient_max_m: float | None = None) -> Iterator[Frame]:
     """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
 
     The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
@@ -208,9 +189,12 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     every_pass : build and yield a frame after every pass (False: only the final one, which saves
         decoding the intermediate passes).
     adaptive : after a uniform pilot of 16 spp, give each pass's samples to the pixels whose estimated
-        depth error is largest (:mod:`tofcore.adaptive`); False: every pixel gets ``spp``.
-    sampler : ``"sobol"`` (randomized QMC, default) or ``"independent"`` (:mod:`tofcore.qmc`).
-    light_paths : connect the camera paths to light vertices with MIS (:mod:`tofcore.light_paths`).
+        depth error is largest (:mod:`tofcore.tracer.adaptive`); False: every pixel gets ``spp``.
+    sampler : ``"sobol"`` (randomized QMC, default) or ``"independent"`` (:mod:`tofcore.tracer.qmc`).
+    light_paths : connect the camera paths to light vertices with MIS (:mod:`tofcore.tracer.light_paths`).
+    transient_bin_m, transient_max_m : also keep the transient (time-resolved) histogram, bins of this
+        width (m of optical path length LED → … → lens) up to this length; ``frame.transient`` is then
+        (H, W, B) mean radiance per bin, bin b centred at (b + ½)·width (:meth:`Transport.transient`).
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering and decoding on the GPU;
         the random sensor noise is drawn on the CPU so that both devices give the same frame) or
         ``"auto"`` (the GPU when usable, else the CPU). The frame's arrays are NumPy either way;
@@ -219,12 +203,14 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
         :class:`~tofcore.backend.GpuUnavailable` with one line naming the cause; with ``"auto"``
         a failure before the first frame falls back to the CPU (recorded in ``fallback_reason``).
     """
-    _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor)
+    _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor,
+                    transient_bins=transient_bins(transient_bin_m, transient_max_m))
     dev = backend.select_device(device)
     settings = dict(spp=spp, max_depth=max_depth, seed=seed, time_budget_s=time_budget_s,
                     target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,
                     progress=progress, cancel=cancel, workers=workers, every_pass=every_pass,
-                    adaptive=adaptive, sampler=sampler, light_paths=light_paths)
+                    adaptive=adaptive, sampler=sampler, light_paths=light_paths,
+                    transient_bin_m=transient_bin_m, transient_max_m=transient_max_m)
     if not dev.is_gpu:
         yield from _render_passes(scene, sensor, pose, chunk_size=chunk_size, device=dev, **settings)
         return
@@ -243,7 +229,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
 
 def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_budget_s, target_error_m, ambient,
                    reference_distance, progress, cancel, workers, chunk_size, every_pass, adaptive, sampler,
-                   light_paths, device: backend.Device) -> Iterator[Frame]:
+                   light_paths, transient_bin_m, transient_max_m, device: backend.Device) -> Iterator[Frame]:
     """:func:`render_progressive` on one resolved device."""
     if sensor.noise.model == "li" and sensor.modulation.kind == "pulsed":
         raise ConfigError(f"render: sensor {sensor.name!r}: noise model 'li' (eq. 2.43) needs a continuous-wave "
@@ -274,7 +260,8 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
                                correlations=correlations, ambient=ambient if plan.ambient else None,
                                spp=spp, max_depth=max_depth, seed=seed, workers=workers, chunk_size=chunk_size,
                                cancel=cancel, device=device, progressive=progressive, sampler=sampler, light_paths=light_paths,
-                               allocate=allocate if adaptive else None)
+                               allocate=allocate if adaptive else None, transient_bin_m=transient_bin_m,
+                               transient_max_m=transient_max_m)
     for transport in passes:
         elapsed = time.perf_counter() - start
         counts = backend.to_host(transport.sample_count)
@@ -300,6 +287,10 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
         if not (done or every_pass):
             continue
         frame = _frame(transport, sensor, pose, plan, seed, n_raw)
+        frame.metadata["objects"] = object_table(scene)
+        if transport.transient_sum is not None:
+            frame.transient = backend.to_host(transport.transient()).astype(np.float32)
+            frame.transient_bin_m = float(transport.transient_bin_m)
         frame.render_error = sigma.astype(np.float32)
         frame.samples = counts.reshape(sensor.camera.height, sensor.camera.width).astype(np.int32)
         frame.stats.update({
@@ -317,7 +308,16 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
             return
 
 
-def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, sensor=None) -> None:
+def transient_bins(bin_m: float | None, max_m: float | None) -> int:
+    """Bins of a transient histogram of width ``bin_m`` up to ``max_m`` (0 without one, or for values the
+    tracer refuses with its own message)."""
+    if bin_m is None or max_m is None or not 0 < bin_m < max_m < np.inf:
+        return 0
+    return int(np.ceil(max_m / bin_m))
+
+
+def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, sensor=None,
+                    transient_bins: int = 0) -> None:
     """Every setting checked, and the resource limits (:mod:`tofcore.limits`), before anything is allocated."""
     for name, value, lowest in (("spp", spp, 1), ("max_depth", max_depth, 1), ("seed", seed, 0)):
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < lowest:
@@ -325,10 +325,25 @@ def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, 
     limits.MAX_SPP.check(int(spp), "render", "spp")
     limits.MAX_DEPTH.check(int(max_depth), "render", "max_depth")
     if sensor is not None and hasattr(sensor, "camera") and hasattr(sensor, "modulation"):
-        limits.check_render(sensor, max_depth=int(max_depth), where="render")
+        limits.check_render(sensor, max_depth=int(max_depth), where="render", transient_bins=transient_bins)
     for name, value in (("time_budget_s", time_budget_s), ("target_error_m", target_error_m)):
         if value is not None and (not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0):
             raise ConfigError(f"render: {name} must be a number > 0, got {value!r}")
+
+
+def object_table(scene: Scene) -> list[dict]:
+    """What the ``object_id`` image's values mean: ``[{"id", "name", "materials"}]`` for every object id of
+    ``scene`` (names from ``scene.object_names``, ``"object <id>"`` where the scene has none; the names of
+    the materials its triangles use, in material-index order). ``object_id`` −1 is no surface."""
+    object_ids = np.asarray(scene.object_ids)
+    material_ids = np.asarray(scene.material_ids)
+    count = max(int(object_ids.max()) + 1 if object_ids.size else 0, len(scene.object_names))
+    table = []
+    for i in range(count):
+        used = np.unique(material_ids[object_ids == i])
+        name = scene.object_names[i] if i < len(scene.object_names) and scene.object_names[i] else f"object {i}"
+        table.append({"id": i, "name": name, "materials": [scene.materials[m].name for m in used.tolist()]})
+    return table
 
 
 def _rms(values: np.ndarray) -> float | None:

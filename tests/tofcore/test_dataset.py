@@ -22,7 +22,7 @@ import pytest
 pytest.importorskip("OpenEXR")
 
 import tofcore  # noqa: E402
-from tofcore.dataset import CHANNELS, Dataset, DatasetError, FrameRef, Intrinsics  # noqa: E402
+from tofcore.output.dataset import CHANNELS, Dataset, DatasetError, FrameRef, Intrinsics  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 FAILED_LABEL = "box_on_wall/pose0/o3d303"
@@ -311,7 +311,7 @@ def test_a_channel_missing_from_the_file_names_file_and_channels(copy):
 # --------------------------------------------------------------------------- PyTorch adapter
 
 def test_importing_tofcore_and_the_reader_imports_neither_torch_nor_batch():
-    code = ("import sys, tofcore, tofcore.dataset; "
+    code = ("import sys, tofcore, tofcore.output.dataset; "
             "print(sorted(m for m in ('torch', 'batch', 'bpy') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO / "tests",
                          check=True).stdout
@@ -320,10 +320,10 @@ def test_importing_tofcore_and_the_reader_imports_neither_torch_nor_batch():
 
 def test_the_torch_adapter_without_torch_says_so_in_one_line(monkeypatch):
     monkeypatch.setitem(sys.modules, "torch", None)
-    monkeypatch.delitem(sys.modules, "tofcore.torch_dataset", raising=False)
-    with pytest.raises(ImportError, match=r"^tofcore.torch_dataset: needs PyTorch, which is not installed: "
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset", raising=False)
+    with pytest.raises(ImportError, match=r"^tofcore.output.torch_dataset: needs PyTorch, which is not installed: "
                                           r"pip install torch") as exc:
-        import tofcore.torch_dataset  # noqa: F401
+        import tofcore.output.torch_dataset  # noqa: F401
     assert _one_line(exc)
 
 
@@ -341,8 +341,8 @@ def test_the_torch_adapter_logic_on_a_stand_in_torch(dataset, monkeypatch):
     fake = _fake_torch()
     for name, module in (("torch", fake), ("torch.utils", fake.utils), ("torch.utils.data", fake.utils.data)):
         monkeypatch.setitem(sys.modules, name, module)
-    monkeypatch.delitem(sys.modules, "tofcore.torch_dataset", raising=False)
-    from tofcore.torch_dataset import TorchDataset
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset", raising=False)
+    from tofcore.output.torch_dataset import TorchDataset
 
     data = TorchDataset(dataset, channels=["depth", "valid", "raw"], preset="kinect_v2",
                         transform=lambda s: {**s, "seen": True})
@@ -352,14 +352,14 @@ def test_the_torch_adapter_logic_on_a_stand_in_torch(dataset, monkeypatch):
     assert {k for k, v in sample.items() if isinstance(v, tuple) and v[0] == "tensor"} == {
         "depth", "valid", "raw", "intrinsics", "distortion", "world_from_sensor"}
     assert sample["raw"][1].shape == (9, 13, 16) and sample["valid"][1].dtype == bool
-    monkeypatch.delitem(sys.modules, "tofcore.torch_dataset")
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset")
 
 
 def test_the_torch_adapter_with_torch(dataset):
     torch = pytest.importorskip("torch")
     from torch.utils.data import DataLoader
 
-    from tofcore.torch_dataset import TorchDataset
+    from tofcore.output.torch_dataset import TorchDataset
 
     data = TorchDataset(dataset, channels=["depth", "gt_depth", "valid", "raw"], preset="kinect_v2")
     batch = next(iter(DataLoader(data, batch_size=2)))
@@ -367,3 +367,44 @@ def test_the_torch_adapter_with_torch(dataset):
     assert batch["valid"].dtype == torch.bool and batch["raw"].shape == (2, 9, 13, 16)
     assert batch["intrinsics"].shape == (2, 3, 3) and batch["world_from_sensor"].shape == (2, 4, 4)
     assert batch["id"] == [data.refs[0].id, data.refs[1].id]
+
+
+def test_the_torch_adapter_refuses_mixed_presets_in_one_line(dataset, monkeypatch):
+    """torch's default collate would fail inside the DataLoader (stack expects each tensor to be equal size);
+    the adapter says so when it is made, naming the groups and the filter that picks one."""
+    fake = _fake_torch()
+    for name, module in (("torch", fake), ("torch.utils", fake.utils), ("torch.utils.data", fake.utils.data)):
+        monkeypatch.setitem(sys.modules, name, module)
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset", raising=False)
+    from tofcore.output.torch_dataset import TorchDataset
+
+    with pytest.raises(ValueError) as info:
+        TorchDataset(dataset, channels=["depth"])
+    message = str(info.value)
+    assert "\n" not in message and "frames of 2 presets or sizes cannot be stacked" in message
+    assert "kinect_v2 16x13 (3 frames)" in message and "o3d303 11x8 (2 frames)" in message
+    assert "preset='kinect_v2'" in message
+    assert len(TorchDataset(dataset, channels=["depth"], allow_mixed=True)) == 5
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset")
+
+
+def test_object_ids_have_names_and_materials_in_the_record_frame_json_and_reader(dataset):
+    data = Dataset(dataset)
+    for ref in data.frames():
+        names = {entry["id"]: entry["name"] for entry in ref.record["objects"]}
+        assert ref.record["objects"] == _document(ref)["metadata"]["objects"]
+        assert {i: o["name"] for i, o in ref.objects.items()} == names
+        scene = tofcore.demo_scene(ref.scene)
+        assert [names[i] for i in sorted(names)] == list(scene.object_names)
+        ids = ref.load("object_id")["object_id"]
+        seen = set(np.unique(ids[ids >= 0]).astype(int).tolist())
+        assert seen and seen <= set(names)            # every id in the image has a name
+        for i, entry in ref.objects.items():          # and its materials are the scene's, by name
+            used = np.unique(scene.material_ids[scene.object_ids == i])
+            assert entry["materials"] == [scene.materials[m].name for m in used]
+
+
+def test_a_frame_without_a_transient_histogram_says_how_to_get_one(dataset):
+    ref = Dataset(dataset).frames()[0]
+    with pytest.raises(DatasetError, match=r"no transient histogram \(set \[output\] transient_bin_m"):
+        ref.transient

@@ -1,4 +1,4 @@
-"""The camera's own processing (tofcore/processing.py) and the presets' depth noise against the real cameras."""
+"""The camera's own processing (tofcore/sensor/processing.py) and the presets' depth noise against the real cameras."""
 
 from __future__ import annotations
 
@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 import tofcore
-from tofcore import decode
+from tofcore.sensor import decode
 from tofcore.errors import ConfigError
-from tofcore.modulation import Modulation, ideal_raw
-from tofcore.processing import BILATERAL_KERNEL, bilateral_phasor_filter, frequency_weights
+from tofcore.sensor.modulation import Modulation, ideal_raw
+from tofcore.sensor.processing import BILATERAL_KERNEL, bilateral_phasor_filter, frequency_weights
 
 KINECT = Modulation(kind="cw_square", frequencies_hz=(80e6, 16e6, 120e6), phase_steps=(3, 3, 3),
                     exposure_s=(8e-3, 4e-3, 8e-3))
