@@ -39,6 +39,7 @@ import numpy as np
 
 from . import backend, limits
 from .backend import gpu_errors, namespace
+from .constants import SPEED_OF_LIGHT_M_S
 from .errors import ConfigError
 from .output.frame import Frame
 from .plan import Plan, make_plan
