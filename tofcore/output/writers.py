@@ -78,7 +78,9 @@ from pathlib import Path, PurePath
 
 import numpy as np
 
+from .convergence_plot import convergence_png
 from .frame import Frame, Reason
+from .legend import with_colour_bar, with_legend
 from .png import DIVERGING, GREY, TURBO, apply_lut, encode_png
 
 try:
@@ -155,9 +157,6 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
             raise ValueError(f"write_frame: exr_channels must be a non-empty subset of {list(channels)}, "
                              f"got unknown {unknown!r}")
         channels = {name: channels[name] for name in exr_channels}
-    from .convergence_plot import convergence_png  # here: that module imports this one's PNG encoder
-    from .legend import with_colour_bar, with_legend
-
     document = _frame_document(frame)
     out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
@@ -173,23 +172,7 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
         written["depth_exr"] = _atomic_write(out / f"{prefix}depth.exr",
                                              lambda tmp: write_exr(tmp, depth, {"tofcore": document, **pose}, exr_half))
     if "png" in formats:
-        png = encode_png(_depth_mm(frame))
-        written["depth_mm"] = _atomic_write(out / f"{prefix}depth_mm.png", lambda tmp: tmp.write_bytes(png))
-        ir, previews["ir"] = _ir16(frame)
-        png = encode_png(ir)
-        written["ir"] = _atomic_write(out / f"{prefix}ir.png", lambda tmp: tmp.write_bytes(png))
-        previews["ir"]["file"] = written["ir"].name
-        for kind, (image, limits) in _previews(frame).items():
-            if kind in ("depth", "error"):
-                image = with_colour_bar(image, limits["lut"], limits["low"], limits["high"], limits["label"])
-            elif kind == "reason":
-                image = with_legend(image, [(r.name.lower().replace("_", " "), _REASON_RGB[r]) for r in Reason])
-            limits = {k: v for k, v in limits.items() if k not in ("lut", "low", "high", "label")}
-            png = encode_png(image)
-            written[kind] = _atomic_write(out / f"{prefix}{kind}.png", lambda tmp: tmp.write_bytes(png))
-            previews[kind] = {"file": written[kind].name, **limits}
-        png = convergence_png(frame.stats.get("convergence") or [])
-        written["convergence"] = _atomic_write(out / f"{prefix}convergence.png", lambda tmp: tmp.write_bytes(png))
+        _write_pngs(frame, out, prefix, written, previews)
     if "ply" in formats:
         written["ply"] = _atomic_write(out / f"{prefix}points.ply", lambda tmp: _write_ply(tmp, frame))
     if "transient" in formats and frame.transient is not None:
@@ -212,6 +195,28 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
         written["json"] = _atomic_write(json_path, lambda tmp: tmp.write_bytes(text))
     return written
 
+
+
+def _write_pngs(frame: Frame, out: Path, prefix: str, written: dict, previews: dict) -> None:
+    """The PNG files: depth in mm, the 16-bit IR image, the 8-bit previews (with colour bars and the reason
+    legend) and the convergence plot; adds them to ``written`` and their value ranges to ``previews``."""
+    png = encode_png(_depth_mm(frame))
+    written["depth_mm"] = _atomic_write(out / f"{prefix}depth_mm.png", lambda tmp: tmp.write_bytes(png))
+    ir, previews["ir"] = _ir16(frame)
+    png = encode_png(ir)
+    written["ir"] = _atomic_write(out / f"{prefix}ir.png", lambda tmp: tmp.write_bytes(png))
+    previews["ir"]["file"] = written["ir"].name
+    for kind, (image, limits) in _previews(frame).items():
+        if kind in ("depth", "error"):
+            image = with_colour_bar(image, limits["lut"], limits["low"], limits["high"], limits["label"])
+        elif kind == "reason":
+            image = with_legend(image, [(r.name.lower().replace("_", " "), _REASON_RGB[r]) for r in Reason])
+        limits = {k: v for k, v in limits.items() if k not in ("lut", "low", "high", "label")}
+        png = encode_png(image)
+        written[kind] = _atomic_write(out / f"{prefix}{kind}.png", lambda tmp: tmp.write_bytes(png))
+        previews[kind] = {"file": written[kind].name, **limits}
+    png = convergence_png(frame.stats.get("convergence") or [])
+    written["convergence"] = _atomic_write(out / f"{prefix}convergence.png", lambda tmp: tmp.write_bytes(png))
 
 def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
     """Channels of a ``frame.exr`` (or ``depth.exr``) as ``{name: (H, W) float32 array}`` (half floats widened)."""
