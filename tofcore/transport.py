@@ -44,7 +44,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import backend, limits, qmc, rng, workers
+from . import backend, compiled, limits, qmc, rng, workers
 from .ambient import Ambient
 from .bsdf import eval_bsdf, sample_bsdf
 from .camera import Camera
@@ -126,6 +126,8 @@ class TraceStats:
     chunk_seconds: float = 0.0    # thread-seconds inside chunks (all tracing work, summed over workers)
     setup_seconds: float = 0.0    # wall time before the first pass: first-hit buffers, sharing, worker start
     parallel: str = ""            # how chunks ran: "processes", "threads: <why>" or "one"
+    tracer: str = "numpy"         # "compiled" (tofcore.compiled) or "numpy" (this module)
+    tracer_reason: str = ""       # why the NumPy tracer ran where numba is installed, or is not
 
     @property
     def rays(self) -> int:
@@ -145,6 +147,7 @@ class TraceStats:
                 "camera_seconds": self.camera_seconds, "bounce_seconds": self.bounce_seconds,
                 "shadow_seconds": self.shadow_seconds, "chunk_seconds": self.chunk_seconds,
                 "setup_seconds": self.setup_seconds, "parallel": self.parallel,
+                "tracer": self.tracer, "tracer_reason": self.tracer_reason,
                 "rays_per_second": self.rays / self.seconds if self.seconds > 0 else None}
 
 
@@ -376,9 +379,11 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     start = time.perf_counter()
     n_pix = camera.width * camera.height
     n_corr = ctx.n_channels
-    stats = TraceStats()
+    tracer = compiled.choose(ctx)  # the compiled per-path tracer where numba and the render's features allow
+    stats = TraceStats(tracer=tracer.tracer, tracer_reason=tracer.reason)
     # Start the worker processes first: they boot and import tofcore while this one traces the first hits.
-    why_not = _start_workers(workers) if workers > 1 and not dev.is_gpu else "one"
+    # The compiled tracer runs on numba's threads instead (they release the GIL).
+    why_not = _start_workers(workers) if workers > 1 and not dev.is_gpu and tracer.packed is None else "one"
     transport = Transport(
         width=camera.width, height=camera.height, max_depth=max_depth, n_correlations=n_corr,
         sample_count=xp.zeros(n_pix, np.int64),
@@ -397,7 +402,10 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                 counts = None if allocate is None else allocate(transport, n_samples)
                 counts = np.full(n_pix, n_samples, np.int64) if counts is None else _checked_counts(counts, n_pix)
                 chunks = _chunks(counts, _pass_chunk_paths(int(counts.sum()), chunk_size, workers))
-                if shared is not None and len(chunks) > 1:
+                if tracer.packed is not None:
+                    chunks = _chunks(counts, max(chunk_size, compiled.COMPILED_CHUNK_PATHS))
+                    results = compiled.trace_pass(tracer, transport, done, counts, chunks, workers, cancel)
+                elif shared is not None and len(chunks) > 1:
                     results = _run_in_processes(shared, workers, done, counts, chunks, cancel)
                 else:
                     run = functools.partial(_trace_chunk, ctx, transport, first=xp.asarray(done),
