@@ -168,6 +168,9 @@ def cmd_render(args: argparse.Namespace) -> int:
                        adaptive=args.adaptive, light_paths=args.light_paths)
     files = write_frame(frame, args.out, formats=formats)
     stats = frame.stats
+    if args.verbose:
+        tracer = stats["transport"]
+        print(f"tracer: {tracer['tracer']}" + (f" ({tracer['tracer_reason']})" if tracer["tracer_reason"] else ""))
     if not args.quiet:
         print(_convergence_table(stats["convergence"]))
         valid = frame.valid.mean() * 100
@@ -232,7 +235,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "estimated depth error is largest)")
     r.add_argument("--no-light-paths", dest="light_paths", action="store_false",
                    help="next-event estimation only (default: also connect to LED-lit points, with MIS)")
-    r.add_argument("--verbose", action="store_true", help="print the scene, sensor, render plan and device")
+    r.add_argument("--verbose", action="store_true", help="print the scene, sensor, render plan, device and tracer (compiled or NumPy, and why)")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     r.set_defaults(func=cmd_render)
     p = sub.add_parser("presets", help="list the sensor presets", formatter_class=_HelpFormatter,
