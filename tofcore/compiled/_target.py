@@ -21,6 +21,6 @@ def device_function(module_name: str):
     """
     if module_name.endswith(CUDA_SUFFIX):
         from numba import cuda
-        return cuda.jit(device=True, inline=True)
+        return cuda.jit(device=True)
     import numba
     return numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=False)
