@@ -17,7 +17,10 @@ import time
 from pathlib import Path
 
 import numpy as np
-from numba import cuda, float32, float64, int64
+
+if not hasattr(np, "row_stack"):  # NumPy 2.5 removed it; numba-cuda 0.30 still registers an overload for it
+    np.row_stack = np.vstack
+from numba import cuda, float32, float64, int64  # noqa: E402
 
 from ._target import CUDA_SUFFIX
 from .layout import N_COUNTERS, STACK_SIZE
