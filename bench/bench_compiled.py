@@ -5,6 +5,9 @@ The bench_peers frame (demo room, 9,800 triangles, 512 × 424, 16 spp, 5 surface
 
 * ``--cpu-threads 1,2,16``: the compiled tracer on that many numba threads (``tofcore.trace``,
   ``TOFCORE_TRACER=compiled``), wall seconds of the trace; with ``--numpy`` also the NumPy tracer;
+* ``--kernels``: CPU-seconds per call of the compiled kernels on one thread — traversal of 200,000 random
+  rays inside the room (against ``BVH.intersect`` on the same rays), ``eval_bsdf``, ``sample_bsdf``, a
+  Sobol' pair;
 * ``--gpu``: the same source compiled by numba.cuda (:mod:`tofcore.compiled.cuda`), one thread per pixel:
   the cold first call (compilation) and the median of ``--repeat`` warm frames, kernel and whole call;
   first checked against the CPU tracer on a small frame (``--check``), sums compared as
@@ -12,6 +15,7 @@ The bench_peers frame (demo room, 9,800 triangles, 512 × 424, 16 spp, 5 surface
 
 Usage::
 
+    .venv/bin/python bench/bench_compiled.py --kernels
     .venv/bin/python bench/bench_compiled.py --cpu-threads 1,2 --numpy --spp 16 [--json out.json]
     python3 bench/bench_compiled.py --gpu --check --repeat 5 --cpu-threads 16 --json $OUT/compiled.json
 """
@@ -73,10 +77,73 @@ def same(a: dict, b) -> dict:
     return out
 
 
+def kernel_costs(n: int = 200_000) -> dict:
+    """CPU-seconds per call (ns) of the compiled kernels on one thread, and of the NumPy traversal."""
+    import numba
+
+    import tofcore
+    from tofcore import rng
+    from tofcore.compiled import kernels as k
+    from tofcore.compiled import setup
+    from tofcore.surface import MaterialTable
+
+    scene = tofcore.demo_scene("room", detail=10)
+    geo = setup.scene_arrays(scene, MaterialTable(scene))
+    r = np.random.default_rng(0)
+    lo, hi = scene.bounds
+    o = (lo + (hi - lo) * (0.1 + 0.8 * r.random((n, 3)))).astype(np.float32)
+    d = r.normal(size=(n, 3))
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+
+    @numba.njit
+    def traverse(geo, o, d):
+        hits = 0
+        stack, stack_t = np.empty(k.STACK_SIZE, np.int64), np.empty(k.STACK_SIZE, np.float32)
+        for i in range(o.shape[0]):
+            h = k.intersect(geo, (o[i, 0], o[i, 1], o[i, 2]), (d[i, 0], d[i, 1], d[i, 2]), np.float32(np.inf), -1,
+                            False, stack, stack_t)
+            hits += h[1] >= 0
+        return hits
+
+    @numba.njit
+    def bsdf(n, sample):
+        total = 0.0
+        params = (0.5, 0.5, 0.0, 1.52, 0.0)
+        for i in range(n):
+            c = 0.1 + 0.8 * (i % 1000) / 1000.0
+            wo = (np.sqrt(1.0 - c * c), 0.0, c)
+            if sample:
+                total += k.sample_bsdf(params, wo, (i % 997) / 997.0, (i % 991) / 991.0, (i % 983) / 983.0)[1]
+            else:
+                total += k.eval_bsdf(params, wo, (0.0, np.sqrt(0.75), 0.5))
+        return total
+
+    @numba.njit
+    def sobol(key, n):
+        total = 0.0
+        for i in range(n):
+            u, v = k.sample_2d(key, i, i % 16, 3, False)
+            total += u + v
+        return total
+
+    key = rng.seed_key(1)
+    jobs = {"traversal (compiled)": lambda: traverse(geo, o, d), "eval_bsdf": lambda: bsdf(n, False),
+            "sample_bsdf": lambda: bsdf(n, True), "Sobol' pair": lambda: sobol(key, n),
+            "traversal (NumPy BVH.intersect, 1 thread)": lambda: scene.bvh.intersect(o, d, workers=1)}
+    out = {}
+    for name, job in jobs.items():
+        job()  # compile / warm
+        start = time.process_time()
+        job()
+        out[name + " ns"] = 1e9 * (time.process_time() - start) / n
+    return out
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cpu-threads", default="", help="comma list of numba thread counts for the CPU tracer")
     p.add_argument("--numpy", action="store_true", help="also time the NumPy tracer (2 workers)")
+    p.add_argument("--kernels", action="store_true", help="CPU-seconds per call of the compiled kernels")
     p.add_argument("--gpu", action="store_true", help="time the numba.cuda build of the same kernels")
     p.add_argument("--check", action="store_true", help="compare the GPU sums with the CPU tracer's first")
     p.add_argument("--repeat", type=int, default=5, help="warm GPU frames (median reported)")
@@ -92,6 +159,9 @@ def main() -> int:
         r.pop("transport")
         results[f"compiled_cpu_{threads}"] = r
         print(json.dumps(r), flush=True)
+    if a.kernels:
+        results["kernels"] = kernel_costs()
+        print(json.dumps(results["kernels"]), flush=True)
     if a.numpy:
         r = cpu_trace("numpy", 2, args, kwargs)
         r.pop("transport")
