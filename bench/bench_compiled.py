@@ -50,10 +50,11 @@ def cpu_trace(tracer: str, threads: int, args, kwargs) -> dict:
     import tofcore
 
     os.environ["TOFCORE_TRACER"] = tracer
-    start = time.perf_counter()
+    start, cpu = time.perf_counter(), time.process_time()
     t = tofcore.trace(*args, **kwargs, workers=threads)
     return {"tracer": t.stats.tracer, "threads": threads, "seconds": time.perf_counter() - start,
-            "trace_seconds": t.stats.seconds, "rays": t.stats.rays, "transport": t}
+            "cpu_seconds_this_process": time.process_time() - cpu, "trace_seconds": t.stats.seconds,
+            "rays": t.stats.rays, "transport": t}
 
 
 def packed_for(args, kwargs):
@@ -142,7 +143,8 @@ def kernel_costs(n: int = 200_000) -> dict:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cpu-threads", default="", help="comma list of numba thread counts for the CPU tracer")
-    p.add_argument("--numpy", action="store_true", help="also time the NumPy tracer (2 workers)")
+    p.add_argument("--numpy", action="store_true", help="also time the NumPy tracer")
+    p.add_argument("--numpy-workers", type=int, default=2, help="its worker processes (1: all in this process)")
     p.add_argument("--kernels", action="store_true", help="CPU-seconds per call of the compiled kernels")
     p.add_argument("--gpu", action="store_true", help="time the numba.cuda build of the same kernels")
     p.add_argument("--check", action="store_true", help="compare the GPU sums with the CPU tracer's first")
@@ -163,9 +165,9 @@ def main() -> int:
         results["kernels"] = kernel_costs()
         print(json.dumps(results["kernels"]), flush=True)
     if a.numpy:
-        r = cpu_trace("numpy", 2, args, kwargs)
+        r = cpu_trace("numpy", a.numpy_workers, args, kwargs)
         r.pop("transport")
-        results["numpy_cpu_2"] = r
+        results[f"numpy_cpu_{a.numpy_workers}"] = r
         print(json.dumps(r), flush=True)
     if a.gpu:
         from tofcore.compiled import cuda
