@@ -9,9 +9,10 @@ bits of transcendental functions (tests/tofcore/test_compiled.py states and test
 
 Environment: ``TOFCORE_TRACER=numpy`` forces the NumPy reference, ``compiled`` makes a render that
 cannot use the compiled tracer an error instead of a fall-back, ``auto`` (default) picks it when it
-can. The machine code is cached by numba beside the sources (``tofcore/compiled/__pycache__``, or under
-``NUMBA_CACHE_DIR`` where that folder is not writable): the first render of a fresh install compiles
-for about a minute (docs/benchmarks.md), later processes load it in about a second.
+can. The machine code is cached by numba beside the sources (``tofcore/compiled/__pycache__``; numba's
+user cache ``~/.cache/numba`` where that folder is not writable; ``NUMBA_CACHE_DIR`` overrides both):
+the first render of a fresh install compiles for 30–80 s (docs/benchmarks.md), later processes load
+the kernels in about a second.
 """
 
 from __future__ import annotations

@@ -15,8 +15,8 @@ CUDA_SUFFIX = "_cuda"
 def device_function(module_name: str):
     """The decorator that compiles the scalar functions of module ``module_name``.
 
-    CPU: ``njit`` with ``cache=True`` (the machine code is kept in ``__pycache__`` beside the source, or
-    under ``NUMBA_CACHE_DIR``), ``nogil`` (threads run it in parallel), ``error_model="numpy"`` (a division
+    CPU: ``njit`` with ``cache=True`` (the machine code is kept in ``__pycache__`` beside the source, else in
+    ``~/.cache/numba``, or under ``NUMBA_CACHE_DIR``), ``nogil`` (threads run it in parallel), ``error_model="numpy"`` (a division
     by zero gives inf/NaN as NumPy does, never an exception), no fast-math (IEEE rounding, as NumPy).
     """
     if module_name.endswith(CUDA_SUFFIX):
