@@ -395,6 +395,8 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     done = np.zeros(n_pix, np.int64)  # host copy of transport.sample_count
     shared, why_not = (None, why_not) if why_not else _share(ctx, transport)
     stats.parallel = "processes" if shared is not None else "one" if why_not == "one" else f"threads: {why_not}"
+    if tracer.packed is not None:
+        stats.parallel = f"numba threads: {compiled.thread_count(workers)}"
     stats.setup_seconds = time.perf_counter() - start
     try:
         with ThreadPoolExecutor(max_workers=workers) as threads:

@@ -24,6 +24,7 @@ from tofcore.errors import ConfigError
 from tofcore.material import Material, Texture
 from tofcore.modulation import phasor_correlations
 from tofcore.transport import trace, trace_progressive
+from tofcore.workers import usable_cpus
 
 needs_numba = pytest.mark.skipif(compiled.numba_version() is None, reason="numba is not installed")
 
@@ -52,6 +53,7 @@ def both(monkeypatch, *args, **kwargs):
     monkeypatch.setenv(compiled.TRACER_ENV, "compiled")
     fast = trace(*args, **kwargs)
     assert reference.stats.tracer == "numpy" and fast.stats.tracer == "compiled"
+    assert fast.stats.parallel == f"numba threads: {compiled.thread_count(kwargs.get('workers', usable_cpus()))}"
     return reference, fast
 
 

@@ -69,6 +69,13 @@ def choose(ctx) -> Choice:
     return Choice("compiled", "", setup.pack(ctx))
 
 
+def thread_count(workers: int) -> int:
+    """numba threads a render with ``workers`` uses: at most numba's pool (``NUMBA_NUM_THREADS``)."""
+    import numba
+
+    return max(1, min(int(workers), numba.config.NUMBA_NUM_THREADS))
+
+
 def trace_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, chunks, threads: int, cancel):
     """Trace one pass's pixel ranges with the compiled kernel on ``threads`` threads; yields TraceStats per
     range, or None where ``cancel`` asked to stop."""
@@ -77,7 +84,7 @@ def trace_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, chunks
     from ..transport import TraceStats
     from . import cpu
 
-    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    numba.set_num_threads(thread_count(threads))
     for p0, p1 in chunks:
         if cancel is not None and cancel():
             yield None
