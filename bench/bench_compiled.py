@@ -37,7 +37,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 
 def frame_args(width: int, height: int, spp: int, detail: int = 10, max_depth: int = 5):
     import tofcore
-    from tofcore.modulation import phasor_correlations
+    from tofcore.sensor.modulation import phasor_correlations
 
     scene = tofcore.demo_scene("room", detail=detail)
     camera = tofcore.Camera.from_fov(width, height, 70.6, 60.0)
@@ -59,8 +59,9 @@ def cpu_trace(tracer: str, threads: int, args, kwargs) -> dict:
 
 def packed_for(args, kwargs):
     """The compiled tracer's arrays for a frame (the context the CPU tracer builds)."""
-    from tofcore import backend, transport
+    from tofcore import backend
     from tofcore.compiled import setup
+    from tofcore.tracer import transport
 
     ctx = transport._context(*args, kwargs["world_from_sensor"], kwargs["correlations"], None,
                              kwargs["max_depth"], kwargs["seed"], None, None, backend.select_device("cpu"))
@@ -83,10 +84,10 @@ def kernel_costs(n: int = 200_000) -> dict:
     import numba
 
     import tofcore
-    from tofcore import rng
     from tofcore.compiled import kernels as k
     from tofcore.compiled import setup
-    from tofcore.surface import MaterialTable
+    from tofcore.tracer import rng
+    from tofcore.tracer.surface import MaterialTable
 
     scene = tofcore.demo_scene("room", detail=10)
     geo = setup.scene_arrays(scene, MaterialTable(scene))

@@ -19,12 +19,12 @@ import pytest
 
 import tofcore
 from tofcore import compiled
-from tofcore.camera import Camera
+from tofcore.limits import usable_cpus
+from tofcore.scene.camera import Camera
 from tofcore.errors import ConfigError
-from tofcore.material import Material, Texture
-from tofcore.modulation import phasor_correlations
-from tofcore.transport import trace, trace_progressive
-from tofcore.workers import usable_cpus
+from tofcore.scene.material import Material, Texture
+from tofcore.sensor.modulation import phasor_correlations
+from tofcore.tracer.transport import trace, trace_progressive
 
 needs_numba = pytest.mark.skipif(compiled.numba_version() is None, reason="numba is not installed")
 
@@ -170,9 +170,9 @@ def test_kernels_match_their_numpy_twins():
     """Sobol' samples and hashes bit for bit; BVH closest and any hits as BVH.intersect/occluded."""
     import numba
 
-    from tofcore import qmc, rng
     from tofcore.compiled import kernels, setup
-    from tofcore.surface import MaterialTable
+    from tofcore.tracer import qmc, rng
+    from tofcore.tracer.surface import MaterialTable
 
     key = rng.seed_key(7)
     pixel = np.arange(500, dtype=np.int64) * 37

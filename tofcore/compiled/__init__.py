@@ -24,6 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
+from ..tracer.transport import TraceStats
 from . import setup
 
 TRACER_ENV = "TOFCORE_TRACER"
@@ -81,7 +82,6 @@ def trace_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, chunks
     range, or None where ``cancel`` asked to stop."""
     import numba
 
-    from ..transport import TraceStats
     from . import cpu
 
     numba.set_num_threads(thread_count(threads))

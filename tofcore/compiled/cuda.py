@@ -84,7 +84,7 @@ def trace_frame(packed, n_pix: int, spp: int, threads_per_block: int = 128) -> d
     (R, J + 2, P), ``counters`` (N_COUNTERS,) and the seconds of the kernel (``kernel_s``, synchronised)
     and of the whole call (``seconds``: uploads, kernel, read-back).
     """
-    from .. import qmc
+    from ..tracer import qmc
 
     module, kernel = load_kernels()
     start = time.perf_counter()

@@ -22,15 +22,15 @@ import math
 
 import numpy as np
 
-from .. import bsdf as _bsdf
-from .. import light_paths as _light_paths
-from .. import qmc as _qmc
-from .. import rng as _rng
-from .. import surface as _surface  # noqa: F401  (the reference of surface_at)
-from .. import transport as _transport
-from ..camera import _NEWTON_MAX_ITER, _NEWTON_STEP_TOL
+from ..constants import SPEED_OF_LIGHT_M_S
+from ..scene import bsdf as _bsdf
+from ..scene.camera import _NEWTON_MAX_ITER, _NEWTON_STEP_TOL
+from ..tracer import light_paths as _light_paths
+from ..tracer import qmc as _qmc
+from ..tracer import rng as _rng
+from ..tracer import transport as _transport
 from ._target import device_function
-from .layout import LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE  # noqa: F401
+from .layout import LAMBERTIAN, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE  # noqa: F401  (STACK_SIZE: callers)
 
 fn = device_function(__name__)
 
@@ -50,7 +50,6 @@ REPLICATES = _qmc.REPLICATES
 SEED_DIM_OFFSET = _qmc.SEED_DIM_OFFSET
 DIM_PIXEL, DIM_LENS = _transport._DIM_PIXEL, _transport._DIM_LENS
 DIM_LED_CHOICE, DIM_EMISSION = _light_paths.DIM_LED_CHOICE, _light_paths.DIM_EMISSION
-SPEED_OF_LIGHT_M_S = _transport.SPEED_OF_LIGHT_M_S
 SMOOTH_ROUGHNESS_RAD = _bsdf.SMOOTH_ROUGHNESS_RAD
 MIN_LOBE_PROBABILITY = _bsdf.MIN_LOBE_PROBABILITY
 ONE_BELOW_ONE = float(np.nextafter(1.0, 0.0))
@@ -834,7 +833,7 @@ def trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, pi
     Adds to the pixel's sums of next-event contributions ``nee_w`` (K,) and ``nee_wg`` (K, J) and of
     light-vertex connections ``con_w``, ``con_wg`` per bounce bucket, in the order the reference adds
     them, and writes the path's channel totals (signal, J correlations, ambient) to ``total`` (J + 2,).
-    ``wg`` is a (J,) scratch array; ``counters`` (N_COUNTERS,) int64 ray counts. ``frame`` holds the
+    ``wg`` is a (J,) scratch array; ``counters`` (layout.N_COUNTERS,) int64 ray counts. ``frame`` holds the
     world_from_sensor rotation (rows 0–2), the lens centre and the LED axis in the scene frame (rows 3,
     4) and the ray offset (row 5, column 0); ``leds`` = (positions (L, 3), table (L, 5): kind,
     intensity, power, emission probability, first-hit shadow skipped; cdf (L − 1,)).

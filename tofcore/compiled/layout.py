@@ -2,8 +2,8 @@
 
 from __future__ import annotations
 
-from ..led import KINDS as LED_KINDS  # index = LED kind code: 0 point, 1 Lambertian
-from ..material import PARAMETER_NAMES as MATERIAL_COLUMNS  # reflectance, roughness, metallic, ior, extinction
+from ..scene.led import KINDS as LED_KINDS  # index = LED kind code: 0 point, 1 Lambertian
+from ..scene.material import PARAMETER_NAMES as MATERIAL_COLUMNS  # reflectance, roughness, metallic, ior, extinction
 
 PHASOR, SINE, SQUARE, PULSED = 0, 1, 2, 3
 """Kinds of correlation channel (tofcore.modulation's functions)."""

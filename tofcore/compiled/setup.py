@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..sensor.modulation import (CorrelationBank, phasor_component, pulsed_correlation, sine_correlation,
+                                square_correlation)
 from . import layout
 
 
@@ -112,8 +114,6 @@ def correlation_table(correlations) -> tuple[np.ndarray, np.ndarray]:
     Raises TypeError naming a channel the kernels do not know (any callable other than the functions of
     :mod:`tofcore.modulation`).
     """
-    from ..modulation import (CorrelationBank, phasor_component, pulsed_correlation, sine_correlation,
-                              square_correlation)  # here: tofcore.modulation imports tofcore.transport
     if isinstance(correlations, CorrelationBank):
         functions = correlations.functions()
     else:
