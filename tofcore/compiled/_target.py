@@ -24,3 +24,17 @@ def device_function(module_name: str):
         return cuda.jit(device=True)
     import numba
     return numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=False)
+
+
+def cpu_parallel_function(module_name: str):
+    """The decorator of the CPU driver that runs paths on numba's threads (``prange``); for CUDA the
+    function stays plain Python, never called (:mod:`tofcore.compiled.cuda` has its own kernel).
+
+    It lives in the same file as the functions it calls: numba's cache checks only the stamp of a
+    function's own source file, so a driver cached in another file would keep stale inlined kernels.
+    """
+    if module_name.endswith(CUDA_SUFFIX):
+        return lambda function: function
+    import numba
+    return numba.njit(parallel=True, cache=True, nogil=True, error_model="numpy", fastmath=False)
+

@@ -10,10 +10,14 @@ tolerance that follows from it. Vectors are tuples (x, y, z); nothing allocates.
 
 A surface point is the tuple ``(position, geometric_normal, tangent, bitangent, shading_normal,
 params)`` with ``params = (reflectance, roughness, metallic, ior, extinction)``, as
-:class:`tofcore.surface.Surface` and :class:`tofcore.bsdf.SurfaceParams` hold them for N points.
+:class:`tofcore.tracer.surface.Surface` and :class:`tofcore.scene.bsdf.SurfaceParams` hold them for N points.
 
 Decorated by :func:`tofcore.compiled._target.device_function`: ``numba.njit`` when imported normally,
-``numba.cuda.jit(device=True)`` when :mod:`tofcore.compiled.gpu` compiles this same file for CUDA.
+``numba.cuda.jit(device=True)`` when :mod:`tofcore.compiled.cuda` compiles this same file for CUDA.
+The CPU driver :func:`trace_pixels` (numba threads over pixels) is here too, because numba's cache checks
+only the stamp of a function's own file: everything the cached CPU code inlines must live in this file.
+Constants read from the reference modules (rng, qmc, bsdf, …) are frozen into the cache as well: after
+changing one, touch this file (or delete ``tofcore/compiled/__pycache__``).
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+from numba import prange
 
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..scene import bsdf as _bsdf
@@ -29,10 +34,11 @@ from ..tracer import light_paths as _light_paths
 from ..tracer import qmc as _qmc
 from ..tracer import rng as _rng
 from ..tracer import transport as _transport
-from ._target import device_function
-from .layout import LAMBERTIAN, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE  # noqa: F401  (STACK_SIZE: callers)
+from ._target import cpu_parallel_function, device_function
+from .layout import LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE
 
 fn = device_function(__name__)
+cpu_parallel = cpu_parallel_function(__name__)
 
 # ------------------------------------------------------------------ constants, from the reference modules
 GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
@@ -929,3 +935,47 @@ def trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, pi
         prev_point = position
         origin = spawn
         direction = divide(new_dir, norm(new_dir))
+
+
+@cpu_parallel
+def trace_pixels(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, max_depth, independent,
+                 light_paths, p0, p1, first, counts, signal_sum, correlation_sum, replicate_sum, counters):
+    """Trace samples [first[p], first[p] + counts[p]) of pixels p0 ≤ p < p1 into the frame's sums.
+
+    ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P), ``replicate_sum`` (R, J + 2, P) as in
+    :class:`tofcore.transport.Transport`; ``counters`` (p1 − p0, N_COUNTERS) receives each pixel's ray counts.
+    """
+    n_depth = signal_sum.shape[0]
+    n_corr = corr_kinds.shape[0]
+    n_rep = replicate_sum.shape[0]
+    n_ch = n_corr + 2
+    for local in prange(p1 - p0):
+        p = p0 + local
+        nee_w = np.zeros(n_depth)
+        con_w = np.zeros(n_depth)
+        nee_wg = np.zeros((n_depth, n_corr))
+        con_wg = np.zeros((n_depth, n_corr))
+        total = np.zeros(n_ch)
+        wg = np.zeros(n_corr)
+        replicate = np.zeros((n_rep, n_ch))
+        count = np.zeros(N_COUNTERS, np.int64)
+        stack = np.empty(STACK_SIZE, np.int64)
+        stack_t = np.empty(STACK_SIZE, np.float32)
+        for sample in range(first[p], first[p] + counts[p]):
+            trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, p, sample,
+                               max_depth, independent, light_paths, nee_w, nee_wg, con_w, con_wg, total, wg,
+                               count, stack, stack_t)
+            r = sample % n_rep
+            for c in range(n_ch):
+                replicate[r, c] += total[c]
+        for k in range(n_depth):
+            signal_sum[k, p] += con_w[k]
+            signal_sum[k, p] += nee_w[k]
+            for j in range(n_corr):
+                correlation_sum[k, j, p] += con_wg[k, j]
+                correlation_sum[k, j, p] += nee_wg[k, j]
+        for r in range(n_rep):
+            for c in range(n_ch):
+                replicate_sum[r, c, p] += replicate[r, c]
+        for c in range(N_COUNTERS):
+            counters[local, c] = count[c]
