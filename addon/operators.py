@@ -250,9 +250,6 @@ def prepare_render(context, report, *, preview: bool = False) -> RenderJob | Non
         return None
     for warning in result.warnings:
         report({'WARNING'}, warning)
-    if "exr" in formats and tofcore.writers.OpenEXR is None:
-        report({'WARNING'}, "EXR skipped: the OpenEXR package is not installed")
-        formats = tuple(f for f in formats if f != "exr")
     pose = result.world_from_sensor
     if pose is None:
         pose = tofcore.from_blender_matrix_world(camera_obj.matrix_world)

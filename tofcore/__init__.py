@@ -13,13 +13,14 @@ The public API, re-exported from one module per concept:
 * :class:`Modulation` — pulsed / square / sine correlation functions (``modulation``)
 * :func:`render` → :class:`Frame` — the camera's output with ground truth (``render``, ``frame``)
 * :func:`write_frame`, :func:`read_exr` — EXR, PNG, PLY and JSON outputs (``writers``)
+* ``exr`` — tofcore's own OpenEXR codec (NumPy + zlib): ``exr.write``, ``exr.read``, ``exr.read_header``
 * ``limits`` — resource limits checked before allocating (:class:`LimitError`)
 """
 
 from .ambient import Ambient
 from .camera import Camera
 from .demo import demo_scene, suggested_pose
-from . import limits
+from . import exr, limits
 from .errors import Cancelled, ConfigError, LimitError, SceneError, TofError
 from .led import LED
 from .material import Material, Texture

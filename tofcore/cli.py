@@ -79,15 +79,6 @@ def formats_type(text: str) -> tuple[str, ...]:
     return chosen
 
 
-def check_exr(formats, flag: str = "--formats") -> None:
-    """ConfigError unless the OpenEXR package is importable when ``formats`` holds "exr" (before rendering)."""
-    from . import writers
-
-    if "exr" in formats and writers.OpenEXR is None:
-        raise ConfigError(f"{flag}: 'exr' needs the OpenEXR package, which is not installed: pip install OpenEXR "
-                          f"(or pip install 'tofcore[exr]'), or leave exr out, e.g. {flag} png,ply,json")
-
-
 def check_output_folder(path: Path, flag: str = "--out") -> None:
     """ConfigError unless ``path`` is a folder, or could be made as one, that this user may write (nothing is made)."""
     if path.exists() and not path.is_dir():
@@ -143,7 +134,6 @@ def cmd_render(args: argparse.Namespace) -> int:
     sensor = load_preset(args.preset)
     limits.check_render(sensor, max_depth=args.max_depth, spp=args.spp,
                         where=f"--preset {args.preset} with --max-depth {args.max_depth}")
-    check_exr(formats)
     check_output_folder(args.out)
     scene = _scene(args.scene)
     ambient = Ambient(radiance_w_m2_sr=args.ambient) if args.ambient else None
@@ -206,8 +196,7 @@ def build_parser() -> argparse.ArgumentParser:
     r = sub.add_parser("render", help="render one frame of a scene with a sensor preset",
                        formatter_class=_HelpFormatter,
                        epilog="example:\n  tofcore render --scene room --preset kinect_v2 --spp 32 --out out/demo "
-                              "--verbose\n\nwrites frame.exr, PNGs, points.ply and frame.json to out/demo/; EXR needs the "
-                              "OpenEXR package\n(pip install 'tofcore[exr]'), else use --formats png,ply,json")
+                              "--verbose\n\nwrites frame.exr, PNGs, points.ply and frame.json to out/demo/")
     r.add_argument("--scene", required=True, help="demo scene (plane, corner, box_on_wall, room) or a .npz file")
     r.add_argument("--preset", default="kinect_v2", help="preset name (see `presets`) or a .toml file")
     r.add_argument("--out", type=Path, required=True, help="output folder")
@@ -222,7 +211,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--ambient", type=radiance_type, default=0.0, metavar="W_M2_SR",
                    help="constant ambient radiance, W m^-2 sr^-1")
     r.add_argument("--formats", type=formats_type, default="exr,png,ply,json",
-                   help="comma list of exr, png, ply, json (exr needs the OpenEXR package)")
+                   help="comma list of exr, png, ply, json")
     r.add_argument("--device", choices=("cpu", "gpu", "auto"), default="auto",
                    help="cpu (NumPy), gpu (CuPy on an NVIDIA GPU) or auto (the GPU when usable)")
     r.add_argument("--sampler", choices=("sobol", "independent"), default="sobol",

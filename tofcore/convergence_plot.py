@@ -48,10 +48,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-try:
-    import cv2
-except ImportError:
-    cv2 = None
+from .native import inside_blender, optional_module
+
+cv2 = optional_module("cv2")
 
 BACKENDS = ("auto", "matplotlib", "opencv", "numpy")
 
@@ -247,7 +246,10 @@ _MATPLOTLIB: list = []
 
 
 def _matplotlib():
-    """(Figure, FigureCanvasAgg), or None when matplotlib is not importable (checked once)."""
+    """(Figure, FigureCanvasAgg), or None when matplotlib is not importable or this is Blender's process
+    (:mod:`tofcore.native`; checked once)."""
+    if not _MATPLOTLIB and inside_blender():
+        _MATPLOTLIB.append(None)
     if not _MATPLOTLIB:
         try:
             from matplotlib.backends.backend_agg import FigureCanvasAgg

@@ -39,8 +39,9 @@ none, never a partial one. ``frame.json`` is the frame's done record: an existin
 one is removed before anything else is written, since it would describe files
 about to be replaced. NaN and ±inf become ``null`` in JSON.
 
-OpenCV encodes the PNGs when importable, else a NumPy + zlib encoder does;
-EXR needs the optional ``OpenEXR`` package (``pip install OpenEXR``).
+OpenCV encodes the PNGs when importable (never inside Blender: :mod:`tofcore.native`), else a
+NumPy + zlib encoder does; the EXR is written by tofcore's own codec (:mod:`tofcore.exr`, NumPy +
+zlib), so no native OpenEXR library is ever loaded.
 """
 
 from __future__ import annotations
@@ -59,16 +60,11 @@ from pathlib import Path, PurePath
 
 import numpy as np
 
+from . import exr
 from .frame import Frame, Reason
+from .native import optional_module
 
-try:
-    import cv2
-except ImportError:
-    cv2 = None
-try:
-    import OpenEXR
-except ImportError:
-    OpenEXR = None
+cv2 = optional_module("cv2")
 
 FORMATS = ("exr", "png", "ply", "json")
 
@@ -116,14 +112,10 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
     ------
     ValueError : unknown format or bad prefix, before anything is written.
     TypeError : ``metadata`` or ``stats`` holds something JSON cannot hold, before anything is written.
-    ImportError : ``"exr"`` asked without the OpenEXR package, before anything is written.
     """
     formats = _check_formats(formats)
     if Path(prefix).name != prefix:
         raise ValueError(f"write_frame: prefix must be a plain file-name prefix, got {prefix!r}")
-    if "exr" in formats and OpenEXR is None:
-        raise ImportError("write_frame: format 'exr' needs the OpenEXR package, which is not installed: "
-                          "pip install OpenEXR  (or pip install 'tofcore[exr]')")
     from .convergence_plot import convergence_png  # here: that module imports this one's PNG encoder
 
     document = _frame_document(frame)
@@ -134,7 +126,8 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
     written: dict[str, Path] = {}
     previews: dict[str, dict] = {}
     if "exr" in formats:
-        written["exr"] = _atomic_write(out / f"{prefix}frame.exr", lambda tmp: _write_exr(tmp, frame, document))
+        data = _encode_exr(frame, document)
+        written["exr"] = _atomic_write(out / f"{prefix}frame.exr", lambda tmp: tmp.write_bytes(data))
     if "png" in formats:
         png = _encode_png(_depth_mm(frame))
         written["depth_mm"] = _atomic_write(out / f"{prefix}depth_mm.png", lambda tmp: tmp.write_bytes(png))
@@ -152,12 +145,10 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
     return written
 
 
-def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Channels of a ``frame.exr`` as ``{name: (H, W) float32 array}`` (see the module docstring)."""
-    if OpenEXR is None:
-        raise ImportError("read_exr: needs the OpenEXR package, which is not installed: pip install OpenEXR")
-    channels = OpenEXR.File(str(path), separate_channels=True).channels()
-    return {name: channel.pixels for name, channel in channels.items()}
+def read_exr(path: str | os.PathLike, names: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+    """Channels of a ``frame.exr`` as ``{name: (H, W) float32 array}`` (see the module docstring);
+    ``names`` picks some. A damaged file is a one-line ValueError naming it (:func:`tofcore.exr.read`)."""
+    return exr.read(path, names)
 
 
 # --------------------------------------------------------------------------- files
@@ -174,7 +165,6 @@ def _check_formats(formats: Iterable[str] | str) -> tuple[str, ...]:
 def _atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
     """Create ``.{name}.tmp-XXXXXXXX`` beside ``path``, ``write(tmp)`` it, fsync, rename it to ``path``.
 
-    ``write`` gets a path, not a handle: OpenEXR 3.3 and 3.4 write to file names only.
     If ``write`` raises, the temp file is removed and ``path`` is left as it was.
     """
     tmp = path.with_name(f".{path.name}.tmp-{secrets.token_hex(4)}")
@@ -200,10 +190,7 @@ def _file_record(kind: str, path: Path) -> dict:
 # --------------------------------------------------------------------------- EXR
 
 def _exr_channels(frame: Frame) -> dict[str, np.ndarray]:
-    """Every EXR channel as a C-contiguous float32 (H, W) array.
-
-    C order matters: OpenEXR 3.5's Python binding writes strided arrays scrambled.
-    """
+    """Every EXR channel as a float32 (H, W) array."""
     if len(frame.raw_labels) != len(frame.raw) or len(set(frame.raw_labels)) != len(frame.raw_labels):
         raise ValueError(f"write_frame: raw_labels must be {len(frame.raw)} distinct names (one per raw "
                          f"image), got {frame.raw_labels!r}")
@@ -219,15 +206,11 @@ def _exr_channels(frame: Frame) -> dict[str, np.ndarray]:
     return {name: np.ascontiguousarray(image, dtype=np.float32) for name, image in images.items()}
 
 
-def _write_exr(path: Path, frame: Frame, document: dict) -> None:
-    """Write the single-part scanline EXR of the module docstring to ``path``; ``document`` → ``tofcore``."""
-    header = {
-        "compression": OpenEXR.ZIP_COMPRESSION,
-        "type": OpenEXR.scanlineimage,
-        "tofcore": json.dumps(document, allow_nan=False),
-        "world_from_sensor": np.asarray(frame.world_from_sensor, dtype=np.float64),
-    }
-    OpenEXR.File(header, _exr_channels(frame)).write(str(path))
+def _encode_exr(frame: Frame, document: dict) -> bytes:
+    """The single-part scanline ZIP EXR of the module docstring; ``document`` → ``tofcore``."""
+    attributes = {"tofcore": json.dumps(document, allow_nan=False),
+                  "world_from_sensor": np.asarray(frame.world_from_sensor, dtype=np.float64)}
+    return exr.encode(_exr_channels(frame), attributes=attributes, compression="zip")
 
 
 # --------------------------------------------------------------------------- PNG
