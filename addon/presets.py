@@ -8,6 +8,11 @@ the quality settings — as a small Python file in the user's preset folder
 resolution with its LEDs moved and no noise) is saved and reused without writing TOML.
 Choosing a preset runs Blender's ``script.execute_preset`` on the camera shown in the
 Properties editor (else the scene camera); "−" removes the preset last chosen.
+
+The file is written by :func:`preset_text` (the operator's ``add``), not by ``AddPresetBase``'s
+own writer: that one ``exec``\ s ``preset_defines`` into a function's locals, which Python 3.13
+no longer lets a later ``eval`` see (PEP 667), so on Blender 4.3 with Python 3.13 (Debian's)
+every add failed with "name 'tof' is not defined" (found by the real-Blender GUI test).
 """
 
 from __future__ import annotations
@@ -40,9 +45,28 @@ class TOF_OT_sensor_preset_add(AddPresetBase, Operator):
     bl_options = {'REGISTER', 'UNDO'}
     preset_menu = TOF_MT_sensor_presets.__name__
     preset_subdir = PRESET_SUBDIR
-    # The camera of the Properties editor when there is one, else the scene camera.
-    preset_defines = ['tof = (getattr(bpy.context, "camera", None) or bpy.context.scene.camera.data).tof']
-    preset_values = [f"tof.{name}" for name in PRESET_PROPERTIES]
+
+    def add(self, context, filepath: str) -> None:
+        """Write the preset file (AddPresetBase calls this instead of its own writer)."""
+        settings = (getattr(context, "camera", None) or context.scene.camera.data).tof
+        with open(filepath, "w", encoding="utf-8") as fh:
+            fh.write(preset_text(settings))
+
+
+#: The preset file's first lines: the camera of the Properties editor when there is one, else the scene camera.
+PRESET_HEADER = ('import bpy\n'
+                 'tof = (getattr(bpy.context, "camera", None) or bpy.context.scene.camera.data).tof\n\n')
+
+
+def preset_text(settings) -> str:
+    """The Python preset file of ``camera.tof`` settings: the header, then ``tof.<name> = <value>`` lines."""
+    lines = []
+    for name in PRESET_PROPERTIES:
+        value = getattr(settings, name)
+        if not isinstance(value, (str, int, float, bool)):
+            value = tuple(value)  # vector properties
+        lines.append(f"tof.{name} = {value!r}\n")
+    return PRESET_HEADER + "".join(lines)
 
 
 def draw_preset_row(layout) -> None:
