@@ -132,15 +132,15 @@ def test_tofcore_help_and_presets(run, venv):
 
 
 def test_tofcore_render(run):
-    # --formats without exr: the wheel's only dependency is NumPy (EXR needs the [exr] extra).
+    # EXR too: the wheel's only dependencies are NumPy and tqdm (tofcore writes EXR with its own codec).
     proc = run("tofcore", "render", "--scene", "corner", "--preset", "kinect_v2", "--spp", "1", "--max-depth", "1",
-               "--device", "cpu", "--formats", "png,json", "--out", "out", "--quiet")
+               "--device", "cpu", "--formats", "exr,png,json", "--out", "out", "--quiet")
     _ok(proc)
     frame = json.loads((run.cwd / "out" / "frame.json").read_text())
     assert frame["metadata"]["sensor"]["name"] == "kinect_v2" and (frame["width"], frame["height"]) == (512, 424)
     for entry in frame["files"]:
         assert (run.cwd / "out" / entry["name"]).stat().st_size == entry["bytes"]
-    assert "depth_mm.png" in {entry["name"] for entry in frame["files"]}
+    assert {"depth_mm.png", "frame.exr"} <= {entry["name"] for entry in frame["files"]}
     bad = run("tofcore", "render", "--scene", "corner", "--preset", "kinect_v3", "--out", "out2", "--quiet")
     assert bad.returncode == 2 and "kinect_v2" in bad.stderr
 

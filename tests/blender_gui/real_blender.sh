@@ -50,6 +50,7 @@ else
   timeout "\${TIMEOUT:-600}" blender \${BLENDER_ARGS:-} --python $work/test.py >$work/out/blender.log 2>&1; rc=\$?
   kill \$xpid 2>/dev/null
 fi
+[ /tmp/blender.crash.txt -nt $work/test.py ] && cp /tmp/blender.crash.txt $work/out/   # Blender's backtrace
 exit \$rc
 INNER
 set +e

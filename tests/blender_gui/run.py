@@ -41,7 +41,9 @@ def judge(out: Path, returncode: int) -> list[str]:
     results = json.loads(results_path.read_text()) if results_path.is_file() else []
     problems += [f"{r['step']}: {r['detail']}" for r in results if not r["ok"]]
     missing = [step for step in STEPS if step not in {r["step"] for r in results}]
-    if missing:
+    if not results_path.is_file():
+        problems.append("no results.json: the scenario never finished (blender.crash.txt holds a crash's backtrace)")
+    elif missing:
         problems.append(f"steps that never reported: {missing}")
     log = (out / "blender.log").read_text(errors="replace") if (out / "blender.log").is_file() else ""
     before, _, after = log.partition(MARKER)
