@@ -10,7 +10,7 @@ Choosing a preset runs Blender's ``script.execute_preset`` on the camera shown i
 Properties editor (else the scene camera); "−" removes the preset last chosen.
 
 The file is written by :func:`preset_text` (the operator's ``add``), not by ``AddPresetBase``'s
-own writer: that one ``exec``\ s ``preset_defines`` into a function's locals, which Python 3.13
+own writer: that one runs ``exec`` on ``preset_defines`` into a function's locals, which Python 3.13
 no longer lets a later ``eval`` see (PEP 667), so on Blender 4.3 with Python 3.13 (Debian's)
 every add failed with "name 'tof' is not defined" (found by the real-Blender GUI test).
 """
