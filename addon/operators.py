@@ -328,7 +328,7 @@ def device_report(frame, report) -> None:
     if device.get("fallback_reason"):
         report({'WARNING'}, gpu.fallback_warning(device["fallback_reason"]))
     parallel = (frame.stats.get("transport") or {}).get("parallel", "")
-    if parallel.startswith("threads: "):  # worker processes could not start here (tofcore.workers)
+    if parallel.startswith("threads: "):  # worker processes could not start here (tofcore.tracer.workers)
         report({'WARNING'}, f"ToF render ran on CPU threads, not worker processes: {parallel[len('threads: '):]}")
 
 

@@ -24,7 +24,7 @@ same job id and the same frame either way.
 
 Blender's own Python needs ``tofcore`` importable (this repository is put on
 ``sys.path``; NumPy ships with Blender); EXR files are written by tofcore's own
-codec (:mod:`tofcore.exr`), no OpenEXR package is loaded into Blender.
+codec (:mod:`tofcore.output.exr`), no OpenEXR package is loaded into Blender.
 
 Exit code (``sys.exit``): 0 all frames ok, 1 some failed, 2 bad arguments, 130/143 interrupted.
 """
@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     from batch import blend
     from batch.jobs import BlendInfo, expand
     from batch.run import Interrupted, install_signal_handlers, run_jobs, summary
-    from batch.cli import FLAG_OF_KEY, flag_error
+    from batch.setfile import FLAG_OF_KEY, flag_error
     from batch.setfile import parse_set
     from tofcore.errors import TofError
 

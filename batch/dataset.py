@@ -86,14 +86,11 @@ from collections.abc import Iterable
 from contextlib import contextmanager
 from pathlib import Path
 
-FRAMES = "frames"
-INDEX = "index.jsonl"
+from tofcore.output.dataset import FRAMES, INDEX, RECORD, STATUSES
+
 CARD = "README.md"
-RECORD = "record.json"
 LOCK = ".lock"
-REJECTED = "index.jsonl.rejected"
-#: Values of a record's ``status``.
-STATUSES = ("ok", "failed")
+REJECTED = INDEX + ".rejected"
 #: A job id (``batch.jobs.JOB_ID_HEX`` hex digits); also what makes ``frames/<job_id>`` a safe path.
 JOB_ID = re.compile(r"[0-9a-f]{16}")
 _SHA256 = re.compile(r"[0-9a-f]{64}")
@@ -457,10 +454,6 @@ class Dataset:
             return None
         record["record_file"] = record_file_entry(data)
         return record
-
-    def folder_record(self, job_id: str) -> dict | None:
-        """Alias of :meth:`published_record` (the name used before it checked the record)."""
-        return self.published_record(job_id)
 
     def settle(self, record: dict) -> dict:
         """The record to index for a job a worker reported: its published folder's record when there is one.

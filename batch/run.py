@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 from typing import TextIO
 
 from tofcore.progress import tqdm_class, use_bar
-from tofcore.workers import usable_cpus
+from tofcore.limits import usable_cpus
 
 from .card import dataset_card
 from .dataset import FRAMES, RECORD, Dataset

@@ -20,7 +20,7 @@ from pathlib import Path
 import numpy as np
 
 import tofcore
-from tofcore import exr, writers
+from tofcore.output import exr, writers
 
 
 def median_s(function, repeats: int) -> float:

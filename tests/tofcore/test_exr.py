@@ -11,7 +11,7 @@ import zlib
 import numpy as np
 import pytest
 
-from tofcore import exr
+from tofcore.output import exr
 
 COMPRESSIONS = ("none", "zips", "zip")
 LONG = "a_channel_name_longer_than_thirty_one_bytes"
