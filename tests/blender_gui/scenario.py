@@ -8,7 +8,7 @@ looks at:
 
 1. ``render``: Add ToF Camera, aim it at the default cube, Render ToF (INVOKE, as a click) → the 9 files
    in ``tof/0001/``, the "ToF Depth" image filled, the depth image colourful on screen, no red error
-   banner in the status bar.
+   icon in the status bar or the Info editor.
 2. ``live_preview``: Live Preview on, the camera moved three times → the preview re-renders at preview
    resolution and the image follows the camera; nothing written.
 3. ``cancel``: a long render (1024 spp) cancelled with Esc after its first pass → state cancelled within
@@ -19,8 +19,8 @@ looks at:
 6. The Info log is saved (``info_log.txt``); run.py checks that Blender printed no "Error:" report before
    step 7.
 7. ``error_report``: an empty Preset File → an ERROR naming "Preset File"; a render whose output folder
-   cannot be made → "ToF render failed" with the red error icon in the status bar (which proves that the
-   screenshot check of the earlier steps can see an error report).
+   cannot be made → "ToF render failed" with the red error icon in the Info editor (which proves that the
+   screenshot check of the earlier steps, status bar and Info editor, can see an error report).
 
 Writes ``results.json`` (``[{step, ok, detail}]``) and screenshots ``screen-N.png`` into $TOF_GUI_OUT;
 ``shots.json`` names the screenshots and the screen rectangles of the image editor and the panels.
@@ -88,12 +88,23 @@ def colourful_px(pixels: np.ndarray, box: tuple) -> int:
     return int(((rgb.max(axis=-1) - rgb.min(axis=-1)) > COLOURFUL).sum())
 
 
-def error_banner_px(pixels: np.ndarray) -> int:
-    """Red pixels in the status bar (the bottom 22 rows), where Blender shows an ERROR report with a red icon
-    (RGB about 180, 80, 55) on a red banner; the grey bar, its text and the blue INFO icon have none."""
-    bar = pixels[:22, :, :3]
-    r, g, b = bar[..., 0], bar[..., 1], bar[..., 2]
+def red_px(rgb: np.ndarray) -> int:
+    """Pixels of an ERROR report's red icon (RGB about 180, 80, 55) or banner; grey UI, text and the blue INFO
+    icon have none."""
+    r, g, b = rgb[..., 0], rgb[..., 1], rgb[..., 2]
     return int(((r > 0.45) & (r - g > 0.2) & (r - b > 0.2)).sum())
+
+
+def info_error_px(pixels: np.ndarray) -> int:
+    """Red pixels in the Info editor, which keeps every report with its icon (the newest at the bottom)."""
+    x, y, w, h = rect(layout["info"])
+    return red_px(pixels[y:y + h, x:x + w, :3])
+
+
+def error_banner_px(pixels: np.ndarray) -> int:
+    """Red pixels of an ERROR report on screen: in the status bar (the bottom 22 rows; Blender shows a report
+    there for a few seconds) and in the Info editor."""
+    return red_px(pixels[:22, :, :3]) + info_error_px(pixels)
 
 
 def depth_pixels() -> np.ndarray:
@@ -202,7 +213,8 @@ def scenario():
           f"ToF Depth {depth.shape[1]}x{depth.shape[0]}: {(depth[..., 3] == 1).mean():.0%} of the pixels valid")
     colourful = colourful_px(pixels, rect(layout["image"]))
     check("render", colourful >= MIN_COLOURFUL_PX, f"screenshot: {colourful} colourful pixels in the image editor")
-    check("render", error_banner_px(pixels) < 20, f"screenshot: {error_banner_px(pixels)} red pixels in the status bar")
+    check("render", error_banner_px(pixels) < 20,
+          f"screenshot: {error_banner_px(pixels)} red pixels in the status bar and the Info editor")
 
     # 2. Live Preview while the camera moves ----------------------------------------------------------
     before = files_in(os.path.join(OUT, "tof"))
@@ -315,8 +327,8 @@ def scenario():
     pixels = screenshot("error")
     check("error_report", failed and ops.last_result.get("state") == "error",
           f"a render that cannot write: state {ops.last_result.get('state')!r}, {ops.last_result.get('message')!r}")
-    check("error_report", error_banner_px(pixels) >= 20,
-          f"screenshot: {error_banner_px(pixels)} red pixels in the status bar (the detector sees a real error)")
+    check("error_report", info_error_px(pixels) >= 20,
+          f"screenshot: {info_error_px(pixels)} red pixels in the Info editor (the detector sees a real error)")
     shots["areas"] = {key: rect(area) for key, area in layout.items()}
 
 
