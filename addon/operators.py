@@ -11,7 +11,8 @@ timer drains the queue, shows each pass in the images of :mod:`.images`
 cursor, and the estimated depth error and elapsed time in the ToF panel. Esc
 sets the job's cancel flag: tofcore raises :class:`tofcore.Cancelled` between
 ray chunks, nothing is written, the images keep the last pass. The final frame
-is written by :func:`tofcore.write_frame` (atomic files) to the output folder;
+is written by :func:`tofcore.write_frame` (atomic files) to the output folder
+(``####`` in it = the frame number, :func:`frame_path`);
 its ``convergence.png`` is then loaded as the image "ToF Convergence"
 (:func:`.images.load_convergence_image`).
 

@@ -192,6 +192,7 @@ def test_built_zip_installs_and_enables(tmp_path):
     assert report["operator"] == ["FINISHED"]
     assert "bl_ext.user_default.tof_camera" in report["addons"], proc.stdout + proc.stderr
     assert "tofcore" in report["site_packages"]
+    assert "tofcore_batch" in report["site_packages"]   # batch's frame-range entry (blender_entry) ships too
     assert not any(name.lower().startswith(("openexr", "cv2", "opencv")) for name in report["site_packages"])
     assert report["presets"] == ["kinect_v2.toml", "o3d303.toml", "xtion2.toml"]
     assert "blender_manifest.toml" in report["package"]
