@@ -207,11 +207,12 @@ def _check_channels(channels: Mapping[str, np.ndarray]) -> dict[str, np.ndarray]
     """``{name: little-endian C-contiguous (H, W) array}`` in name order, or ValueError."""
     if not channels:
         raise ValueError("exr: channels must hold at least one (H, W) array, got none")
-    arrays, shape = {}, None
-    for name in sorted(channels, key=lambda n: n.encode() if isinstance(n, str) else n):
-        array = np.asarray(channels[name])
+    for name in channels:
         if not isinstance(name, str) or not name or "\0" in name or len(name.encode()) > LONG_NAME_MAX:
             raise ValueError(f"exr: channel names must be 1-{LONG_NAME_MAX} bytes without NUL, got {name!r}")
+    arrays, shape = {}, None
+    for name in sorted(channels, key=str.encode):   # the file's channel order: by name, bytewise
+        array = np.asarray(channels[name])
         if array.dtype not in _PIXEL_CODES:
             raise ValueError(f"exr: channel {name!r} must be float32, float16 or uint32, got {array.dtype}")
         if array.ndim != 2 or 0 in array.shape or (shape is not None and array.shape != shape):
