@@ -161,6 +161,8 @@ def test_atomic_write_leaves_nothing_on_failure(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("channels_, attributes, message", [
     ({}, None, "at least one"),
+    ({"a\0b": np.ones((2, 2), np.float32)}, None, "channel names must be 1-255 bytes without NUL"),
+    ({1: np.ones((2, 2), np.float32)}, None, "channel names must be 1-255 bytes without NUL, got 1"),
     ({"Y": np.ones((2, 2))}, None, "'Y' must be float32, float16 or uint32, got float64"),
     ({"Y": np.ones(3, np.float32)}, None, "must be a non-empty \\(H, W\\) array"),
     ({"A": np.ones((2, 2), np.float32), "B": np.ones((2, 3), np.float32)}, None, "like the others"),
