@@ -1,4 +1,4 @@
-# Two commands on a fresh machine:  `make demo`  and  `make test`.
+# Two commands on a fresh machine:  `make demo` (runtime only)  and  `make test` (the development stack).
 PYTHON ?= python3.11
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
@@ -28,8 +28,16 @@ $(VENV)/.installed: requirements-dev.txt pyproject.toml
 
 venv: $(VENV)/.installed
 
-demo: venv
-	$(PY) -m tofcore render --scene room --preset kinect_v2 --spp 32 --out out/demo --verbose
+# The demo needs the runtime only (NumPy, tqdm, and OpenEXR for frame.exr): no bpy, Dask or pytest. A venv that
+# `make test` made already has them; pip then installs nothing.
+$(VENV)/.runtime: pyproject.toml
+	[ -x $(PY) ] || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[exr]"
+	touch $@
+
+demo: $(VENV)/.runtime
+	$(PY) -m tofcore render --scene room --preset kinect_v2 --spp 32 --no-noise --out out/demo --verbose
 
 test: venv
 	$(PY) -m pytest -q -m "not slow"
@@ -38,7 +46,7 @@ test-numpy2:
 	@if [ -z "$(PYTHON313)" ]; then echo "python3.13 not found: NumPy 2 check skipped"; else \
 	  [ -x $(VENV313)/bin/python ] || $(PYTHON313) -m venv $(VENV313); \
 	  $(call drop_other_opencv,$(VENV313)/bin/python); \
-	  $(VENV313)/bin/python -m pip install --quiet "numpy>=2" pytest tqdm opencv-contrib-python-headless "OpenEXR>=3.3" && \
+	  $(VENV313)/bin/python -m pip install --quiet "numpy>=2" pytest tqdm opencv-contrib-python-headless "OpenEXR>=3.3" trimesh && \
 	  $(VENV313)/bin/python -m pip install --quiet --no-deps -e . && \
 	  $(VENV313)/bin/python -m pytest -q -m "not slow" tests; fi
 

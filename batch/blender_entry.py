@@ -4,7 +4,7 @@ Usage::
 
     blender -b scene.blend --python batch/blender_entry.py -- --preset kinect_v2 --out DATASET/ \\
         [--frames 1-10] [--cameras Cam1,Cam2] [--spp 64] [--max-depth 5] [--seed 0] \\
-        [--time-budget S] [--target-error M] [--ambient W_M2_SR] [--resolution-scale F] \\
+        [--time-budget S] [--target-error LENGTH] [--ambient W_M2_SR] [--resolution-scale F] \\
         [--formats exr,png,ply,json] [--device cpu|gpu|auto] [--retry-failed] [--verify sha256|size] [--quiet]
 
 Blender passes everything after ``--`` to the script untouched. Cameras: the

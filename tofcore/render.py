@@ -122,7 +122,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                        progress: Callable[[dict], None] | None = None, cancel: Callable[[], bool] | None = None,
                        workers: int | None = None, chunk_size: int | None = None,
                        every_pass: bool = True, device: str | backend.Device = "cpu",
-                       adaptive: bool = True, sampler: str = "sobol", light_paths: bool = True) -> Iterator[Frame]:
+                       adaptive: bool = True, sampler: str = "sobol", light_paths: bool = True,
+                       transient_bin_m: float | None = None, transient_max_m: float | None = None) -> Iterator[Frame]:
     """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
 
     The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
@@ -150,6 +151,9 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
         depth error is largest (:mod:`tofcore.tracer.adaptive`); False: every pixel gets ``spp``.
     sampler : ``"sobol"`` (randomized QMC, default) or ``"independent"`` (:mod:`tofcore.tracer.qmc`).
     light_paths : connect the camera paths to light vertices with MIS (:mod:`tofcore.tracer.light_paths`).
+    transient_bin_m, transient_max_m : also keep the transient (time-resolved) histogram, bins of this
+        width (m of optical path length LED → … → lens) up to this length; ``frame.transient`` is then
+        (H, W, B) mean radiance per bin, bin b centred at (b + ½)·width (:meth:`Transport.transient`).
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering and decoding on the GPU;
         the random sensor noise is drawn on the CPU so that both devices give the same frame) or
         ``"auto"`` (the GPU when usable, else the CPU). The frame's arrays are NumPy either way;
@@ -158,12 +162,14 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
         :class:`~tofcore.backend.GpuUnavailable` with one line naming the cause; with ``"auto"``
         a failure before the first frame falls back to the CPU (recorded in ``fallback_reason``).
     """
-    _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor)
+    _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor,
+                    transient_bins=transient_bins(transient_bin_m, transient_max_m))
     dev = backend.select_device(device)
     settings = dict(spp=spp, max_depth=max_depth, seed=seed, time_budget_s=time_budget_s,
                     target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,
                     progress=progress, cancel=cancel, workers=workers, every_pass=every_pass,
-                    adaptive=adaptive, sampler=sampler, light_paths=light_paths)
+                    adaptive=adaptive, sampler=sampler, light_paths=light_paths,
+                    transient_bin_m=transient_bin_m, transient_max_m=transient_max_m)
     if not dev.is_gpu:
         yield from _render_passes(scene, sensor, pose, chunk_size=chunk_size, device=dev, **settings)
         return
@@ -182,7 +188,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
 
 def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_budget_s, target_error_m, ambient,
                    reference_distance, progress, cancel, workers, chunk_size, every_pass, adaptive, sampler,
-                   light_paths, device: backend.Device) -> Iterator[Frame]:
+                   light_paths, transient_bin_m, transient_max_m, device: backend.Device) -> Iterator[Frame]:
     """:func:`render_progressive` on one resolved device."""
     if sensor.noise.model == "li" and sensor.modulation.kind == "pulsed":
         raise ConfigError(f"render: sensor {sensor.name!r}: noise model 'li' (eq. 2.43) needs a continuous-wave "
@@ -213,7 +219,8 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
                                correlations=correlations, ambient=ambient if plan.ambient else None,
                                spp=spp, max_depth=max_depth, seed=seed, workers=workers, chunk_size=chunk_size,
                                cancel=cancel, device=device, progressive=progressive, sampler=sampler, light_paths=light_paths,
-                               allocate=allocate if adaptive else None)
+                               allocate=allocate if adaptive else None, transient_bin_m=transient_bin_m,
+                               transient_max_m=transient_max_m)
     for transport in passes:
         elapsed = time.perf_counter() - start
         counts = backend.to_host(transport.sample_count)
@@ -239,6 +246,10 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
         if not (done or every_pass):
             continue
         frame = _frame(transport, sensor, pose, plan, seed, n_raw)
+        frame.metadata["objects"] = object_table(scene)
+        if transport.transient_sum is not None:
+            frame.transient = backend.to_host(transport.transient()).astype(np.float32)
+            frame.transient_bin_m = float(transport.transient_bin_m)
         frame.render_error = sigma.astype(np.float32)
         frame.samples = counts.reshape(sensor.camera.height, sensor.camera.width).astype(np.int32)
         frame.stats.update({
@@ -256,7 +267,16 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
             return
 
 
-def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, sensor=None) -> None:
+def transient_bins(bin_m: float | None, max_m: float | None) -> int:
+    """Bins of a transient histogram of width ``bin_m`` up to ``max_m`` (0 without one, or for values the
+    tracer refuses with its own message)."""
+    if bin_m is None or max_m is None or not 0 < bin_m < max_m < np.inf:
+        return 0
+    return int(np.ceil(max_m / bin_m))
+
+
+def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, sensor=None,
+                    transient_bins: int = 0) -> None:
     """Every setting checked, and the resource limits (:mod:`tofcore.limits`), before anything is allocated."""
     for name, value, lowest in (("spp", spp, 1), ("max_depth", max_depth, 1), ("seed", seed, 0)):
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < lowest:
@@ -264,10 +284,25 @@ def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, 
     limits.MAX_SPP.check(int(spp), "render", "spp")
     limits.MAX_DEPTH.check(int(max_depth), "render", "max_depth")
     if sensor is not None and hasattr(sensor, "camera") and hasattr(sensor, "modulation"):
-        limits.check_render(sensor, max_depth=int(max_depth), where="render")
+        limits.check_render(sensor, max_depth=int(max_depth), where="render", transient_bins=transient_bins)
     for name, value in (("time_budget_s", time_budget_s), ("target_error_m", target_error_m)):
         if value is not None and (not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0):
             raise ConfigError(f"render: {name} must be a number > 0, got {value!r}")
+
+
+def object_table(scene: Scene) -> list[dict]:
+    """What the ``object_id`` image's values mean: ``[{"id", "name", "materials"}]`` for every object id of
+    ``scene`` (names from ``scene.object_names``, ``"object <id>"`` where the scene has none; the names of
+    the materials its triangles use, in material-index order). ``object_id`` −1 is no surface."""
+    object_ids = np.asarray(scene.object_ids)
+    material_ids = np.asarray(scene.material_ids)
+    count = max(int(object_ids.max()) + 1 if object_ids.size else 0, len(scene.object_names))
+    table = []
+    for i in range(count):
+        used = np.unique(material_ids[object_ids == i])
+        name = scene.object_names[i] if i < len(scene.object_names) and scene.object_names[i] else f"object {i}"
+        table.append({"id": i, "name": name, "materials": [scene.materials[m].name for m in used.tolist()]})
+    return table
 
 
 def _rms(values: np.ndarray) -> float | None:

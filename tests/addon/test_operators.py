@@ -30,8 +30,9 @@ from addon_helpers import Reports  # noqa: E402
 from addon import images, mapping, operators, sensors  # noqa: E402
 
 #: Every file write_frame produces with all formats.
-EXPECTED_FILES = {"frame.exr", "depth_mm.png", "depth.png", "intensity.png", "error.png", "reason.png",
-                  "convergence.png", "points.ply", "frame.json"}
+EXPECTED_FILES = {"frame.exr", "depth.exr", "depth_mm.png", "ir.png", "depth.png", "intensity.png", "error.png",
+                  "reason.png", "convergence.png", "points.ply", "camera_opencv.yml", "camera_info.yaml",
+                  "camera.json", "frame.json"}
 BLENDER_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import tofcore
-from batch.setfile import SetFileError, load_set, parse_frames, scaled_sensor
+from batch.setfile import SetFileError, load_set, parse_frames
 from batch_helpers import TINY, batch, write_set
 
 GOOD = """
@@ -132,7 +132,7 @@ def test_syntax_error_carries_the_line(tmp_path):
 
 
 @pytest.mark.parametrize("body, fragment", [
-    ("[[scenes]]\ndemo = 'corner'\nnpz = 'a.npz'\n", "scenes[0]: needs exactly one of 'demo', 'npz', 'blend'"),
+    ("[[scenes]]\ndemo = 'corner'\nnpz = 'a.npz'\n", "scenes[0]: needs exactly one of 'demo', 'npz', 'mesh', 'blend'"),
     ("[[scenes]]\ndemo = 'kitchen'\n", "scenes[0].demo: must be one of ['plane', 'corner', 'box_on_wall', 'room']"),
     ("seed = -1\n[[scenes]]\ndemo = 'corner'\n", "seed: must be an integer >= 0, got -1"),
     ("[[scenes]]\ndemo = 'corner'\ncameras = ['Cam']\n", "scenes[0].cameras: only a blend scene has cameras"),
@@ -178,17 +178,3 @@ def test_parse_frames():
             parse_frames(bad)
 
 
-@pytest.mark.parametrize("factor", [0.0625, 0.25, 0.5, 2.0])
-def test_scaled_sensor_keeps_the_field_of_view(factor):
-    sensor = tofcore.load_preset("kinect_v2")
-    scaled = scaled_sensor(sensor, factor)
-    cam, new = sensor.camera, scaled.camera
-    assert new.width == int(np.floor(cam.width * factor + 0.5))
-    assert new.height == int(np.floor(cam.height * factor + 0.5))
-    # The image edges (u = -1/2 and u = W - 1/2) see the same angles before and after.
-    for (c, f, n), (c2, f2, n2) in (((cam.cx, cam.fx, cam.width), (new.cx, new.fx, new.width)),
-                                    ((cam.cy, cam.fy, cam.height), (new.cy, new.fy, new.height))):
-        assert np.isclose((-0.5 - c) / f, (-0.5 - c2) / f2)
-        assert np.isclose((n - 0.5 - c) / f, (n2 - 0.5 - c2) / f2)
-    assert (new.k1, new.k2, new.k3) == (cam.k1, cam.k2, cam.k3)
-    assert scaled_sensor(sensor, 1.0) is sensor

@@ -368,7 +368,10 @@ def test_presets_command_checks_the_limits(capsys, monkeypatch):
     ("--max-depth", "-3", "argument --max-depth: must be an integer >= 1, got '-3'"),
     ("--time-budget", "-1", "argument --time-budget: must be a finite number > 0 (seconds), got '-1'"),
     ("--time-budget", "nan", "argument --time-budget: must be a finite number > 0 (seconds), got 'nan'"),
-    ("--target-error", "inf", "argument --target-error: must be a finite number > 0 (metres), got 'inf'"),
+    ("--target-error", "inf", "argument --target-error: must be a length such as 5mm, 0.5cm or 0.005m (a bare number "
+                              "is in mm), got 'inf'"),
+    ("--target-error", "5 furlongs", "argument --target-error: must be a length such as 5mm"),
+    ("--target-error", "-5mm", "argument --target-error: must be a length > 0 such as 5mm or 0.005m, got '-5mm'"),
     ("--ambient", "-1", "argument --ambient: must be a finite number >= 0, at most 1e+30 (W m^-2 sr^-1), got '-1'"),
     ("--ambient", "1e308", "argument --ambient: must be a finite number >= 0, at most 1e+30"),
     ("--formats", "exr,gif", "argument --formats: must be a comma list of one or more of exr, png, ply, json, "

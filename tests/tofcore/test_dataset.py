@@ -362,3 +362,44 @@ def test_the_torch_adapter_with_torch(dataset):
     assert batch["valid"].dtype == torch.bool and batch["raw"].shape == (2, 9, 13, 16)
     assert batch["intrinsics"].shape == (2, 3, 3) and batch["world_from_sensor"].shape == (2, 4, 4)
     assert batch["id"] == [data.refs[0].id, data.refs[1].id]
+
+
+def test_the_torch_adapter_refuses_mixed_presets_in_one_line(dataset, monkeypatch):
+    """torch's default collate would fail inside the DataLoader (stack expects each tensor to be equal size);
+    the adapter says so when it is made, naming the groups and the filter that picks one."""
+    fake = _fake_torch()
+    for name, module in (("torch", fake), ("torch.utils", fake.utils), ("torch.utils.data", fake.utils.data)):
+        monkeypatch.setitem(sys.modules, name, module)
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset", raising=False)
+    from tofcore.output.torch_dataset import TorchDataset
+
+    with pytest.raises(ValueError) as info:
+        TorchDataset(dataset, channels=["depth"])
+    message = str(info.value)
+    assert "\n" not in message and "frames of 2 presets or sizes cannot be stacked" in message
+    assert "kinect_v2 16x13 (3 frames)" in message and "o3d303 11x8 (2 frames)" in message
+    assert "preset='kinect_v2'" in message
+    assert len(TorchDataset(dataset, channels=["depth"], allow_mixed=True)) == 5
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset")
+
+
+def test_object_ids_have_names_and_materials_in_the_record_frame_json_and_reader(dataset):
+    data = Dataset(dataset)
+    for ref in data.frames():
+        names = {entry["id"]: entry["name"] for entry in ref.record["objects"]}
+        assert ref.record["objects"] == _document(ref)["metadata"]["objects"]
+        assert {i: o["name"] for i, o in ref.objects.items()} == names
+        scene = tofcore.demo_scene(ref.scene)
+        assert [names[i] for i in sorted(names)] == list(scene.object_names)
+        ids = ref.load("object_id")["object_id"]
+        seen = set(np.unique(ids[ids >= 0]).astype(int).tolist())
+        assert seen and seen <= set(names)            # every id in the image has a name
+        for i, entry in ref.objects.items():          # and its materials are the scene's, by name
+            used = np.unique(scene.material_ids[scene.object_ids == i])
+            assert entry["materials"] == [scene.materials[m].name for m in used]
+
+
+def test_a_frame_without_a_transient_histogram_says_how_to_get_one(dataset):
+    ref = Dataset(dataset).frames()[0]
+    with pytest.raises(DatasetError, match=r"no transient histogram \(set \[output\] transient_bin_m"):
+        ref.transient

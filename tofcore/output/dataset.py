@@ -251,6 +251,24 @@ class FrameRef:
         return tuple(self.document.get("raw_labels") or ())
 
     @property
+    def objects(self) -> dict[int, dict]:
+        """What the ``object_id`` values mean: ``{id: {"name": …, "materials": [...]}}`` (−1 is no surface);
+        from the index record, else ``frame.json`` (empty for frames rendered before the table existed)."""
+        table = self.record.get("objects") or (self.document.get("metadata") or {}).get("objects") or []
+        return {int(entry["id"]): {"name": entry["name"], "materials": list(entry.get("materials", []))}
+                for entry in table}
+
+    @property
+    def transient(self) -> tuple[np.ndarray, float]:
+        """The transient histogram ``(H, W, B)`` float32 and its bin width in metres (``transient.npy``;
+        bin b centred at (b + ½)·width). DatasetError when the frame has none."""
+        entry = (self.document.get("previews") or {}).get("transient")
+        if not entry:
+            raise DatasetError(f"{self.folder / FRAME_JSON}: the frame has no transient histogram (set "
+                               f"[output] transient_bin_m and transient_max_m)")
+        return np.load(self._file(entry["file"]), allow_pickle=False), float(entry["bin_width_m"])
+
+    @property
     def sensor(self) -> dict:
         """The sensor as rendered (``Sensor.to_dict()``), from ``frame.json``."""
         return dict((self.document.get("metadata") or {}).get("sensor") or {})
@@ -544,3 +562,18 @@ def _wanted(value, valid: Sequence[str], field: str, root: Path) -> set[str] | N
     if unknown:
         raise DatasetError(f"{root}: frames({field}=…): {field} must be among {list(valid)}, got {unknown[0]!r}")
     return set(values)
+
+
+def check_one_kind(refs: list[FrameRef], where: str) -> None:
+    """ValueError (one line) when the frames differ in preset or image size: torch's default collate cannot
+    stack them (``stack expects each tensor to be equal size``)."""
+    groups: dict[tuple, int] = {}
+    for ref in refs:
+        settings = ref.record.get("settings") or {}
+        key = (ref.preset, settings.get("width"), settings.get("height"))
+        groups[key] = groups.get(key, 0) + 1
+    if len(groups) > 1:
+        listed = "; ".join(f"{p} {w}x{h} ({n} frames)" for (p, w, h), n in sorted(groups.items(), key=str))
+        first = sorted(groups, key=str)[0][0]
+        raise ValueError(f"{where}: frames of {len(groups)} presets or sizes cannot be stacked into batches: "
+                         f"{listed}; choose one with preset={first!r}, or pass allow_mixed=True")

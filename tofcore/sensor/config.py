@@ -481,6 +481,41 @@ class Sensor:
                 target[field] = _plain(value)
         return Sensor.from_dict(data, where="Sensor.replace")
 
+    def resized(self, width: int, height: int) -> Sensor:
+        r"""A copy whose image is ``width`` × ``height`` pixels, the intrinsics scaled with it.
+
+        Notes
+        -----
+        The focal lengths scale with the size ratios :math:`s_x = w'/w`, :math:`s_y = h'/h`, and the
+        principal point keeps its place on the sensor, pixel centres at integer coordinates
+        (:mod:`tofcore.camera`): :math:`c_x' = (c_x + 1/2)\,s_x - 1/2`. Distortion coefficients act on
+        normalised coordinates and stay as they are, so the field of view is unchanged. Everything per
+        pixel (responsivity, noise, scattering radius in pixels) stays as in the preset: the result is the
+        same camera seen at another resolution, not a camera with larger pixels.
+        """
+        for name, value in (("width", width), ("height", height)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ConfigError(f"Sensor.resized: {name} must be an integer >= 1, got {value!r}")
+        limits.MAX_PIXELS.check(width * height, "Sensor.resized", "width x height", f"{width} x {height}")
+        cam = self.camera
+        if (width, height) == (cam.width, cam.height):
+            return self
+        sx, sy = width / cam.width, height / cam.height
+        return self.replace(**{
+            "camera.width": width, "camera.height": height, "camera.fx": cam.fx * sx, "camera.fy": cam.fy * sy,
+            "camera.cx": (cam.cx + 0.5) * sx - 0.5, "camera.cy": (cam.cy + 0.5) * sy - 0.5})
+
+    def scaled(self, factor: float) -> Sensor:
+        """A copy with width and height times ``factor`` (rounded half up, at least 1 px) and the intrinsics
+        scaled to the actual size ratios (:meth:`resized`); ``scaled(0.25)`` is a quarter of each side."""
+        if not isinstance(factor, (int, float)) or isinstance(factor, bool) or not 0 < factor < math.inf:
+            raise ConfigError(f"Sensor.scaled: factor must be a finite number > 0, got {factor!r}")
+        cam = self.camera
+        exact_w, exact_h = cam.width * factor, cam.height * factor
+        if exact_w * exact_h > 4 * limits.MAX_PIXELS.value:  # refuse before rounding a huge product
+            limits.MAX_PIXELS.check(math.inf, "Sensor.scaled", "width x height", f"{exact_w:.4g} x {exact_h:.4g}")
+        return self.resized(max(1, int(math.floor(exact_w + 0.5))), max(1, int(math.floor(exact_h + 0.5))))
+
 
 def _source_keys() -> set[str]:
     """Every dotted key a ``[sources]`` entry may name: top-level fields and ``table.field``."""
