@@ -6,7 +6,7 @@ virtual display. Blender's GUI is event-driven, so the scenario is a generator s
 operators. Steps, each checked by files, by the add-on's state and by a screenshot whose pixels the step
 looks at:
 
-1. ``render``: Add ToF Camera, aim it at the default cube, Render ToF (INVOKE, as a click) → the 9 files
+1. ``render``: Add ToF Camera, aim it at the default cube, Render ToF (INVOKE, as a click) → the 14 files
    in ``tof/0001/``, the "ToF Depth" image filled, the depth image colourful on screen, no red error
    icon in the status bar or the Info editor.
 2. ``live_preview``: Live Preview on, the camera moved three times → the preview re-renders at preview
@@ -14,7 +14,7 @@ looks at:
 3. ``cancel``: a long render (1024 spp) cancelled with Esc after its first pass → state cancelled within
    seconds, nothing written (no temp files), Blender alive.
 4. ``animation``: Render ToF Animation over frames 1-3 with the camera keyed → ``anim/0001 … 0003`` with
-   the 9 files each, the scene back on its frame.
+   the 14 files each, the scene back on its frame.
 5. ``preset``: a custom sensor saved with the Sensor Presets "+" and applied to a second camera.
 6. The Info log is saved (``info_log.txt``); run.py checks that Blender printed no "Error:" report before
    step 7.
@@ -39,8 +39,8 @@ import numpy as np
 
 OUT = os.environ["TOF_GUI_OUT"]
 ADDON = "bl_ext.user_default.tof_camera"
-FILES = {"frame.exr", "depth_mm.png", "depth.png", "intensity.png", "error.png", "reason.png", "convergence.png",
-         "points.ply", "frame.json"}
+FILES = {"frame.exr", "depth.exr", "depth_mm.png", "ir.png", "depth.png", "intensity.png", "error.png", "reason.png",
+         "convergence.png", "points.ply", "camera.json", "camera_opencv.yml", "camera_info.yaml", "frame.json"}
 #: A screenshot pixel is "colourful" when max − min of its RGB (0..1) exceeds this (the turbo map is; the grey
 #: UI is not); a depth image shown in the image editor has thousands of them.
 COLOURFUL = 0.3
