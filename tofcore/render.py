@@ -39,6 +39,7 @@ import numpy as np
 
 from . import backend, limits
 from .backend import gpu_errors, namespace
+from .constants import SPEED_OF_LIGHT_M_S
 from .errors import ConfigError
 from .output.frame import Frame
 from .plan import Plan, make_plan
@@ -47,6 +48,7 @@ from .scene.scene import Scene
 from .sensor import decode as decoding
 from .sensor import noise as noise_models
 from .sensor import optics
+from .sensor import processing
 from .sensor.raw import raw_images
 from .tracer.adaptive import allocate_samples
 from .tracer.transport import Transport, pass_schedule, trace_progressive
@@ -74,14 +76,19 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     is the RMS error of the output depth; for a z-depth sensor it is scaled by the pixel ray's z
     component (z = d·ω_z). NaN where a pixel has no signal or
     a replicate no sample yet. Scattering and sensor noise are not part of it: this is the render's own
-    noise.
+    noise. A camera that filters its phasors (``processing.phasor_filter``) averages each replicate's
+    deviation over the 3 × 3 neighbours too, frequency by frequency, with the filter's weights at the
+    replicates' mean (:func:`_filtered_deviation`).
     """
     means, counts = transport.replicate_means()         # (R, J+2, H, W), (R, H, W)
     replicates = means.shape[0]
     raw = namespace(means).stack([raw_images(m[1:1 + n_raw], m[-1], sensor) for m in means])
     centre = raw.mean(axis=0)
-    grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation)
-    deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
+    grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation, sensor.processing.unwrap_weights)
+    if sensor.processing.phasor_filter == "none" or not sensor.modulation.is_cw:
+        deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
+    else:
+        deviation = _filtered_deviation(raw - centre[None], np.nan_to_num(centre), sensor)
     var = (deviation**2).sum(axis=0) / (replicates * (replicates - 1))
     ok = (counts.min(axis=0) >= 1) & (np.abs(grad).sum(axis=0) > 0)
     if sensor.modulation.is_cw:
@@ -96,6 +103,41 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     if sensor.depth_output == "z":
         sigma = sigma * namespace(sigma).asarray(np.abs(sensor.camera.pixel_center_directions()[..., 2]))
     return sigma
+
+
+def _filtered_deviation(delta, centre, sensor):
+    r"""(R, H, W) distance deviation of each replicate, through the camera's phasor filter, linearised.
+
+    Notes
+    -----
+    Per frequency i the replicate's phasor deviation :math:`\delta Z = \sum_k \delta Q_k e^{i\theta_k}`
+    (``delta`` = Q^{(r)} − Q̄, ``centre`` = Q̄) is averaged like the phasors,
+    :math:`\delta Z' = \sum_q w_q \delta Z_q` with the filter's weights at the mean
+    (:func:`tofcore.sensor.processing.bilateral_weights`), and turned into a phase deviation of the filtered phasor
+    :math:`Z' = \sum_q w_q \bar Z_q`: :math:`\delta\varphi' = \operatorname{Im}(\delta Z' \bar Z'^*)/|Z'|^2`;
+    the distance deviation is :math:`\sum_i w_i\, c\, \delta\varphi'_i / (4\pi f_i)` with the unwrapping
+    weights :math:`w_i` (:func:`tofcore.sensor.decode.unwrap_weights`).
+    """
+    mod = sensor.modulation
+    xp = namespace(delta)
+    unwrap_w = decoding.unwrap_weights(decoding.decode_cw(centre, mod), mod, sensor.processing.unwrap_weights)
+    deviation = 0.0
+    start = 0
+    for i, (f_hz, n) in enumerate(zip(mod.frequencies_hz, mod.phase_steps)):
+        theta = 2.0 * np.pi * np.arange(n) / n
+        cos_k = xp.asarray(np.round(np.cos(theta), 15))[:, None, None]
+        sin_k = xp.asarray(np.round(np.sin(theta), 15))[:, None, None]
+        mean_re = (cos_k * centre[start:start + n]).sum(axis=0)
+        mean_im = (sin_k * centre[start:start + n]).sum(axis=0)
+        weights = processing.bilateral_weights(mean_re, mean_im, min_amplitude=sensor.invalid.min_amplitude_e * n / 2)
+        z_re, z_im = processing.neighbour_mean(mean_re, weights), processing.neighbour_mean(mean_im, weights)
+        d_re = processing.neighbour_mean((cos_k[None] * delta[:, start:start + n]).sum(axis=1), weights)
+        d_im = processing.neighbour_mean((sin_k[None] * delta[:, start:start + n]).sum(axis=1), weights)
+        norm2 = z_re * z_re + z_im * z_im
+        d_phase = np.where(norm2 > 0, (z_re * d_im - z_im * d_re) / np.where(norm2 > 0, norm2, 1.0), 0.0)
+        deviation = deviation + unwrap_w[i] * SPEED_OF_LIGHT_M_S / (4.0 * np.pi * f_hz) * d_phase
+        start += n
+    return deviation
 
 
 def _normal_tail(x):
@@ -310,10 +352,13 @@ def _rms(values: np.ndarray) -> float | None:
 
 
 def _decode_clean(transport: Transport, sensor, max_k: int, n_raw: int):
-    """Decode the noise-free, scatter-free raw images of bounces ≤ max_k (ground-truth decompositions)."""
+    """Decode the noise-free, scatter-free raw images of bounces ≤ max_k (ground-truth decompositions).
+
+    The camera's frequency weights apply; its spatial phasor filter does not (ground truth is per pixel)."""
     raw = raw_images(transport.correlation(max_k)[:n_raw], transport.ambient(), sensor)
     return decoding.decode(raw, sensor.modulation, min_amplitude_e=0.0, saturation_e=None,
-                           range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+                           range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
+                           unwrap_weights=sensor.processing.unwrap_weights)
 
 
 def _decode_clean_per_k(transport: Transport, sensor, n_raw: int):
@@ -330,8 +375,17 @@ def _decode_clean_per_k(transport: Transport, sensor, n_raw: int):
     ambient = xp.broadcast_to(transport.ambient(), (k, h, w)).reshape(k * h, w)
     raw = raw_images(cumulative.reshape(-1, k * h, w), ambient, sensor)
     decoded = decoding.decode(raw, sensor.modulation, min_amplitude_e=0.0, saturation_e=None,
-                              range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+                              range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
+                              unwrap_weights=sensor.processing.unwrap_weights)
     return decoded.distance.reshape(k, h, w)
+
+
+def _range_scale(sensor) -> np.ndarray | None:
+    """What ``range_m`` limits: the output depth, so z for a z-depth camera (libfreenect2 compares z with its
+    min_depth/max_depth), the radial distance otherwise (None)."""
+    if sensor.depth_output != "z":
+        return None
+    return np.abs(sensor.camera.pixel_center_directions()[..., 2]).astype(np.float64)
 
 
 def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int, n_raw: int) -> Frame:
@@ -346,13 +400,17 @@ def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int
     noise_rng = np.random.default_rng(np.random.SeedSequence([seed, 0x70F]))  # apart from the tracer's stream
     xp = namespace(raw)
     if plan.raw_noise:  # drawn on the CPU from one stream, so both devices give the same frame
-        raw = xp.asarray(noise_models.add_raw_noise(backend.to_host(raw), read_noise_e=sensor.noise.read_noise_e,
-                                                    rng=noise_rng))
+        noisy = noise_models.add_raw_noise(backend.to_host(raw), read_noise_e=sensor.noise.read_noise_e, rng=noise_rng)
+        if sensor.noise.gain_noise > 0:  # Keller's β (eq. 3.1), after the shot and read noise of the same stream
+            noisy = noise_models.keller_amplitude_noise(noisy, alpha_e=0.0, beta=sensor.noise.gain_noise, rng=noise_rng)
+        raw = xp.asarray(noisy)
     full_well = sensor.readout.full_well_e
     raw = np.minimum(raw, full_well)
     decoded = decoding.decode(raw, mod, min_amplitude_e=sensor.invalid.min_amplitude_e,
                               saturation_e=full_well if sensor.invalid.invalidate_saturated else None,
-                              range_m=tuple(sensor.range_m), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+                              range_m=tuple(sensor.range_m), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
+                              unwrap_weights=sensor.processing.unwrap_weights,
+                              phasor_filter=sensor.processing.phasor_filter, range_scale=_range_scale(sensor))
     decoded = decoding.Decoded(**{k: backend.to_host(v) for k, v in vars(decoded).items()})
     raw = backend.to_host(raw)
     distance = np.asarray(decoded.distance, dtype=np.float64)

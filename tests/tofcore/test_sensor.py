@@ -184,7 +184,8 @@ BAD_PRESETS = [
     ('name = "kinect_v2"', 'name = "kinect_v2"\ncolour = "red"',
      r": unknown top-level key 'colour'; valid keys are \['camera', 'depth_output', 'description', 'frame_rate_hz', "),
     ("[noise]\n", "[noise]\nshot_noise = true\n",
-     r" \[noise\]: unknown key 'shot_noise'; valid keys are \['model', 'modulation_contrast', 'read_noise_e'\]"),
+     r" \[noise\]: unknown key 'shot_noise'; valid keys are \['gain_noise', 'model', 'modulation_contrast', "
+     r"'read_noise_e'\]"),
     ("[camera]\n", "[camera]\nhfov_deg = 70.0\n",
      r" \[camera\]: unknown key 'hfov_deg'; valid keys are \['aperture_radius_m', "),
     ('kind = "lambertian"', 'kind = "lambertian"\ncolor = 850',
@@ -192,7 +193,7 @@ BAD_PRESETS = [
     ('"camera.k3" =', '"camera.k4" = "x"\n"camera.k3" =',
      r" \[sources\]: unknown key 'camera.k4'; keys must name a field"),
     # missing fields
-    ("full_well_e = 1e5", "",
+    ("full_well_e = 2e5", "",
      r" \[readout\]: missing required key 'full_well_e'; required keys are \['responsivity', 'full_well_e'\]"),
     ('name = "kinect_v2"\n', "", r": missing required top-level key 'name'"),
     ("fx = 365.402802\n", "", r" \[camera\]: missing required key 'fx'"),
