@@ -129,15 +129,6 @@ def formats_type(text: str) -> tuple[str, ...]:
     return chosen
 
 
-def check_exr(formats, flag: str = "--formats") -> None:
-    """ConfigError unless the OpenEXR package is importable when ``formats`` holds "exr" (before rendering)."""
-    from .output import writers
-
-    if "exr" in formats and writers.OpenEXR is None:
-        raise ConfigError(f"{flag}: 'exr' needs the OpenEXR package, which is not installed: "
-                          f"{writers.EXR_INSTALL_HINT}, or leave exr out, e.g. {flag} png,ply,json")
-
-
 def check_output_folder(path: Path, flag: str = "--out") -> None:
     """ConfigError unless ``path`` is a folder, or could be made as one, that this user may write (nothing is made)."""
     if path.exists() and not path.is_dir():
@@ -266,7 +257,6 @@ def cmd_render(args: argparse.Namespace) -> int:
     limits.check_render(sensor, max_depth=args.max_depth, spp=args.spp,
                         where=f"--preset {args.preset} with --max-depth {args.max_depth}",
                         transient_bins=transient_bins(args.transient_bin, transient_max))
-    check_exr(formats)
     if args.exr_channels is not None:
         from .output.writers import exr_channel_names
 
@@ -372,8 +362,7 @@ def build_parser() -> argparse.ArgumentParser:
                        epilog="example:\n  tofcore render --scene room --preset kinect_v2 --spp 32 --out out/demo "
                               "--verbose\n  tofcore render --scene chair.glb --resolution-scale 0.25 "
                               "--target-error 5mm --out out/chair\n\nwrites frame.exr, depth.exr, PNGs, points.ply, camera YAML files and "
-                              "frame.json to the folder;\nEXR needs the OpenEXR package (pip install OpenEXR), else "
-                              "use --formats png,ply,json")
+                              "frame.json to the folder")
     r.add_argument("--scene", required=True,
                    help="demo scene (plane, corner, box_on_wall, room), a .npz scene, a mesh file (.obj, .ply, .gltf, "
                         ".glb, .stl; needs trimesh) or a .blend file (needs bpy)")
