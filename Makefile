@@ -53,9 +53,17 @@ test-numpy2:
 bench: venv
 	$(PY) bench/bench_transport.py
 
-# The Blender extension: one validated zip per platform in dist/ (tofcore + OpenEXR wheels, no NumPy).
+# The Blender extension: one validated zip for every platform in dist/ (the pure tofcore wheel, no NumPy).
 addon: venv
 	$(PY) addon/build.py --out dist/
+
+# The add-on in a real Blender GUI (Debian 13's Blender 4.3.2 on a virtual display; root; the first run builds
+# /opt/blender-trixie from Debian's mirror, ~3 min): tests/blender_gui/run.py. DOCS=docs/images refreshes the
+# README's screenshots.
+.PHONY: test-blender
+test-blender: addon
+	$(PY) tests/blender_gui/run.py dist/tof_camera-$$(sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml).zip \
+		--out out/blender-gui $(if $(DOCS),--docs $(DOCS))
 
 # The six thesis experiments (docs/validation.md): PNG plots + JSON numbers in out/studies/, ~10 min on 2 cores.
 STUDIES := corner_path_length corner_roughness systematic_error box_wall_error_map flying_pixels led_shadow

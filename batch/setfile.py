@@ -692,12 +692,6 @@ def parse_set(data: Mapping[str, Any], path: Path | None = None, text: str | Non
         options = _output_options(ctx, output)
     else:
         options = {}
-    if "exr" in formats:
-        import importlib.util
-
-        if importlib.util.find_spec("OpenEXR") is None:
-            raise ctx.error(["output", "formats"], "'exr' needs the OpenEXR package, which is not installed here: "
-                                                   "pip install OpenEXR, or leave 'exr' out of [output] formats")
     if "scenes" not in top:
         raise ctx.error(["scenes"], "missing: a set needs at least one [[scenes]] table")
     entries = top["scenes"]

@@ -16,11 +16,13 @@ The public API, re-exported from one module per concept. The packages follow the
 * :func:`render` → :class:`Frame` — the camera's output with ground truth (``render``, ``frame``)
 * :func:`write_frame`, :func:`read_exr` — EXR, PNG, PLY, JSON and camera-file outputs (``writers``)
 * :func:`load_mesh` — scenes from OBJ, PLY, glTF/GLB and STL files, through trimesh (``scene.mesh_files``)
+* ``exr`` — tofcore's own OpenEXR codec (NumPy + zlib): ``exr.write``, ``exr.read``, ``exr.read_header``
 * ``limits`` — resource limits checked before allocating (:class:`LimitError`)
 """
 
 from . import limits
 from .constants import SPEED_OF_LIGHT_M_S
+from .output import exr
 from .errors import Cancelled, ConfigError, LimitError, SceneError, TofError
 from .output.frame import Frame, Reason
 from .output.writers import read_exr, write_frame

@@ -129,15 +129,6 @@ def formats_type(text: str) -> tuple[str, ...]:
     return chosen
 
 
-def check_exr(formats, flag: str = "--formats") -> None:
-    """ConfigError unless the OpenEXR package is importable when ``formats`` holds "exr" (before rendering)."""
-    from .output import writers
-
-    if "exr" in formats and writers.OpenEXR is None:
-        raise ConfigError(f"{flag}: 'exr' needs the OpenEXR package, which is not installed: "
-                          f"{writers.EXR_INSTALL_HINT}, or leave exr out, e.g. {flag} png,ply,json")
-
-
 def check_output_folder(path: Path, flag: str = "--out") -> None:
     """ConfigError unless ``path`` is a folder, or could be made as one, that this user may write (nothing is made)."""
     if path.exists() and not path.is_dir():
@@ -266,7 +257,6 @@ def cmd_render(args: argparse.Namespace) -> int:
     limits.check_render(sensor, max_depth=args.max_depth, spp=args.spp,
                         where=f"--preset {args.preset} with --max-depth {args.max_depth}",
                         transient_bins=transient_bins(args.transient_bin, transient_max))
-    check_exr(formats)
     if args.exr_channels is not None:
         from .output.writers import exr_channel_names
 
@@ -303,6 +293,9 @@ def cmd_render(args: argparse.Namespace) -> int:
                        adaptive=args.adaptive, light_paths=args.light_paths,
                        transient_bin_m=args.transient_bin, transient_max_m=transient_max)
     files = write_frame(frame, args.out, formats=formats, exr_half=args.exr_half, exr_channels=args.exr_channels)
+    if args.verbose:
+        tracer = frame.stats["transport"]
+        print(f"tracer: {tracer['tracer']}" + (f" ({tracer['tracer_reason']})" if tracer["tracer_reason"] else ""))
     if not args.quiet:
         print(_convergence_table(frame.stats["convergence"]))
         print(summary(frame))
@@ -369,8 +362,7 @@ def build_parser() -> argparse.ArgumentParser:
                        epilog="example:\n  tofcore render --scene room --preset kinect_v2 --spp 32 --out out/demo "
                               "--verbose\n  tofcore render --scene chair.glb --resolution-scale 0.25 "
                               "--target-error 5mm --out out/chair\n\nwrites frame.exr, depth.exr, PNGs, points.ply, camera YAML files and "
-                              "frame.json to the folder;\nEXR needs the OpenEXR package (pip install OpenEXR), else "
-                              "use --formats png,ply,json")
+                              "frame.json to the folder")
     r.add_argument("--scene", required=True,
                    help="demo scene (plane, corner, box_on_wall, room), a .npz scene, a mesh file (.obj, .ply, .gltf, "
                         ".glb, .stl; needs trimesh) or a .blend file (needs bpy)")
@@ -421,7 +413,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "estimated depth error is largest)")
     r.add_argument("--no-light-paths", dest="light_paths", action="store_false",
                    help="next-event estimation only (default: also connect to LED-lit points, with MIS)")
-    r.add_argument("--verbose", action="store_true", help="print the scene, sensor, render plan and device")
+    r.add_argument("--verbose", action="store_true", help="print the scene, sensor, render plan, device and tracer (compiled or NumPy, and why)")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     r.set_defaults(func=cmd_render)
     p = sub.add_parser("presets", help="list the sensor presets", formatter_class=_HelpFormatter,

@@ -390,16 +390,6 @@ def test_bad_flags_through_python_m_tofcore(tmp_path):
         assert_refused(code, err, f"argument {flag}:", repr(value), out=tmp_path / "out")
 
 
-def test_exr_without_openexr_fails_before_rendering(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(writers, "OpenEXR", None)
-    rendered = []
-    monkeypatch.setattr(sys.modules["tofcore.render"], "render", lambda *a, **k: rendered.append(1))  # not reached
-    code, err = run(render_args(tmp_path, "--formats", "exr,png"), capsys)
-    assert_refused(code, err, "--formats: 'exr' needs the OpenEXR package", "pip install OpenEXR",
-                   out=tmp_path / "out")
-    assert rendered == []
-
-
 def test_output_path_that_is_a_file_fails_before_rendering(tmp_path, capsys):
     (tmp_path / "out").write_text("a file")
     code, err = run(render_args(tmp_path), capsys)

@@ -48,12 +48,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..native import inside_blender, optional_module
 from .png import encode_png
 
-try:
-    import cv2
-except ImportError:
-    cv2 = None
+cv2 = optional_module("cv2")
 
 BACKENDS = ("auto", "matplotlib", "opencv", "numpy")
 
@@ -248,7 +246,10 @@ _MATPLOTLIB: list = []
 
 
 def _matplotlib():
-    """(Figure, FigureCanvasAgg), or None when matplotlib is not importable (checked once)."""
+    """(Figure, FigureCanvasAgg), or None when matplotlib is not importable or this is Blender's process
+    (:mod:`tofcore.native`; checked once)."""
+    if not _MATPLOTLIB and inside_blender():
+        _MATPLOTLIB.append(None)
     if not _MATPLOTLIB:
         try:
             from matplotlib.backends.backend_agg import FigureCanvasAgg

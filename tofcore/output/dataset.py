@@ -1,6 +1,6 @@
 """Reading a dataset folder written by ``tofcore-batch run``: :class:`Dataset`, :class:`FrameRef`.
 
-A dataset is read with tofcore alone (``pip install OpenEXR``); this
+A dataset is read with tofcore alone (NumPy; EXR by :mod:`tofcore.output.exr`); this
 module imports neither the ``batch`` package nor bpy nor PyTorch
 (:mod:`tofcore.output.torch_dataset` is the optional PyTorch adapter).
 
@@ -54,8 +54,8 @@ Every array is float32 exactly as stored in ``frame.exr`` (:func:`tofcore.read_e
 images, a bool ``valid``, the 3×3 camera matrix and the pose.
 
 The EXR is read when :meth:`~FrameRef.load` is called, not before, and not
-kept: OpenEXR's Python binding decodes every channel of the file, and only
-the ones asked are returned. ``frame.json`` (intrinsics, pose, raw labels)
+kept: only the channels asked are converted (every chunk is still
+decompressed: each holds all channels of its lines). ``frame.json`` (intrinsics, pose, raw labels)
 is read at first use and kept by the :class:`FrameRef`.
 
 Example
@@ -314,7 +314,7 @@ class FrameRef:
 
         try:
             stored = read_exr(exr)
-        except (RuntimeError, OSError, ValueError) as exc:  # what OpenEXR raises for a damaged file
+        except (OSError, ValueError) as exc:  # tofcore.output.exr: a damaged or truncated file is a ValueError
             raise DatasetError(f"{exr}: cannot be read as EXR ({type(exc).__name__}: {exc})") from None
         if names is None:
             names = [n for n in IMAGE_CHANNELS if n in stored] + ["raw", "distance_per_k"]

@@ -60,8 +60,8 @@ none, never a partial one. ``frame.json`` is the frame's done record: an existin
 one is removed before anything else is written, since it would describe files
 about to be replaced. NaN and ±inf become ``null`` in JSON.
 
-OpenCV encodes the PNGs when importable, else a NumPy + zlib encoder does;
-EXR needs the optional ``OpenEXR`` package (``pip install OpenEXR``).
+PNGs are encoded by :mod:`.png` (OpenCV when importable, never inside Blender: :mod:`tofcore.native`);
+the EXR by tofcore's own codec (:mod:`.exr`, NumPy + zlib), so no native OpenEXR library is ever loaded.
 """
 
 from __future__ import annotations
@@ -78,20 +78,13 @@ from pathlib import Path, PurePath
 
 import numpy as np
 
+from . import exr
 from .convergence_plot import convergence_png
 from .frame import Frame, Reason
 from .legend import with_colour_bar, with_legend
 from .png import DIVERGING, GREY, TURBO, apply_lut, encode_png
 
-try:
-    import OpenEXR
-except ImportError:
-    OpenEXR = None
-
 FORMATS = ("exr", "png", "ply", "json", "transient")
-
-#: The hint that names a command that installs the EXR writer's package.
-EXR_INSTALL_HINT = "pip install OpenEXR"
 
 # Images written as EXR channels of the same name (all (H, W)).
 _EXR_IMAGES = ("depth", "distance", "amplitude", "intensity", "offset", "confidence", "valid", "reason",
@@ -141,14 +134,10 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
     ------
     ValueError : unknown format or bad prefix, before anything is written.
     TypeError : ``metadata`` or ``stats`` holds something JSON cannot hold, before anything is written.
-    ImportError : ``"exr"`` asked without the OpenEXR package, before anything is written.
     """
     formats = _check_formats(formats)
     if Path(prefix).name != prefix:
         raise ValueError(f"write_frame: prefix must be a plain file-name prefix, got {prefix!r}")
-    if "exr" in formats and OpenEXR is None:
-        raise ImportError(f"write_frame: format 'exr' needs the OpenEXR package, which is not installed: "
-                          f"{EXR_INSTALL_HINT}")
     channels = _exr_channels(frame) if "exr" in formats else {}
     if exr_channels is not None:
         exr_channels = tuple(exr_channels)
@@ -218,12 +207,11 @@ def _write_pngs(frame: Frame, out: Path, prefix: str, written: dict, previews: d
     png = convergence_png(frame.stats.get("convergence") or [])
     written["convergence"] = _atomic_write(out / f"{prefix}convergence.png", lambda tmp: tmp.write_bytes(png))
 
-def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Channels of a ``frame.exr`` (or ``depth.exr``) as ``{name: (H, W) float32 array}`` (half floats widened)."""
-    if OpenEXR is None:
-        raise ImportError(f"read_exr: needs the OpenEXR package, which is not installed: {EXR_INSTALL_HINT}")
-    channels = OpenEXR.File(str(path), separate_channels=True).channels()
-    return {name: np.asarray(channel.pixels, dtype=np.float32) for name, channel in channels.items()}
+
+def read_exr(path: str | os.PathLike, names: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+    """Channels of a ``frame.exr`` (or ``depth.exr``) as ``{name: (H, W) float32 array}`` (half floats widened);
+    ``names`` picks some. A damaged file is a one-line ValueError naming it (:func:`tofcore.output.exr.read`)."""
+    return {name: np.asarray(image, dtype=np.float32) for name, image in exr.read(path, names).items()}
 
 
 def exr_channel_names(raw_labels: Iterable[str], bounces: int) -> list[str]:
@@ -295,7 +283,6 @@ def _check_formats(formats: Iterable[str] | str) -> tuple[str, ...]:
 def _atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
     """Create ``.{name}.tmp-XXXXXXXX`` beside ``path``, ``write(tmp)`` it, fsync, rename it to ``path``.
 
-    ``write`` gets a path, not a handle: OpenEXR 3.3 and 3.4 write to file names only.
     If ``write`` raises, the temp file is removed and ``path`` is left as it was.
     """
     tmp = path.with_name(f".{path.name}.tmp-{secrets.token_hex(4)}")
@@ -321,10 +308,7 @@ def _file_record(kind: str, path: Path) -> dict:
 # --------------------------------------------------------------------------- EXR
 
 def _exr_channels(frame: Frame) -> dict[str, np.ndarray]:
-    """Every EXR channel as a C-contiguous float32 (H, W) array.
-
-    C order matters: OpenEXR 3.5's Python binding writes strided arrays scrambled.
-    """
+    """Every EXR channel as a float32 (H, W) array."""
     if len(frame.raw_labels) != len(frame.raw) or len(set(frame.raw_labels)) != len(frame.raw_labels):
         raise ValueError(f"write_frame: raw_labels must be {len(frame.raw)} distinct names (one per raw "
                          f"image), got {frame.raw_labels!r}")
@@ -342,17 +326,19 @@ def _exr_channels(frame: Frame) -> dict[str, np.ndarray]:
 
 def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray], attributes: Mapping[str, object],
               half: bool = False) -> None:
-    """Write a single-part scanline EXR (ZIP, lossless) of ``channels`` ({name: (H, W) array}) to ``path``.
+    """Write a single-part scanline EXR (ZIP, lossless) of ``channels`` ({name: (H, W) array}) to ``path``,
+    by tofcore's own codec (:mod:`.exr`).
 
     ``attributes``: extra header attributes; a dict becomes a JSON string, an array stays an array.
     ``half``: 16-bit half-float channels instead of 32-bit floats.
     """
-    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    for name, value in attributes.items():
-        header[name] = json.dumps(value, allow_nan=False) if isinstance(value, Mapping) else value
+    header = {name: json.dumps(value, allow_nan=False) if isinstance(value, Mapping) else value
+              for name, value in attributes.items()}
     dtype = np.float16 if half else np.float32
-    OpenEXR.File(header, {name: np.ascontiguousarray(image, dtype=dtype)
-                          for name, image in channels.items()}).write(str(path))
+    data = exr.encode({name: np.asarray(image, dtype=dtype) for name, image in channels.items()},
+                      attributes=header, compression="zip")
+    with open(path, "wb") as fh:
+        fh.write(data)
 
 
 # --------------------------------------------------------------------------- PNG

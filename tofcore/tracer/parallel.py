@@ -11,6 +11,7 @@ On the GPU one chunk is as large as the free device memory allows (:func:`gpu_ch
 from __future__ import annotations
 
 import functools
+import importlib
 import pickle
 import uuid
 from collections.abc import Callable
@@ -96,6 +97,12 @@ def _trace_shared_chunk(shared_objects, p0: int, p1: int) -> TraceStats:
     return trace_chunk(setup, out, p0, p1, first=first, counts=counts)
 
 
+COMPILED_TRACER = "tofcore.compiled"
+"""The compiled per-path tracer. It stands above the tracer (it reuses the scene's, the tracer's and
+the sensor's functions), so the tracer imports it by name, as :func:`tofcore.backend.twin` imports device
+kernels; it decides itself whether it can run a trace (:func:`tofcore.compiled.choose`)."""
+
+
 @dataclass
 class PassRunner:
     """Runs the chunks of each pass: on the worker processes (``shared``), else on ``threads``, else here."""
@@ -107,12 +114,18 @@ class PassRunner:
     workers: int
     chunk_size: int
     cancel: Callable[[], bool] | None
+    compiled: object = None     # the compiled tracer's choice (tofcore.compiled.choose) when it runs the trace
 
     def run(self, done: np.ndarray, counts: np.ndarray) -> None:
         """Trace samples [done[p], done[p] + counts[p]) of every pixel; raises Cancelled when asked to stop."""
         xp = self.setup.xp
         pieces = chunks(counts, pass_chunk_paths(int(counts.sum()), self.chunk_size, self.workers))
-        if self.shared is not None and len(pieces) > 1:
+        if self.compiled is not None:
+            compiled = importlib.import_module(COMPILED_TRACER)
+            pieces = chunks(counts, max(self.chunk_size, compiled.COMPILED_CHUNK_PATHS))
+            results = compiled.trace_pass(self.compiled, self.transport, done, counts, pieces, self.workers,
+                                          self.cancel)
+        elif self.shared is not None and len(pieces) > 1:
             results = run_in_processes(self.shared, self.workers, done, counts, pieces, self.cancel)
         else:
             run = functools.partial(trace_chunk, self.setup, self.transport, first=xp.asarray(done),

@@ -8,6 +8,7 @@ cut into chunks that :mod:`tofcore.tracer.parallel` runs, and yields the accumul
 
 from __future__ import annotations
 
+import importlib
 import time
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import ThreadPoolExecutor
@@ -103,18 +104,24 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
     setup = make_setup(scene, camera, leds, settings, dev)
     chunk_size, n_workers = _parallel_settings(settings, setup)
     start = time.perf_counter()
-    stats = TraceStats()
+    tracer = importlib.import_module(parallel.COMPILED_TRACER).choose(setup)  # compiled where numba allows
+    stats = TraceStats(tracer=tracer.tracer, tracer_reason=tracer.reason)
     # Start the worker processes first: they boot and import tofcore while this one traces the first hits.
-    why_not = parallel.start_workers(n_workers) if n_workers > 1 and not dev.is_gpu else "one"
+    # The compiled tracer runs on numba's threads instead (they release the GIL).
+    spawn = n_workers > 1 and not dev.is_gpu and tracer.packed is None
+    why_not = parallel.start_workers(n_workers) if spawn else "one"
     transport = _empty_transport(setup, first_hit(setup, stats), stats)
     shared, why_not = (None, why_not) if why_not else parallel.share(setup, transport)
     stats.parallel = "processes" if shared is not None else "one" if why_not == "one" else f"threads: {why_not}"
+    if tracer.packed is not None:
+        stats.parallel = f"numba threads: {importlib.import_module(parallel.COMPILED_TRACER).thread_count(n_workers)}"
     stats.setup_seconds = time.perf_counter() - start
     n_pix = camera.width * camera.height
     done = np.zeros(n_pix, np.int64)  # host copy of transport.sample_count
     try:
         with ThreadPoolExecutor(max_workers=n_workers) as threads:
-            runner = parallel.PassRunner(setup, transport, shared, threads, n_workers, chunk_size, settings.cancel)
+            runner = parallel.PassRunner(setup, transport, shared, threads, n_workers, chunk_size, settings.cancel,
+                                         compiled=tracer if tracer.packed is not None else None)
             for n_samples in pass_schedule(int(settings.spp), settings.progressive):
                 counts = None if settings.allocate is None else settings.allocate(transport, n_samples)
                 counts = np.full(n_pix, n_samples, np.int64) if counts is None else _checked_counts(counts, n_pix)

@@ -50,6 +50,8 @@ class TraceStats:
     chunk_seconds: float = 0.0    # thread-seconds inside chunks (all tracing work, summed over workers)
     setup_seconds: float = 0.0    # wall time before the first pass: first-hit buffers, sharing, worker start
     parallel: str = ""            # how chunks ran: "processes", "threads: <why>" or "one"
+    tracer: str = "numpy"         # "compiled" (tofcore.compiled) or "numpy" (this module)
+    tracer_reason: str = ""       # why the NumPy tracer ran where numba is installed, or is not
 
     @property
     def rays(self) -> int:
@@ -69,6 +71,7 @@ class TraceStats:
                 "camera_seconds": self.camera_seconds, "bounce_seconds": self.bounce_seconds,
                 "shadow_seconds": self.shadow_seconds, "chunk_seconds": self.chunk_seconds,
                 "setup_seconds": self.setup_seconds, "parallel": self.parallel,
+                "tracer": self.tracer, "tracer_reason": self.tracer_reason,
                 "rays_per_second": self.rays / self.seconds if self.seconds > 0 else None}
 
 
