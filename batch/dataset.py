@@ -13,6 +13,12 @@ Layout
       index.jsonl.rejected   lines of the index that were not records, as they were (if any)
       .lock                  held (flock) while a run writes to the dataset
 
+A run writes nothing outside the dataset folder: each of these paths, when it
+exists, must be a real folder or file, never a symbolic link
+(:meth:`Dataset.check_paths`, :func:`_open_lock_file`); frame folders are made fresh (``mkdir``), files
+are written to temp names (``O_EXCL``) and renamed over, appended files are
+opened with ``O_NOFOLLOW``.
+
 Records
 -------
 A record is a flat JSON object: ``job_id``, ``status`` (``"ok"`` or
@@ -105,6 +111,15 @@ _STRAY_TEMP = re.compile(r"\..+\.tmp-[0-9a-f]{8}")
 
 class DatasetLocked(RuntimeError):
     """Another run holds the dataset's lock."""
+
+
+class UnsafeDataset(RuntimeError):
+    """A folder or file that a run writes is a symbolic link (or not a folder/file): nothing is written."""
+
+
+#: What a run creates or writes in the dataset folder; each must be what it seems, never a symbolic link
+#: (the lock file has its own check: :func:`_open_lock_file`).
+WRITTEN = {FRAMES: "folder", INDEX: "file", CARD: "file", REJECTED: "file"}
 
 
 def _open_lock_file(path: Path):
@@ -206,6 +221,32 @@ def write_record(folder: Path, record: dict) -> dict:
     return {**record, "record_file": record_file_entry(data)}
 
 
+def differing_keys(line: dict, stored) -> list[str]:
+    """The top-level keys in which an index line and its frame's ``record.json`` differ (``record_file``,
+    the index's own entry, left out); ``["record.json"]`` when ``stored`` is not a JSON object.
+
+    Both are compared as JSON values (NaN and inf as null), so a line that is ``record.json`` plus
+    ``record_file`` differs in nothing.
+    """
+    if not isinstance(stored, dict):
+        return [RECORD]
+    ours = json.loads(dumps({k: v for k, v in line.items() if k != "record_file"}))
+    stored = {k: v for k, v in stored.items() if k != "record_file"}
+    return sorted(k for k in ours.keys() | stored.keys() if ours.get(k, _MISSING) != stored.get(k, _MISSING))
+
+
+_MISSING = object()
+
+
+def _read_regular(path: Path) -> bytes:
+    """The bytes of ``path``, a regular file reached without a symbolic link as its last component."""
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
+    with os.fdopen(fd, "rb") as fh:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise OSError(errno.EINVAL, "not a regular file")
+        return fh.read()
+
+
 def publish(partial: Path, final: Path) -> bool:
     """Rename a finished frame folder into place unless one is there; True when this call published it.
 
@@ -305,7 +346,24 @@ class Dataset:
         self._appended: dict[str, str] = {}  # job id -> status of the line this object appended
 
     def create(self) -> None:
+        """Make the dataset and ``frames/`` folders, after :meth:`check_paths`."""
+        self.check_paths()
         self.frames.mkdir(parents=True, exist_ok=True)
+
+    def check_paths(self) -> None:
+        """:class:`UnsafeDataset` when a path of :data:`WRITTEN` exists as a symbolic link or as the wrong kind.
+
+        A run writes only inside the dataset folder: a ``frames`` link to a folder elsewhere would get
+        complete frame folders written there, so links are refused, not followed (the lock file's
+        own check, :func:`_open_lock_file`, also refuses FIFOs and devices).
+        """
+        for name, kind in WRITTEN.items():
+            path = self.root / name
+            if path.is_symlink():
+                raise UnsafeDataset(f"{path}: a symbolic link; a run writes only inside the dataset folder and "
+                                    f"never through links: remove it")
+            if path.exists() and (path.is_dir() != (kind == "folder")):
+                raise UnsafeDataset(f"{path}: must be a {kind}; remove it or choose another --out")
 
     @contextmanager
     def locked(self):
@@ -443,13 +501,13 @@ class Dataset:
     def published_record(self, job_id: str) -> dict | None:
         """The record of the published folder ``frames/<job_id>/`` with its ``record_file`` entry, or None.
 
-        None when there is no such folder, or its ``record.json`` is unreadable, not an ok record
-        (:func:`record_problem`), or names another job.
+        None when there is no such folder (or it is a symbolic link), or its ``record.json`` is unreadable,
+        not a regular file, not an ok record (:func:`record_problem`), or names another job.
         """
-        if not JOB_ID.fullmatch(job_id):
+        if not JOB_ID.fullmatch(job_id) or (self.frames / job_id).is_symlink():
             return None
         try:
-            data = (self.frames / job_id / RECORD).read_bytes()
+            data = _read_regular(self.frames / job_id / RECORD)
             record = json.loads(data)
         except (OSError, ValueError, RecursionError):
             return None
@@ -483,24 +541,30 @@ class Dataset:
         if record.get("status") != "ok":
             return f"status {record.get('status')!r}"
         folder = self.frames / record["job_id"]
+        if folder.is_symlink():
+            return "the frame folder is a symbolic link (a run never publishes one)"
         try:
-            data = (folder / RECORD).read_bytes()
-        except OSError:
-            return f"no {RECORD} in the frame folder"
+            data = _read_regular(folder / RECORD)
+        except OSError as exc:
+            return f"no {RECORD} in the frame folder" if isinstance(exc, FileNotFoundError) else \
+                f"{RECORD}: {exc.strerror}"
         expected = record.get("record_file")
-        if expected is None:
-            try:
-                same = json.loads(data) == json.loads(dumps(record))
-            except (ValueError, RecursionError):
-                same = False
-            if not same:
-                return f"{RECORD} differs from the index line"
-        elif len(data) != expected["bytes"]:
-            return f"{RECORD} has {len(data)} bytes, the index says {expected['bytes']}"
-        elif mode == "sha256" and hashlib.sha256(data).hexdigest() != expected["sha256"]:
-            return f"{RECORD} checksum differs from the index"
+        if expected is not None:
+            if len(data) != expected["bytes"]:
+                return f"{RECORD} has {len(data)} bytes, the index says {expected['bytes']}"
+            if mode == "sha256" and hashlib.sha256(data).hexdigest() != expected["sha256"]:
+                return f"{RECORD} checksum differs from the index"
+        try:
+            stored = json.loads(data)
+        except (ValueError, RecursionError):
+            stored = None
+        changed = differing_keys(record, stored)
+        if changed:
+            return f"the index line differs from {RECORD} in {', '.join(changed)}"
         for entry in record.get("files", []):
             path = folder / entry["name"]
+            if path.is_symlink():
+                return f"{entry['name']} is a symbolic link (a run never writes one)"
             try:
                 size = path.stat().st_size
             except OSError:
@@ -555,6 +619,9 @@ class Dataset:
         for job_id, record in records.items():
             if record["status"] != "ok":
                 counts["failed"] += 1
+                if (self.frames / job_id).exists() or (self.frames / job_id).is_symlink():
+                    problems.append(f"{FRAMES}/{job_id}: the index line says {record['status']!r} but the frame "
+                                    f"folder exists")
                 continue
             counts["ok"] += 1
             counts["record_files"] += 1

@@ -61,7 +61,7 @@ from tofcore.progress import tqdm_class, use_bar
 from tofcore.workers import usable_cpus
 
 from .card import dataset_card
-from .dataset import FRAMES, RECORD, Dataset
+from .dataset import FRAMES, RECORD, Dataset, differing_keys
 from .devices import VISIBLE_ENV, plan_devices
 from .jobs import Job, ViewTask, group_by_view
 from .worker import failed_record, init_worker, run_view
@@ -503,6 +503,12 @@ def plan(jobs: list[Job], data: Dataset, records: dict[str, dict], *, retry_fail
             else:
                 result.skipped_failed += 1
         else:
+            published = data.published_record(job.job_id) if "record_file" in record else None
+            if published is not None and published["record_file"] == record["record_file"] \
+                    and differing_keys(record, published):
+                log(f"note: {job.job_id} ({job.label}): the index line differed from its {RECORD} in "
+                    f"{', '.join(differing_keys(record, published))}; taken from {RECORD}")
+                records[job.job_id] = record = published
             problem = data.verify(record, verify)
             if problem is None:
                 result.done_before += 1
