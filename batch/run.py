@@ -58,7 +58,7 @@ from dataclasses import dataclass, field
 from typing import TextIO
 
 from tofcore.progress import tqdm_class, use_bar
-from tofcore.workers import usable_cpus
+from tofcore.workers import sigint_blocked, usable_cpus
 
 from .card import dataset_card
 from .dataset import FRAMES, RECORD, Dataset, differing_keys
@@ -113,28 +113,6 @@ def signals_deferred():
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-
-
-@contextmanager
-def sigint_blocked():
-    """Block SIGINT in this thread for the duration (processes and threads started meanwhile inherit it).
-
-    Used around starting worker processes: a Ctrl-C in their first seconds (imports), before they
-    ignore SIGINT (:func:`batch.worker.init_worker`; a Dask worker keeps it blocked), would print a
-    KeyboardInterrupt traceback from the child, or stop a Dask nanny's start. This process gets it
-    when it is unblocked.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    from multiprocessing import resource_tracker
-
-    resource_tracker.ensure_running()  # starting its process unblocks SIGINT here: start it first
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 # --------------------------------------------------------------------------- executors

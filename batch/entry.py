@@ -1,0 +1,39 @@
+"""The installed commands' entry points: ``tofcore`` and ``tofcore-batch`` (``[project.scripts]``).
+
+A console script runs ``from MODULE import FUNCTION`` before it calls anything, so Ctrl-C can only be
+taken over once that import is done. ``tofcore.cli`` is inside ``tofcore``, whose ``__init__`` imports
+NumPy and the whole simulator (a few hundred milliseconds); this module is in the package installed
+as ``tofcore_batch``, whose ``__init__`` imports nothing. Each function routes SIGINT and SIGTERM to
+one line (``interrupted (SIGINT): nothing was written``) and exit code 130 / 143 first, then imports
+the command, whose own handlers take over (the tracer's workers ignore SIGINT; the parent stops them).
+Only the interpreter's own start-up (some 10-30 ms) comes before.
+"""
+
+import os
+import signal
+
+
+def _exit_at_once(signum, _frame) -> None:
+    os.write(2, f"\ninterrupted ({signal.Signals(signum).name}): nothing was written\n".encode())
+    os._exit(128 + signum)
+
+
+def _hold() -> None:
+    signal.signal(signal.SIGINT, _exit_at_once)
+    signal.signal(signal.SIGTERM, _exit_at_once)
+
+
+def tofcore() -> int:
+    """The ``tofcore`` command (:func:`tofcore.cli.main`)."""
+    _hold()
+    from tofcore.cli import main
+
+    return main()
+
+
+def tofcore_batch() -> int:
+    """The ``tofcore-batch`` command (:func:`batch.cli.main`)."""
+    _hold()
+    from .cli import main
+
+    return main()
