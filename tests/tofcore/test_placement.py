@@ -114,3 +114,30 @@ def test_a_bad_origin_in_a_scene_file_is_named(tmp_path, origin):
     assert zipfile.is_zipfile(tmp_path / "bad.npz")
     with pytest.raises(tofcore.errors.SceneError, match=r"bad\.npz.*origin_m must be 3 finite numbers"):
         Scene.load(tmp_path / "bad.npz")
+
+
+# --------------------------------------------------------------------------- issue 23, class 4
+
+@pytest.mark.parametrize("offset_m", [1e5, 1e6])
+def test_a_far_scene_file_stored_without_recentring_is_recentred_on_load(tmp_path, offset_m):
+    """A file made elsewhere: world coordinates 1e5-1e6 m out and origin_m 0 (or no key): recentred anyway."""
+    offset = np.array([offset_m, -0.5 * offset_m, 0.0])
+    far = Scene.from_arrays(ROOM.vertices.astype(np.float64) + offset, ROOM.triangles, ROOM.material_ids,
+                            ROOM.materials, origin_m=(0.0, 0.0, 0.0))
+    assert np.abs(np.asarray(far.origin_m) - offset).max() < 3.0 and np.abs(far.vertices).max() < 10.0
+    path = far.save(tmp_path / "far.npz")
+    again = Scene.load(path)
+    assert again.origin_m == far.origin_m and np.array_equal(again.vertices, far.vertices)
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"origin_m": (1e300, 0.0, 0.0)}, "origin_m must be 3 finite numbers (metres) within float32 range"),
+    ({"vertex": 1e39}, "vertices must be within float32 range"),
+])
+def test_values_float32_cannot_hold_are_refused_naming_the_field(kwargs, needle):
+    vertices = ROOM.vertices.astype(np.float64).copy()
+    if "vertex" in kwargs:
+        vertices[3, 0] = kwargs.pop("vertex")
+    with pytest.raises(tofcore.SceneError) as exc:
+        Scene.from_arrays(vertices, ROOM.triangles, ROOM.material_ids, ROOM.materials, **kwargs)
+    assert needle in str(exc.value) and "\n" not in str(exc.value)
