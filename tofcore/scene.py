@@ -40,6 +40,7 @@ import numpy as np
 from . import limits
 from .errors import ConfigError, SceneError, TofError
 from .material import Material, Texture
+from .pose import rigid_problem
 
 FORMAT_VERSION = 1
 """Version of the ``.npz`` layout written by :meth:`Scene.save`."""
@@ -449,6 +450,9 @@ def _header(value: np.ndarray, where: str) -> dict:
         if matrix is None or matrix.shape != (4, 4) or not np.isfinite(matrix).all():
             raise SceneError(f"{where}: header metadata.world_from_sensor must be a 4x4 matrix of finite numbers, "
                              f"got {pose!r}")
+        problem = rigid_problem(matrix)
+        if problem is not None:
+            raise SceneError(f"{where}: header metadata.world_from_sensor must be a rigid transform: {problem}")
     return header
 
 

@@ -52,9 +52,10 @@ from .errors import Cancelled, ConfigError
 from .led import LED
 from .light_paths import bsdf_strategy_weight, connect, led_probabilities, trace_light_vertices
 from .plan import leds_at_pinhole
+from .pose import rigid_problem
 from .scene import Scene
 from .backend import namespace, scatter_sum
-from .surface import MaterialTable, Surface, dot, leaving, rotate, shadow_ray, surface_at
+from .surface import MaterialTable, Surface, dot, leaving, point_offset, rotate, shadow_ray, spawn_offset, surface_at
 from .workers import process_support, usable_cpus
 
 SPEED_OF_LIGHT_M_S = 299_792_458.0
@@ -290,7 +291,6 @@ class _Context:
     sampler: str                # "sobol" or "independent" (tofcore.qmc.SAMPLERS)
     light_paths: bool           # connect camera vertices to light vertices (tofcore.light_paths)
     led_probability: np.ndarray  # (L,) host: probability of each LED emitting the light vertex
-    offset_scale: float
     transient_bins: int
     transient_bin_m: float | None
 
@@ -548,10 +548,9 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
     if pose.shape != (4, 4) or not np.isfinite(pose).all():
         raise ConfigError(f"trace: world_from_sensor must be a finite 4x4 matrix, got shape {pose.shape}")
     rot = pose[:3, :3]
-    if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) or np.linalg.det(rot) < 0 \
-            or not np.allclose(pose[3], [0, 0, 0, 1]):
-        raise ConfigError("trace: world_from_sensor must be a rigid transform (rotation + translation, "
-                          "no scale or shear; last row 0 0 0 1)")
+    problem = rigid_problem(pose)
+    if problem is not None:
+        raise ConfigError(f"trace: world_from_sensor must be a rigid transform (rotation + translation): {problem}")
     if not callable(correlations):
         correlations = CorrelationList(tuple(correlations))
         for j, g in enumerate(correlations.functions):
@@ -569,8 +568,6 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
     positions = np.array([x.position_m for x in leds])
     lens_scene = pose[:3, 3] - np.asarray(scene.origin_m)  # the tracer works in the scene frame
     led_scene = positions @ rot.T + lens_scene
-    lo, hi = scene.bounds
-    extent = float(np.max(np.abs(np.concatenate([lo, hi, lens_scene]))))
     xp = device.xp
     return _Context(
         scene=scene, table=MaterialTable(scene, xp), camera=camera, device=device, world_from_sensor=pose,
@@ -582,7 +579,6 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
         max_depth=int(max_depth), key=rng.seed_key(seed), sampler=sampler,
         light_paths=bool(light_paths) and max_depth >= 2 and led_probabilities(leds).sum() > 0,
         led_probability=led_probabilities(leds),
-        offset_scale=_OFFSET_RELATIVE * max(extent, 1e-3),
         transient_bins=bins, transient_bin_m=transient_bin_m)
 
 
@@ -612,17 +608,6 @@ def gpu_chunk_paths(xp, n_correlations: int) -> int:
     return int(min(GPU_MAX_CHUNK_PATHS, max(CPU_CHUNK_PATHS, free * GPU_MEMORY_FRACTION // per_path)))
 
 
-_OFFSET_RELATIVE = 2.0**-16
-"""Ray-origin offset along the geometric normal, relative to the scene's extent.
-
-~1.5e-5 m per metre of scene: about 250 float32 ulps of the largest coordinate,
-far above the rounding of a float32 hit point (so no self-hit on neighbouring
-triangles) and far below any feature a ToF pixel resolves (so the corner of
-two walls shows no gap — the fixed epsilon of the thesis did, §6.3). The
-triangle a ray leaves is excluded outright (``ignore_prim``).
-"""
-
-
 def _first_hit(ctx: _Context, stats: TraceStats) -> FirstHit:
     """Trace the pixel-centre rays on the tracing device; the buffers come back as NumPy arrays."""
     xp = ctx.device.xp
@@ -630,7 +615,7 @@ def _first_hit(ctx: _Context, stats: TraceStats) -> FirstHit:
     d = rotate(xp.asarray(cam.pixel_center_directions().reshape(-1, 3).astype(np.float64)), ctx.rotation)
     n = len(d)
     origin = xp.broadcast_to(ctx.lens_center, (n, 3))
-    hits = ctx.scene.bvh.intersect(leaving(origin, d, ctx.offset_scale), d.astype(np.float32))
+    hits = ctx.scene.bvh.intersect(leaving(origin, d), d.astype(np.float32))
     stats.camera_rays += n
     hit = hits.prim >= 0
     distance = xp.full(n, np.nan)
@@ -691,7 +676,7 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
 
     for depth in range(1, ctx.max_depth + 1):
         clock = time.perf_counter()
-        query = leaving(origin, direction, ctx.offset_scale) if depth == 1 else origin.astype(np.float32)
+        query = leaving(origin, direction) if depth == 1 else origin.astype(np.float32)
         hits = ctx.scene.bvh.intersect(query, direction.astype(np.float32), ignore_prim=prev_prim, workers=1)
         if depth == 1:
             stats.camera_rays += len(slot)
@@ -715,7 +700,8 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
         segment = np.linalg.norm(surf.position - prev_point, axis=1)
         path_length = path_length + segment
         wo = surf.to_local(-direction)
-        spawn = surf.position + surf.geometric_normal * ctx.offset_scale
+        corners = ctx.table.vertices[ctx.table.triangles[prim]]      # (N, 3, 3) the hit triangles, for the offset
+        spawn = surf.position + surf.geometric_normal * spawn_offset(surf.position, surf.geometric_normal, corners)[:, None]
         # Area density at this vertex of having sampled it from the previous one (MIS with light vertices).
         bsdf_area_pdf = (prev_pdf * dot(-direction, surf.geometric_normal) / segment**2
                          if ctx.light_paths and depth >= 2 else None)
@@ -813,7 +799,7 @@ def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndar
         stats.skipped_shadow_rays += len(test)
     elif len(test):
         clock = time.perf_counter()
-        blocked = ctx.scene.bvh.occluded(*shadow_ray(spawn[test], ctx.led_positions[i], ctx.offset_scale),
+        blocked = ctx.scene.bvh.occluded(*shadow_ray(spawn[test], ctx.led_positions[i], point_offset(ctx.led_positions[i][None])),
                                          ignore_prim=prim[test], workers=1)
         stats.shadow_rays += len(test)
         stats.shadow_seconds += time.perf_counter() - clock

@@ -157,6 +157,9 @@ BAD_SCENES = {
                                "array 'texture/5/roughness_texture' must be named texture/<material index < 1>"),
     "pose_not_a_matrix": (lambda a: dict(a, header=_header(metadata={"world_from_sensor": [[1, 2]]})),
                           "metadata.world_from_sensor must be a 4x4 matrix"),
+    "pose_scaled": (lambda a: dict(a, header=_header(metadata={"world_from_sensor": (2 * np.eye(4)).tolist()})),
+                    "header metadata.world_from_sensor must be a rigid transform: its rotation must be orthonormal "
+                    "(no scale or shear), got axis lengths [2.0, 2.0, 2.0]"),
 }
 
 
