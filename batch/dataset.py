@@ -648,7 +648,13 @@ class Dataset:
         return {"problems": problems, "notes": notes, "counts": counts}
 
     def write_card(self, text: str) -> None:
-        write_bytes_atomic(self.root / CARD, text.encode())
+        write_bytes_atomic(self.root / CARD, utf8_text(text))
+
+
+def utf8_text(text: str) -> bytes:
+    """``text`` as UTF-8 for a Markdown file; bytes of a path that were not UTF-8 (kept by Python as lone
+    surrogates, PEP 383) are spelled ``\\xNN``, so the file stays valid UTF-8 and shows them."""
+    return re.sub("[\udc80-\udcff]", lambda m: f"\\x{ord(m.group()) - 0xDC00:02x}", text).encode()
 
 
 def _write_all(fd: int, data: bytes) -> None:
