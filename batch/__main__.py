@@ -3,7 +3,8 @@ installed (the same package, ``batch/`` installs as ``tofcore_batch``): see the 
 
 Ctrl-C and SIGTERM are taken over by the first lines here, before any import of this package's
 modules (those take a few hundred milliseconds): one line and exit code 130 / 143 until a command
-installs its own handlers (``batch.entry``, ``batch.cli.hold_signals``). Only the interpreter's own start-up comes first.
+installs its own handlers (``batch.entry``, ``batch.cli.hold_signals``). Only the interpreter's own
+start-up comes first.
 """
 
 if __name__ == "__main__":

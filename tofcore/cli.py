@@ -182,9 +182,10 @@ def cmd_render(args: argparse.Namespace) -> int:
         valid = frame.valid.mean() * 100
         err = frame.depth - frame.gt_depth
         rms = float(np.sqrt(np.nanmean(err[frame.valid] ** 2))) * 1000 if frame.valid.any() else float("nan")
+        rate = stats["transport"]["rays_per_second"] / 1e6
         for line in (_convergence_table(stats["convergence"]),
-                     f"{stats['spp']} spp in {stats['seconds']:.1f} s ({stats['transport']['rays_per_second'] / 1e6:.2f} "
-                     f"M rays/s); valid {valid:.1f} %; RMS depth error vs ground truth {rms:.1f} mm",
+                     f"{stats['spp']} spp in {stats['seconds']:.1f} s ({rate:.2f} M rays/s); valid {valid:.1f} %; "
+                     f"RMS depth error vs ground truth {rms:.1f} mm",
                      f"wrote {len(files)} files to {args.out}/: {', '.join(sorted(p.name for p in files.values()))}"):
             if not say(line):
                 break

@@ -592,8 +592,9 @@ class Dataset:
             shown = "; ".join(self.refused.values()) if len(self.refused) <= 3 else \
                 "; ".join(list(self.refused.values())[:3]) + " …"
             warnings.warn(f"{self.root}: {len(self.refused)} frame(s) refused: {shown}", stacklevel=3)
+        known = self._refs.keys() | self.refused.keys()
         self.unindexed = sorted(p.name for p in (self.root / FRAMES).iterdir()
-                                if _JOB_ID.fullmatch(p.name) and p.name not in self._refs and p.name not in self.refused)
+                                if _JOB_ID.fullmatch(p.name) and p.name not in known)
         if self.unindexed:
             warnings.warn(f"{self.root}: {len(self.unindexed)} frame folder(s) in {FRAMES}/ are not in {INDEX} and "
                           f"not listed (e.g. {self.unindexed[0]}); running the set again (tofcore-batch run) "

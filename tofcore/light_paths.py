@@ -136,8 +136,9 @@ def connect(ctx, stats, light: LightVertices, slot, surf: Surface, spawn, wo, pr
     if len(test):
         clock = time.perf_counter()
         # Stop short of y by a few ray offsets, so y's own surface does not occlude it.
-        blocked = ctx.scene.bvh.occluded(*shadow_ray(spawn[sel[test]], y.position[test], 4.0 * spawn_offset(
-                y.position[test], y.geometric_normal[test], ctx.table.vertices[ctx.table.triangles[light.prim[rows[test]]]])),
+        corners = ctx.table.vertices[ctx.table.triangles[light.prim[rows[test]]]]  # y's triangles
+        margin = 4.0 * spawn_offset(y.position[test], y.geometric_normal[test], corners)
+        blocked = ctx.scene.bvh.occluded(*shadow_ray(spawn[sel[test]], y.position[test], margin),
                                          ignore_prim=prim[sel[test]], workers=1)
         stats.shadow_rays += len(test)
         stats.shadow_seconds += time.perf_counter() - clock

@@ -701,7 +701,8 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
         path_length = path_length + segment
         wo = surf.to_local(-direction)
         corners = ctx.table.vertices[ctx.table.triangles[prim]]      # (N, 3, 3) the hit triangles, for the offset
-        spawn = surf.position + surf.geometric_normal * spawn_offset(surf.position, surf.geometric_normal, corners)[:, None]
+        offset = spawn_offset(surf.position, surf.geometric_normal, corners)
+        spawn = surf.position + surf.geometric_normal * offset[:, None]
         # Area density at this vertex of having sampled it from the previous one (MIS with light vertices).
         bsdf_area_pdf = (prev_pdf * dot(-direction, surf.geometric_normal) / segment**2
                          if ctx.light_paths and depth >= 2 else None)
@@ -799,7 +800,8 @@ def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndar
         stats.skipped_shadow_rays += len(test)
     elif len(test):
         clock = time.perf_counter()
-        blocked = ctx.scene.bvh.occluded(*shadow_ray(spawn[test], ctx.led_positions[i], point_offset(ctx.led_positions[i][None])),
+        margin = point_offset(ctx.led_positions[i][None])  # stop short of the LED (flush with a wall)
+        blocked = ctx.scene.bvh.occluded(*shadow_ray(spawn[test], ctx.led_positions[i], margin),
                                          ignore_prim=prim[test], workers=1)
         stats.shadow_rays += len(test)
         stats.shadow_seconds += time.perf_counter() - clock
