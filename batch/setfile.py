@@ -651,9 +651,7 @@ def _scene(ctx: _Context, value: object, path: list, *, presets, quality: Qualit
         try:
             limits.check_render(preset.sensor, max_depth=scene_quality.max_depth, where=f"preset {preset.label!r}")
         except ConfigError as err:
-            # The pose's own keys: up when up is parallel to the view (if the pose sets it), else eye.
-            key = "up" if str(err).startswith("look_at: up") else "eye"
-            raise ctx.error(path + [key] if key in table else path, str(err)) from None
+            raise ctx.error(path + ["presets"] if "presets" in table else ["presets"], str(err)) from None
     cameras = frames = None
     for key in ("cameras", "frames"):
         if key in table and kind != "blend":

@@ -396,6 +396,8 @@ def _interpreter_start_up(returncode: int, stderr: str) -> bool:
     killed before Python handled SIGINT at all, or Python's own report (site, runpy, import machinery)."""
     if returncode == -signal.SIGINT and not stderr:
         return True
+    if "Fatal Python error: init_import_site" in stderr:  # the site module, importing the standard library
+        return True
     frames = [line for line in stderr.splitlines() if line.startswith('  File "')]
     return returncode != 0 and "KeyboardInterrupt" in stderr and all("<frozen" in f or "site-packages" in f
                                                                       for f in frames)
