@@ -32,7 +32,7 @@ What is exported
   not a near-IR radiance, so ``ambient_scale`` (default 1.0) converts it;
   no world or a black one gives no ambient light.
 * The sensor pose of ``camera_obj``: ``world_from_sensor = matrix_world @
-  diag(1, −1, −1, 1)`` (:func:`tofcore.pose.from_blender_matrix_world`), with
+  diag(1, −1, −1, 1)`` (:func:`tofcore.scene.pose.from_blender_matrix_world`), with
   any object scale removed as Blender's own projection does.
 
 Example
@@ -159,7 +159,7 @@ def camera_pose(camera_obj, depsgraph=None) -> np.ndarray:
         raise tofcore.ConfigError(f"camera {camera_obj.name!r}: matrix_world must not have a zero scale, "
                                   f"got column lengths {norms.tolist()}")
     matrix[:3, :3] /= norms
-    return tofcore.pose.from_blender_matrix_world(matrix)
+    return tofcore.scene.pose.from_blender_matrix_world(matrix)
 
 
 def camera_intrinsics(camera_obj, scene) -> dict:

@@ -13,7 +13,7 @@ image              content (RGBA float, display-ready values, colour space Non-C
 
 After a render that wrote PNGs, ``ToF Convergence`` shows the final frame's
 ``convergence.png`` (estimated depth error against time, spp on top; drawn by
-:mod:`tofcore.convergence_plot`), loaded from the written file
+:mod:`tofcore.output.convergence_plot`), loaded from the written file
 (:func:`load_convergence_image`) and reloaded from it by the next render.
 
 Each image's custom property ``tof_device`` names the device that rendered it

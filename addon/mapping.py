@@ -113,7 +113,7 @@ BLENDER_DEFAULT_BASE_COLOR = (0.8, 0.8, 0.8)
 BLENDER_DEFAULT_ROUGHNESS = 0.5
 BLENDER_DEFAULT_IOR = 1.5
 
-#: Limits of tofcore.Material's fields (see tofcore/material.py).
+#: Limits of tofcore.Material's fields (see tofcore/scene/material.py).
 SIGMA_MAX = math.pi / 2
 IOR_RANGE = (1.0, 10.0)
 EXTINCTION_MAX = 100.0

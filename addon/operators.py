@@ -250,7 +250,7 @@ def prepare_render(context, report, *, preview: bool = False) -> RenderJob | Non
         return None
     for warning in result.warnings:
         report({'WARNING'}, warning)
-    if "exr" in formats and tofcore.writers.OpenEXR is None:
+    if "exr" in formats and tofcore.output.writers.OpenEXR is None:
         report({'WARNING'}, "EXR skipped: the OpenEXR package is not installed")
         formats = tuple(f for f in formats if f != "exr")
     pose = result.world_from_sensor
@@ -308,7 +308,7 @@ def device_report(frame, report) -> None:
     if device.get("fallback_reason"):
         report({'WARNING'}, gpu.fallback_warning(device["fallback_reason"]))
     parallel = (frame.stats.get("transport") or {}).get("parallel", "")
-    if parallel.startswith("threads: "):  # worker processes could not start here (tofcore.workers)
+    if parallel.startswith("threads: "):  # worker processes could not start here (tofcore.tracer.workers)
         report({'WARNING'}, f"ToF render ran on CPU threads, not worker processes: {parallel[len('threads: '):]}")
 
 

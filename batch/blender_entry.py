@@ -98,7 +98,7 @@ def main(argv: list[str] | None = None) -> int:
     from batch import blend
     from batch.jobs import BlendInfo, expand
     from batch.run import Interrupted, install_signal_handlers, run_jobs, summary
-    from batch.cli import FLAG_OF_KEY, flag_error
+    from batch.setfile import FLAG_OF_KEY, flag_error
     from batch.setfile import parse_set
     from tofcore.errors import TofError
 

@@ -42,7 +42,7 @@ import sys
 import threading
 from pathlib import Path
 
-from .entry import _exit_at_once
+from .interrupt import exit_at_once as _exit_at_once
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
@@ -80,33 +80,6 @@ def _scheduler(text: str) -> str:
         raise argparse.ArgumentTypeError(f"must be a Dask scheduler address tcp://HOST:PORT (or tls://, ucx://, "
                                          f"ws://, wss://; port 1-65535), got {text!r}")
     return text.strip()
-
-
-#: The keys of the one-scene set that ``compare`` and the Blender entry script build from their flags.
-FLAG_OF_KEY = {
-    "scenes.npz": "--scene", "scenes.blend": "--scene", "scenes.demo": "--scene", "scenes.poses": "--eye/--target",
-    "scenes.cameras": "--camera", "scenes.frames": "--frame", "scenes.ambient_w_m2_sr": "--ambient",
-    "presets": "--presets", "resolution_scale": "--resolution-scale", "quality.spp": "--spp",
-    "quality.max_depth": "--max-depth", "quality.time_budget_s": "--time-budget",
-    "quality.target_error_m": "--target-error", "seed": "--seed", "output.formats": "--formats", "scenes": "--scene",
-}
-
-
-def flag_error(text: str, flags: dict[str, str]) -> str:
-    """A set error of a set built from flags, ``"set: scenes[0].npz: …"``, as ``"--scene: …"``.
-
-    ``flags`` maps dotted keys without indices to flags; the longest matching prefix wins; a key without
-    a flag stays, as ``"arguments: key: …"``.
-    """
-    if not text.startswith("set: "):
-        return text
-    key, _, rest = text[len("set: "):].partition(": ")
-    parts = re.sub(r"\[\d+\]", "", key).split(".")
-    for n in range(len(parts), 0, -1):
-        flag = flags.get(".".join(parts[:n]))
-        if flag:
-            return f"{flag}: {rest}"
-    return f"arguments: {key}: {rest}"
 
 
 def add_quality_options(parser: argparse.ArgumentParser, *, seed_help: str, ambient_help: str,

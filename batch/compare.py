@@ -109,8 +109,9 @@ def comparison_image(rows: list[tuple[str, dict[str, np.ndarray]]]) -> tuple[np.
     ``rows``: (label, EXR channels) per preset; the channels used are depth,
     gt_depth, valid and reason.
     """
-    from tofcore.frame import Reason
-    from tofcore.writers import _DIVERGING, _REASON_RGB, _TURBO, _apply_lut
+    from tofcore.output.frame import Reason
+    from tofcore.output.png import DIVERGING, TURBO, apply_lut
+    from tofcore.output.writers import _REASON_RGB
 
     depths = [np.where(ch["valid"] > 0, ch["depth"], np.nan).astype(np.float64) for _, ch in rows]
     finite = np.concatenate([d[np.isfinite(d)] for d in depths]) if depths else np.array([])
@@ -121,8 +122,8 @@ def comparison_image(rows: list[tuple[str, dict[str, np.ndarray]]]) -> tuple[np.
     palette = np.array([_VALID_GREY if r == Reason.VALID else _REASON_RGB[r] for r in Reason], dtype=np.uint8)
     cells = []
     for (label, ch), depth, error in zip(rows, depths, errors):
-        depth_rgb = _apply_lut((depth - lo) / (hi - lo if hi > lo else 1.0), _TURBO)
-        error_rgb = _apply_lut((error / limit_mm + 1.0) / 2.0, _DIVERGING)
+        depth_rgb = apply_lut((depth - lo) / (hi - lo if hi > lo else 1.0), TURBO)
+        error_rgb = apply_lut((error / limit_mm + 1.0) / 2.0, DIVERGING)
         codes = np.clip(ch["reason"].astype(np.int64), 0, len(palette) - 1)
         cells.append((label, [_resize_nearest(img, CELL_WIDTH) for img in (depth_rgb, error_rgb, palette[codes])]))
     row_heights = [max(img.shape[0] for img in imgs) for _, imgs in cells]
@@ -159,7 +160,7 @@ def _mm(value: float | None) -> str:
 
 def table_rows(records: list[dict], channels: list[dict[str, np.ndarray]]) -> list[dict]:
     """One dict per preset: the figures of the module docstring (metres, seconds, fractions)."""
-    from tofcore.frame import Reason
+    from tofcore.output.frame import Reason
 
     rows = []
     for record, ch in zip(records, channels):
@@ -210,7 +211,7 @@ def compare(args: argparse.Namespace) -> int:
     from .run import run_jobs, summary
     from .setfile import parse_set
 
-    from .cli import FLAG_OF_KEY, flag_error
+    from .setfile import FLAG_OF_KEY, flag_error
 
     if importlib.util.find_spec("OpenEXR") is None:  # compare has no --formats: its frames are always EXR
         raise tofcore.ConfigError("compare: writes every frame as EXR, which needs the OpenEXR package, not "
@@ -237,9 +238,9 @@ def compare(args: argparse.Namespace) -> int:
         return 1
     channels = [tofcore.read_exr(out / r["dir"] / "frame.exr") for r in records]
     image, limits = comparison_image([(r["preset"], ch) for r, ch in zip(records, channels)])
-    from tofcore.writers import _encode_png
+    from tofcore.output.png import encode_png
 
-    write_bytes_atomic(out / "compare.png", _encode_png(image))
+    write_bytes_atomic(out / "compare.png", encode_png(image))
     rows = table_rows(records, channels)
     title = f"Sensor comparison: {view.label}"
     write_bytes_atomic(out / "compare.md", utf8_text(markdown_table(rows, title)))

@@ -92,14 +92,12 @@ from collections.abc import Iterable
 from contextlib import contextmanager
 from pathlib import Path
 
-FRAMES = "frames"
-INDEX = "index.jsonl"
+from tofcore.output.dataset import FRAMES, INDEX, RECORD, STATUSES, read_regular
+from tofcore.output.dataset import differing_keys as reader_differing_keys
+
 CARD = "README.md"
-RECORD = "record.json"
 LOCK = ".lock"
-REJECTED = "index.jsonl.rejected"
-#: Values of a record's ``status``.
-STATUSES = ("ok", "failed")
+REJECTED = INDEX + ".rejected"
 #: A job id (``batch.jobs.JOB_ID_HEX`` hex digits); also what makes ``frames/<job_id>`` a safe path.
 JOB_ID = re.compile(r"[0-9a-f]{16}")
 _SHA256 = re.compile(r"[0-9a-f]{64}")
@@ -225,26 +223,12 @@ def differing_keys(line: dict, stored) -> list[str]:
     """The top-level keys in which an index line and its frame's ``record.json`` differ (``record_file``,
     the index's own entry, left out); ``["record.json"]`` when ``stored`` is not a JSON object.
 
-    Both are compared as JSON values (NaN and inf as null), so a line that is ``record.json`` plus
-    ``record_file`` differs in nothing.
+    The line is compared as JSON (NaN and inf as null, :func:`dumps`), so a line that is ``record.json``
+    plus ``record_file`` differs in nothing (:func:`tofcore.output.dataset.differing_keys`, the reader's).
     """
     if not isinstance(stored, dict):
         return [RECORD]
-    ours = json.loads(dumps({k: v for k, v in line.items() if k != "record_file"}))
-    stored = {k: v for k, v in stored.items() if k != "record_file"}
-    return sorted(k for k in ours.keys() | stored.keys() if ours.get(k, _MISSING) != stored.get(k, _MISSING))
-
-
-_MISSING = object()
-
-
-def _read_regular(path: Path) -> bytes:
-    """The bytes of ``path``, a regular file reached without a symbolic link as its last component."""
-    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
-    with os.fdopen(fd, "rb") as fh:
-        if not stat.S_ISREG(os.fstat(fd).st_mode):
-            raise OSError(errno.EINVAL, "not a regular file")
-        return fh.read()
+    return reader_differing_keys(json.loads(dumps(line)), stored)
 
 
 def publish(partial: Path, final: Path) -> bool:
@@ -507,7 +491,7 @@ class Dataset:
         if not JOB_ID.fullmatch(job_id) or (self.frames / job_id).is_symlink():
             return None
         try:
-            data = _read_regular(self.frames / job_id / RECORD)
+            data = read_regular(self.frames / job_id / RECORD)
             record = json.loads(data)
         except (OSError, ValueError, RecursionError):
             return None
@@ -515,10 +499,6 @@ class Dataset:
             return None
         record["record_file"] = record_file_entry(data)
         return record
-
-    def folder_record(self, job_id: str) -> dict | None:
-        """Alias of :meth:`published_record` (the name used before it checked the record)."""
-        return self.published_record(job_id)
 
     def settle(self, record: dict) -> dict:
         """The record to index for a job a worker reported: its published folder's record when there is one.
@@ -544,7 +524,7 @@ class Dataset:
         if folder.is_symlink():
             return "the frame folder is a symbolic link (a run never publishes one)"
         try:
-            data = _read_regular(folder / RECORD)
+            data = read_regular(folder / RECORD)
         except OSError as exc:
             return f"no {RECORD} in the frame folder" if isinstance(exc, FileNotFoundError) else \
                 f"{RECORD}: {exc.strerror}"

@@ -9,23 +9,12 @@ the command, whose own handlers take over (the tracer's workers ignore SIGINT; t
 Only the interpreter's own start-up (some 10-30 ms) comes before.
 """
 
-import os
-import signal
-
-
-def _exit_at_once(signum, _frame) -> None:
-    os.write(2, f"\ninterrupted ({signal.Signals(signum).name}): nothing was written\n".encode())
-    os._exit(128 + signum)
-
-
-def _hold() -> None:
-    signal.signal(signal.SIGINT, _exit_at_once)
-    signal.signal(signal.SIGTERM, _exit_at_once)
+from .interrupt import hold
 
 
 def tofcore() -> int:
     """The ``tofcore`` command (:func:`tofcore.cli.main`)."""
-    _hold()
+    hold()
     from tofcore.cli import main
 
     return main()
@@ -33,7 +22,7 @@ def tofcore() -> int:
 
 def tofcore_batch() -> int:
     """The ``tofcore-batch`` command (:func:`batch.cli.main`)."""
-    _hold()
+    hold()
     from .cli import main
 
     return main()

@@ -158,7 +158,7 @@ def random_poses(pose: PoseSpec) -> list[np.ndarray]:
 
     Reproducible: the generator is seeded with the entry's ``seed`` only.
     """
-    from tofcore.pose import look_at
+    from tofcore.scene.pose import look_at
 
     rng = np.random.default_rng(np.random.SeedSequence([pose.seed, 0x905E]))
     lo, hi = np.asarray(pose.box_min), np.asarray(pose.box_max)

@@ -58,7 +58,8 @@ from dataclasses import dataclass, field
 from typing import TextIO
 
 from tofcore.progress import tqdm_class, use_bar
-from tofcore.workers import sigint_blocked, usable_cpus
+from tofcore.limits import usable_cpus
+from tofcore.tracer.workers import sigint_blocked
 
 from .card import dataset_card
 from .dataset import FRAMES, RECORD, Dataset, differing_keys

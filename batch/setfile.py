@@ -135,7 +135,7 @@ from typing import Any
 import numpy as np
 
 from tofcore import limits
-from tofcore.errors import ConfigError, LimitError, SceneError
+from tofcore.errors import ConfigError, LimitError, SceneError, is_number
 
 #: Formats a frame can be written in (``tofcore.write_frame``).
 FORMATS = ("exr", "png", "ply", "json")
@@ -328,10 +328,6 @@ def _check_keys(ctx: _Context, data: object, path: list, valid: Sequence[str], w
     return dict(data)
 
 
-def _is_number(value: object) -> bool:
-    return isinstance(value, (int, float)) and not isinstance(value, bool)
-
-
 def _int(ctx: _Context, value: object, path: list, minimum: int) -> int:
     if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
         raise ctx.fail(path, f"an integer >= {minimum}", value)
@@ -349,7 +345,7 @@ def _limit(ctx: _Context, limit: limits.Limit, value: int, path: list, what: str
 
 
 def _positive(ctx: _Context, value: object, path: list, unit: str = "", allow_zero: bool = False) -> float:
-    ok = _is_number(value) and math.isfinite(value) and (value >= 0 if allow_zero else value > 0)
+    ok = is_number(value) and math.isfinite(value) and (value >= 0 if allow_zero else value > 0)
     if not ok:
         raise ctx.fail(path, f"a finite number {'>=' if allow_zero else '>'} 0{(' (' + unit + ')') if unit else ''}",
                        value)
@@ -363,7 +359,7 @@ def _string(ctx: _Context, value: object, path: list) -> str:
 
 
 def _vector3(ctx: _Context, value: object, path: list) -> tuple[float, float, float]:
-    if not isinstance(value, list) or len(value) != 3 or not all(_is_number(v) and math.isfinite(v) for v in value):
+    if not isinstance(value, list) or len(value) != 3 or not all(is_number(v) and math.isfinite(v) for v in value):
         raise ctx.fail(path, "a list of 3 finite numbers (metres, world frame)", value)
     return tuple(float(v) for v in value)
 
@@ -371,7 +367,7 @@ def _vector3(ctx: _Context, value: object, path: list) -> tuple[float, float, fl
 def _matrix(ctx: _Context, value: object, path: list) -> tuple[tuple[float, ...], ...]:
     rule = "a 4x4 rigid transform (4 rows of 4 numbers, last row [0, 0, 0, 1], orthonormal rotation)"
     if (not isinstance(value, list) or len(value) != 4
-            or not all(isinstance(r, list) and len(r) == 4 and all(_is_number(v) for v in r) for r in value)):
+            or not all(isinstance(r, list) and len(r) == 4 and all(is_number(v) for v in r) for r in value)):
         raise ctx.fail(path, rule, value)
     m = np.array(value, dtype=np.float64)
     rotation = m[:3, :3]
@@ -387,7 +383,7 @@ _NPZ_CHECKED: dict[tuple[str, int, int], None] = {}
 def _check_npz(ctx: _Context, source: str, path: list) -> None:
     """Load the scene file once (per path, size and time) so that a damaged one is reported here, naming the key,
     and not as a failed frame after the run has started."""
-    from tofcore.scene import Scene
+    from tofcore.scene.scene import Scene
 
     st = Path(source).stat()
     key = (source, st.st_size, st.st_mtime_ns)
@@ -492,7 +488,7 @@ def scaled_sensor(sensor, factor: float):
 
 def _preset(ctx: _Context, entry: object, path: list, default_scale: float):
     import tofcore
-    from tofcore.presets import list_presets
+    from tofcore.sensor.presets import list_presets
 
     if isinstance(entry, str):
         entry = {"preset": entry}
@@ -565,7 +561,7 @@ def _quality(ctx: _Context, value: object, path: list, base: Quality) -> Quality
 
 
 def _pose(ctx: _Context, value: object, path: list, set_seed: int) -> PoseSpec:
-    from tofcore.pose import look_at
+    from tofcore.scene.pose import look_at
 
     all_keys = sorted({k for keys in _POSE_KEYS.values() for k in keys})
     if not isinstance(value, Mapping):
@@ -748,3 +744,30 @@ def load_set(path: str | Path) -> SetSpec:
     except tomllib.TOMLDecodeError as err:  # "… (at line L, column C)"
         raise SetFileError(f"{path}: invalid TOML: {err}") from None
     return parse_set(data, path, text)
+
+
+#: The keys of the one-scene set that ``compare`` and the Blender entry script build from their flags.
+FLAG_OF_KEY = {
+    "scenes.npz": "--scene", "scenes.blend": "--scene", "scenes.demo": "--scene", "scenes.poses": "--eye/--target",
+    "scenes.cameras": "--camera", "scenes.frames": "--frame", "scenes.ambient_w_m2_sr": "--ambient",
+    "presets": "--presets", "resolution_scale": "--resolution-scale", "quality.spp": "--spp",
+    "quality.max_depth": "--max-depth", "quality.time_budget_s": "--time-budget",
+    "quality.target_error_m": "--target-error", "seed": "--seed", "output.formats": "--formats", "scenes": "--scene",
+}
+
+
+def flag_error(text: str, flags: dict[str, str]) -> str:
+    """A set error of a set built from flags, ``"set: scenes[0].npz: …"``, as ``"--scene: …"``.
+
+    ``flags`` maps dotted keys without indices to flags; the longest matching prefix wins; a key without
+    a flag stays, as ``"arguments: key: …"``.
+    """
+    if not text.startswith("set: "):
+        return text
+    key, _, rest = text[len("set: "):].partition(": ")
+    parts = re.sub(r"\[\d+\]", "", key).split(".")
+    for n in range(len(parts), 0, -1):
+        flag = flags.get(".".join(parts[:n]))
+        if flag:
+            return f"{flag}: {rest}"
+    return f"arguments: {key}: {rest}"

@@ -82,7 +82,7 @@ def _exit_stopped() -> None:
     ``os._exit`` skips the pool's clean-up: its semaphores would stay registered, and Python's
     resource tracker would print a "leaked semaphore objects" warning on the run's stderr at the end.
     """
-    workers = sys.modules.get("tofcore.workers")
+    workers = sys.modules.get("tofcore.tracer.workers")
     if workers is not None:
         def stop() -> None:
             workers.shutdown()

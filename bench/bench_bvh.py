@@ -1,4 +1,4 @@
-"""Benchmark of `tofcore.bvh`: build time, rays/s and tests per ray on room scenes.
+"""Benchmark of `tofcore.scene.bvh`: build time, rays/s and tests per ray on room scenes.
 
 The scene is a closed 6 x 6 x 3 m room (floor, ceiling, four walls) with a
 1 m box and a UV sphere, every surface subdivided so the whole mesh has about
@@ -27,7 +27,7 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-from tofcore.bvh import BVH  # noqa: E402
+from tofcore.scene.bvh import BVH  # noqa: E402
 
 WIDTH_PX, HEIGHT_PX = 512, 424
 

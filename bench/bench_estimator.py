@@ -4,9 +4,9 @@ For each preset × scene: a converged reference (``--ref-spp``, seed apart), the
 with several seeds for each variant
 
 * ``independent``  — plain counter-based uniforms, every pixel the same spp (the estimator before issue 10),
-* ``sobol``        — randomized QMC (Owen-scrambled Sobol' replicates, :mod:`tofcore.qmc`),
-* ``sobol+adaptive`` — the same with adaptive sampling after a 16-spp pilot (:mod:`tofcore.adaptive`),
-* ``…+light`` — with light vertices and MIS (:mod:`tofcore.light_paths`),
+* ``sobol``        — randomized QMC (Owen-scrambled Sobol' replicates, :mod:`tofcore.tracer.qmc`),
+* ``sobol+adaptive`` — the same with adaptive sampling after a 16-spp pilot (:mod:`tofcore.tracer.adaptive`),
+* ``…+light`` — with light vertices and MIS (:mod:`tofcore.tracer.light_paths`),
 
 all with sensor noise off (the render's own noise only; lens scattering stays as the preset has it).
 Per render: trace seconds, the **actual** RMS error of the output depth against the reference over the
@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 import tofcore
-from tofcore.frame import Reason
+from tofcore.output.frame import Reason
 
 VARIANTS = {"independent": dict(sampler="independent", adaptive=False, light_paths=False),
             "sobol": dict(sampler="sobol", adaptive=False, light_paths=False),

@@ -22,9 +22,9 @@ from pathlib import Path
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from tofcore.bsdf import SurfaceParams, eval_bsdf, eval_pdf_bsdf, pdf_bsdf  # noqa: E402
-from tofcore.presets import list_presets, load_preset  # noqa: E402
-from tofcore.transport import SPEED_OF_LIGHT_M_S  # noqa: E402
+from tofcore.scene.bsdf import SurfaceParams, eval_bsdf, eval_pdf_bsdf, pdf_bsdf  # noqa: E402
+from tofcore.sensor.presets import list_presets, load_preset  # noqa: E402
+from tofcore.constants import SPEED_OF_LIGHT_M_S  # noqa: E402
 
 N = 65_536
 

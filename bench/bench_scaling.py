@@ -25,7 +25,7 @@ import sys
 from pathlib import Path
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-from tofcore.workers import usable_cpus  # noqa: E402
+from tofcore.limits import usable_cpus  # noqa: E402
 
 BENCH = Path(__file__).resolve().parent / "bench_transport.py"
 

@@ -29,8 +29,8 @@ SIZES = {"10k": 10, "500k": 71, "1M": 101}
 def run_one(detail: int, spp: int, max_depth: int, width: int, height: int, workers: int | None = None,
             progressive: bool = False, chunk_size: int | None = None) -> dict:
     import tofcore
-    from tofcore.modulation import phasor_correlations
-    from tofcore.workers import usable_cpus
+    from tofcore.sensor.modulation import phasor_correlations
+    from tofcore.limits import usable_cpus
 
     t0 = time.perf_counter()
     scene = tofcore.demo_scene("room", detail=detail)
@@ -62,7 +62,7 @@ def run_one(detail: int, spp: int, max_depth: int, width: int, height: int, work
 
 def _worker_memory() -> list[dict]:
     """Resident memory of each tracer worker process (Linux /proc): private (RssAnon) and shared (RssShmem), MiB."""
-    from tofcore import workers
+    from tofcore.tracer import workers
     if workers._POOL is None:
         return []
     out = []

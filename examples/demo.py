@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--out", type=Path, default=Path("out/demo"), help="output folder (default: out/demo)")
     parser.add_argument("--spp", type=int, default=16, help="samples per pixel (default: 16)")
     parser.add_argument("--max-depth", type=int, default=4, help="surface vertices per path (default: 4)")
-    parser.add_argument("--scene", default="room", choices=tofcore.demo.NAMES, help="demo scene (default: room)")
+    parser.add_argument("--scene", default="room", choices=tofcore.scene.demo.NAMES, help="demo scene (default: room)")
     args = parser.parse_args(argv)
 
     scene = tofcore.demo_scene(args.scene)

@@ -1,15 +1,15 @@
 """Systematic ("wiggling") error of each modulation against true distance (SPEC §6 experiment 4, noise-free).
 
 Prints a Markdown table of the peak error and its period per frequency, for square and sine waves with
-4 and 3 phase steps, from ``tofcore.decode.systematic_error_curve`` (ideal single returns, no noise).
+4 and 3 phase steps, from ``tofcore.sensor.decode.systematic_error_curve`` (ideal single returns, no noise).
 
 Usage: ``.venv/bin/python examples/systematic_error.py``
 """
 
 import numpy as np
 
-from tofcore.decode import systematic_error_curve
-from tofcore.modulation import Modulation
+from tofcore.sensor.decode import systematic_error_curve
+from tofcore.sensor.modulation import Modulation
 
 
 def main() -> None:

@@ -30,7 +30,7 @@ import numpy as np
 
 import _common as C
 import tofcore
-from tofcore import decode, optics
+from tofcore.sensor import decode, optics
 
 Z_FG, Z_BG = 1.2, 2.0   # box front face and wall, z along the optical axis (m)
 EDGE_PX = 3             # the edge zone: pixels within 3 px of the box's outline, on either side

@@ -7,7 +7,7 @@ thesis's reference); the 2-bucket pulsed sensor shows no error without ambient l
 
 Two ways, which must agree:
 
-* synthetic: ``tofcore.decode.systematic_error_curve`` — one ideal, noise-free return per distance;
+* synthetic: ``tofcore.sensor.decode.systematic_error_curve`` — one ideal, noise-free return per distance;
 * rendered: a large Lambertian-like plane (σ = 0.5, ρ = 0.8) swept from 0.3 to 4.9 m in front of a 3 × 3
   pixel camera (0.3° field of view, LED at the lens so the LED offset adds nothing), path traced with
   max path length 2 (the second vertex is needed for the plane to reflect the environment map), noise and
@@ -29,8 +29,8 @@ import numpy as np
 
 import _common as C
 import tofcore
-from tofcore import decode
-from tofcore.modulation import ideal_raw
+from tofcore.sensor import decode
+from tofcore.sensor.modulation import ideal_raw
 
 PULSE_WIDTH_S = 25e-9    # 20 MHz pulses as the Xtion 2 (thesis ch. 4); d_max = c t0 / 2 = 3.747 m
 

@@ -183,7 +183,10 @@ def install(monkeypatch) -> None:
     """Make ``device="gpu"`` run on this fake, with the CUDA kernels replaced by their NumPy twins."""
     import sys
 
-    from tofcore import backend, bvh, fresnel, modulation, qmc, rng
+    from tofcore import backend
+    from tofcore.scene import bvh, fresnel
+    from tofcore.sensor import modulation
+    from tofcore.tracer import qmc, rng
     from tofcore.gpu import fused, traversal
 
     module = sys.modules[__name__]
@@ -193,20 +196,21 @@ def install(monkeypatch) -> None:
     def host(x):
         return None if x is None else asnumpy(x)
 
-    def intersect(tree, origins, directions, t_max=None, ignore_prim=None):
+    def intersect(tree, origins, directions, t_max=None, ignore_prim=None, *, workers=2, counters=None):
         hits = tree._run(host(origins), host(directions), host(t_max), host(ignore_prim), False, 1, None)
         return bvh.Hits(*(asarray(x) for x in (hits.t, hits.prim, hits.u, hits.v)))
 
-    def occluded(tree, origins, directions, t_max, ignore_prim=None):
+    def occluded(tree, origins, directions, t_max, ignore_prim=None, *, workers=2, counters=None):
         return asarray(tree._run(host(origins), host(directions), host(t_max), host(ignore_prim), True, 1, None))
 
     def uniform(key, pixel, sample, dim):
         return asarray(rng.uniform(key, asnumpy(pixel), asnumpy(sample), dim))
 
-    def qmc_sample(key, pixel, sample, dim, two):
-        sampler = qmc.sample_2d if two else qmc.sample_1d
-        values = sampler(key, asnumpy(pixel), asnumpy(sample), dim)
-        return tuple(asarray(v) for v in values) if two else asarray(values)
+    def scrambled_2d(key, pixel, sample, dim):
+        return tuple(asarray(v) for v in qmc.scrambled_2d(key, asnumpy(pixel), asnumpy(sample), dim))
+
+    def scrambled_1d(key, pixel, sample, dim):
+        return asarray(qmc.scrambled_1d(key, asnumpy(pixel), asnumpy(sample), dim))
 
     def twin(numpy_function):  # the kernel's NumPy twin, through a host round trip
         def run(*args, **kwargs):
@@ -216,7 +220,8 @@ def install(monkeypatch) -> None:
     monkeypatch.setattr(traversal, "intersect", intersect)
     monkeypatch.setattr(traversal, "occluded", occluded)
     monkeypatch.setattr(fused, "uniform", uniform)
-    monkeypatch.setattr(fused, "qmc_sample", qmc_sample)
+    monkeypatch.setattr(fused, "scrambled_2d", scrambled_2d)
+    monkeypatch.setattr(fused, "scrambled_1d", scrambled_1d)
     monkeypatch.setattr(fused, "fresnel_dielectric", twin(fresnel.fresnel_dielectric))
     monkeypatch.setattr(fused, "fresnel_conductor", twin(fresnel.fresnel_conductor))
     monkeypatch.setattr(fused, "square_correlation", twin(modulation.square_correlation))

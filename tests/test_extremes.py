@@ -10,12 +10,12 @@ import pytest
 
 import tofcore
 from tofcore import LED, Camera, Material, Scene
-from tofcore.decode import decode
-from tofcore.frame import Reason
-from tofcore.modulation import Modulation, ideal_raw
-from tofcore.presets import load_preset
+from tofcore.sensor.decode import decode
+from tofcore.output.frame import Reason
+from tofcore.sensor.modulation import Modulation, ideal_raw
+from tofcore.sensor.presets import load_preset
 from tofcore.render import render
-from tofcore.sensor import Noise, Scattering
+from tofcore.sensor.config import Noise, Scattering
 
 C = tofcore.SPEED_OF_LIGHT_M_S
 

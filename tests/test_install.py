@@ -127,7 +127,7 @@ def test_tofcore_help_and_presets(run, venv):
     names = [line.split()[0] for line in _ok(run("tofcore", "presets")).splitlines() if line.strip()]
     assert names == sorted(p.stem for p in (REPO / "presets").glob("*.toml"))
     # The import is the installed copy, not the checkout.
-    where = _ok(run("python", "-c", "import tofcore, tofcore.presets as p; print(tofcore.__file__); print(p.PRESETS_DIR)"))
+    where = _ok(run("python", "-c", "import tofcore, tofcore.sensor.presets as p; print(tofcore.__file__); print(p.PRESETS_DIR)"))
     module, presets_dir = where.split()
     assert Path(module).is_relative_to(venv.parent) and Path(presets_dir).name == "_presets"
 

@@ -1,6 +1,8 @@
 """tofcore — a physically based Time-of-Flight camera simulator in NumPy.
 
-The public API, re-exported from one module per concept:
+The public API, re-exported from one module per concept. The packages follow the data flow
+(docs/architecture.md): ``scene`` → ``tracer`` → ``sensor`` → ``output``, with ``render`` on top and
+``gpu`` holding the device kernels:
 
 * :class:`Scene`, :func:`demo_scene` — triangle meshes in metres (``scene``, ``demo``)
 * :class:`Material`, :class:`Texture` — near-IR surface parameters (``material``)
@@ -24,22 +26,23 @@ if _sys.argv[:1] == ["-m"] and "tofcore" in _sys.orig_argv[1:] \
 
     hold_until_the_command_starts()
 
-from .ambient import Ambient
-from .camera import Camera
-from .demo import demo_scene, suggested_pose
 from . import limits
+from .constants import SPEED_OF_LIGHT_M_S
 from .errors import Cancelled, ConfigError, LimitError, SceneError, TofError
-from .led import LED
-from .material import Material, Texture
-from .pose import from_blender_matrix_world, look_at
-from .scene import Scene
-from .transport import SPEED_OF_LIGHT_M_S, FirstHit, Transport, trace, trace_progressive
-from .frame import Frame, Reason
-from .modulation import Modulation
-from .sensor import Sensor
-from .presets import list_presets, load_preset
+from .output.frame import Frame, Reason
+from .output.writers import read_exr, write_frame
 from .render import render, render_progressive
-from .writers import read_exr, write_frame
+from .scene.ambient import Ambient
+from .scene.camera import Camera
+from .scene.demo import demo_scene, suggested_pose
+from .scene.led import LED
+from .scene.material import Material, Texture
+from .scene.pose import from_blender_matrix_world, look_at
+from .scene.scene import Scene
+from .sensor.config import Sensor
+from .sensor.modulation import Modulation
+from .sensor.presets import list_presets, load_preset
+from .tracer.transport import FirstHit, Transport, trace, trace_progressive
 
 __all__ = [
     "Ambient", "Camera", "Cancelled", "ConfigError", "FirstHit", "Frame", "LED", "LimitError", "Material", "Modulation",

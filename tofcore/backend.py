@@ -9,6 +9,12 @@ memory handling — lives in :mod:`tofcore.gpu`, each kernel with a NumPy twin
 that the tests compare it with (pbrt-v4 keeps ``src/pbrt/gpu`` beside one
 shared code base in the same way).
 
+The one dispatch point for those kernels is here: :data:`KERNELS` names each reference function that
+has a CUDA twin (same signature, same values) and where the twin lives; the reference is marked
+:func:`device_twin` and runs its twin when a device array reaches it. So the physics modules never
+import :mod:`tofcore.gpu` (which sits above them: its kernels take their constants from the Python
+source), and the CPU path never imports it or CuPy. ``tests/tofcore/test_kernels.py`` walks the table.
+
 =============  ====================================================================================
 ``device``     meaning
 =============  ====================================================================================
@@ -29,8 +35,12 @@ Rules the shared code follows so that it runs on both:
 from __future__ import annotations
 
 import contextlib
+import functools
+import importlib
+import inspect
 import os
 import weakref
+from collections.abc import Callable
 from dataclasses import dataclass
 from types import ModuleType
 
@@ -76,7 +86,7 @@ class Device:
                 "fallback_reason": self.fallback_reason}
 
     def __reduce__(self):
-        """Pickle by name: CPU worker processes (tofcore.workers) get their own NumPy module."""
+        """Pickle by name: CPU worker processes (tofcore.tracer.workers) get their own NumPy module."""
         if self.is_gpu:
             raise TypeError("a GPU Device does not pickle: GPU renders run in one process")
         return cpu_device, (self.requested, self.fallback_reason)
@@ -248,3 +258,53 @@ def scatter_sum(index, weights, length: int):
     else:
         np.add.at(out, index, weights)
     return out
+
+
+# ------------------------------------------------------------------ device twins
+KERNELS: dict[str, str] = {
+    "tofcore.tracer.rng.uniform": "tofcore.gpu.fused:uniform",
+    "tofcore.tracer.qmc.scrambled_2d": "tofcore.gpu.fused:scrambled_2d",
+    "tofcore.tracer.qmc.scrambled_1d": "tofcore.gpu.fused:scrambled_1d",
+    "tofcore.scene.fresnel.fresnel_dielectric": "tofcore.gpu.fused:fresnel_dielectric",
+    "tofcore.scene.fresnel.fresnel_conductor": "tofcore.gpu.fused:fresnel_conductor",
+    "tofcore.sensor.modulation.square_correlation": "tofcore.gpu.fused:square_correlation",
+    "tofcore.scene.bvh.BVH.intersect": "tofcore.gpu.traversal:intersect",
+    "tofcore.scene.bvh.BVH.occluded": "tofcore.gpu.traversal:occluded",
+}
+"""Reference function (``module.qualname``) → its device twin (``module:function``)."""
+
+
+def reference_name(function: Callable) -> str:
+    """The key of ``function`` in :data:`KERNELS`: its module and qualified name."""
+    return f"{function.__module__}.{function.__qualname__}"
+
+
+def twin(name: str) -> Callable:
+    """The device kernel registered for reference ``name`` (its module is imported on first use)."""
+    module, function = KERNELS[name].split(":")
+    return getattr(importlib.import_module(module), function)
+
+
+def device_twin(on: str) -> Callable[[Callable], Callable]:
+    """Mark a reference function that has a kernel in :data:`KERNELS`: device arrays in argument ``on`` run it.
+
+    The twin gets the same arguments; host arrays run the reference itself.
+    """
+
+    def mark(reference: Callable) -> Callable:
+        name = reference_name(reference)
+        if name not in KERNELS:
+            raise KeyError(f"device_twin: {name} has no entry in tofcore.backend.KERNELS")
+        position = list(inspect.signature(reference).parameters).index(on)
+
+        @functools.wraps(reference)
+        def dispatch(*args, **kwargs):
+            value = args[position] if position < len(args) else kwargs.get(on)
+            if is_device_array(value):
+                return twin(name)(*args, **kwargs)
+            return reference(*args, **kwargs)
+
+        dispatch.device_twin = name  # type: ignore[attr-defined]
+        return dispatch
+
+    return mark

@@ -68,7 +68,7 @@ radiance_type = number_type(float, f"a finite number >= 0, at most {limits.MAX_M
 
 def formats_type(text: str) -> tuple[str, ...]:
     """``"exr,png"`` → ("exr", "png"): a non-empty comma list of known output formats."""
-    from .writers import FORMATS
+    from .output.writers import FORMATS
 
     names = [f.strip() for f in text.split(",")]
     unknown = [f for f in names if f and f not in FORMATS]
@@ -82,7 +82,7 @@ def formats_type(text: str) -> tuple[str, ...]:
 
 def check_exr(formats, flag: str = "--formats") -> None:
     """ConfigError unless the OpenEXR package is importable when ``formats`` holds "exr" (before rendering)."""
-    from . import writers
+    from .output import writers
 
     if "exr" in formats and writers.OpenEXR is None:
         raise ConfigError(f"{flag}: 'exr' needs the OpenEXR package, which is not installed: pip install OpenEXR "
@@ -104,8 +104,8 @@ def check_output_folder(path: Path, flag: str = "--out") -> None:
 
 
 def _scene(name: str):
-    from .demo import NAMES, demo_scene
-    from .scene import Scene
+    from .scene.demo import NAMES, demo_scene
+    from .scene.scene import Scene
 
     if name in NAMES:
         return demo_scene(name)
@@ -133,10 +133,10 @@ def _convergence_table(log: list[dict]) -> str:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from .presets import load_preset
+    from .sensor.presets import load_preset
     from .render import render
-    from .writers import write_frame
-    from .ambient import Ambient
+    from .output.writers import write_frame
+    from .scene.ambient import Ambient
     from .backend import select_device
 
     # Everything that can be checked is checked before the scene is loaded or a ray traced.
@@ -153,7 +153,7 @@ def cmd_render(args: argparse.Namespace) -> int:
                                                      if device.fallback_reason else "")
     if args.verbose:
         from .plan import make_plan
-        from .qmc import REPLICATES
+        from .tracer.qmc import REPLICATES
 
         say(f"scene {scene.name!r}: {scene.triangle_count:,} triangles, {len(scene.materials)} materials")
         say(f"sensor {sensor.name!r}: {sensor.camera.width}x{sensor.camera.height}, {sensor.modulation.kind}, "
@@ -193,7 +193,7 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 
 def cmd_presets(args: argparse.Namespace) -> int:
-    from .presets import list_presets, load_preset
+    from .sensor.presets import list_presets, load_preset
 
     for name in list_presets():
         s = load_preset(name)

@@ -2,7 +2,10 @@
 
 Messages follow ``"{where}: {field} must be {rule}, got {value!r}"`` so that a
 user can find the file, object or array at fault without reading a traceback.
+:func:`is_number` is the one test of "a number" that those checks apply.
 """
+
+import numbers
 
 
 class TofError(Exception):
@@ -26,3 +29,8 @@ class LimitError(ConfigError):
 
 class Cancelled(TofError):
     """A render was cancelled by its caller (``cancel`` callback); nothing was written."""
+
+
+def is_number(value: object) -> bool:
+    """True for a real number (int, float, NumPy integer or floating), False for bool and anything else."""
+    return isinstance(value, numbers.Real) and not isinstance(value, bool)

@@ -35,9 +35,37 @@ from __future__ import annotations
 
 import os
 from dataclasses import dataclass
+from pathlib import Path
 
 from .errors import ConfigError, LimitError
-from .workers import usable_cpus
+
+
+def usable_cpus() -> int:
+    """CPUs this process may use: its affinity mask, capped by a cgroup v2/v1 CPU quota where one is set."""
+    try:
+        count = len(os.sched_getaffinity(0))
+    except AttributeError:  # macOS, Windows
+        count = os.cpu_count() or 1
+    quota = _cgroup_quota()
+    return max(1, min(count, quota) if quota else count)
+
+
+def _cgroup_quota(root: Path = Path("/sys/fs/cgroup")) -> int | None:
+    """Whole CPUs allowed by the cgroup's quota (cpu.max or cfs_quota/period), rounded up; None if unlimited."""
+    try:
+        text = (root / "cpu.max").read_text().split()
+        if text and text[0] != "max":
+            return max(1, -(-int(text[0]) // int(text[1])))
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        quota = int((root / "cpu" / "cpu.cfs_quota_us").read_text())
+        period = int((root / "cpu" / "cpu.cfs_period_us").read_text())
+        if quota > 0 and period > 0:
+            return max(1, -(-quota // period))
+    except (OSError, ValueError):
+        pass
+    return None
 
 
 def _physical_memory_bytes() -> int | None:
@@ -114,7 +142,6 @@ MAX_WORKERS = Limit(
     "max_workers", "TOFCORE_MAX_WORKERS", max(8, 4 * usable_cpus()), "processes",
     "every worker process is started at once and holds 65-150 MB; more than the CPUs only adds memory")
 
-ALL = (MAX_PIXELS, MAX_RAW_IMAGES, MAX_DEPTH, MAX_SPP, MAX_RENDER_BYTES, MAX_SCENE_BYTES, MAX_SET_FRAMES, MAX_WORKERS)
 
 
 def render_bytes(pixels: int, raw_images: int, max_depth: int) -> int:

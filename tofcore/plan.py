@@ -30,10 +30,9 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .ambient import Ambient
-from .camera import Camera
-from .led import LED
-from .scene import Scene
+from .scene.ambient import Ambient
+from .scene.led import leds_at_pinhole
+from .scene.scene import Scene
 
 
 @dataclass(frozen=True)
@@ -62,11 +61,6 @@ class Plan:
                 continue
             lines.append(f"  {key:<20} {'on' if value else 'skipped: ' + self.reasons[key]}")
         return "plan:\n" + "\n".join(lines)
-
-
-def leds_at_pinhole(camera: Camera, leds: tuple[LED, ...] | list[LED]) -> np.ndarray:
-    """(L,) bool: LED sits exactly at the centre of a pinhole lens (its first-hit shadow rays are redundant)."""
-    return np.array([led.position_m == (0.0, 0.0, 0.0) for led in leds]) & (camera.aperture_radius_m == 0)
 
 
 def make_plan(scene: Scene, sensor, *, max_depth: int, ambient: Ambient | None) -> Plan:

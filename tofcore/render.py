@@ -1,20 +1,20 @@
-"""From light transport to what the camera delivers: :func:`render` → :class:`~tofcore.frame.Frame`.
+"""From light transport to what the camera delivers: :func:`render` → :class:`~tofcore.output.frame.Frame`.
 
 The stages (DESIGN.md, "The flow"):
 
 1. **plan** what the scene and sensor need (:mod:`tofcore.plan`);
 2. **trace** progressive passes, each contribution correlated with the
-   sensor's g_j (:mod:`tofcore.modulation`), bucketed by bounce count;
+   sensor's g_j (:mod:`tofcore.sensor.modulation`), bucketed by bounce count;
    after each pass estimate the depth standard error from the per-pixel
    variances, and stop at ``target_error_m`` or ``time_budget_s``;
 3. **raw images** per frequency and phase step: charge in electrons =
    responsivity × exposure × (LED signal correlation + ambient × gate duty),
    :func:`raw_images`;
 4. **post-process** the raw images before decoding: lens scattering
-   (:mod:`tofcore.optics`), shot and read noise (:mod:`tofcore.noise`),
+   (:mod:`tofcore.sensor.optics`), shot and read noise (:mod:`tofcore.sensor.noise`),
    full-well saturation;
 5. **decode** phase, amplitude, offset, distance, unwrapping, invalid pixels
-   (:mod:`tofcore.decode`); radial distance → z-depth.
+   (:mod:`tofcore.sensor.decode`); radial distance → z-depth.
 
 Besides the camera's output the frame carries noise-free ground truth: the
 first-hit distance, the direct-only (k = 1) decoded distance and the decoded
@@ -38,19 +38,18 @@ from collections.abc import Callable, Iterator
 import numpy as np
 
 from . import backend, limits
-from . import decode as decoding
-from . import noise as noise_models
-from . import optics
-from .ambient import Ambient
 from .backend import gpu_errors, namespace
 from .errors import ConfigError
-from .frame import Frame
+from .output.frame import Frame
 from .plan import Plan, make_plan
-from .scene import Scene
-from .adaptive import allocate_samples
-from .transport import SPEED_OF_LIGHT_M_S, Transport, pass_schedule, trace_progressive
-
-C = SPEED_OF_LIGHT_M_S
+from .scene.ambient import Ambient
+from .scene.scene import Scene
+from .sensor import decode as decoding
+from .sensor import noise as noise_models
+from .sensor import optics
+from .sensor.raw import raw_images
+from .tracer.adaptive import allocate_samples
+from .tracer.transport import Transport, pass_schedule, trace_progressive
 
 
 def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray:
@@ -59,15 +58,15 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     Notes
     -----
     The tracer keeps the channel sums of R independent randomized-QMC replicates per pixel
-    (:mod:`tofcore.qmc`). Each replicate's mean gives raw images :math:`Q^{(r)}` (ambient included,
+    (:mod:`tofcore.tracer.qmc`). Each replicate's mean gives raw images :math:`Q^{(r)}` (ambient included,
     :func:`raw_images`); the decoder's linearisation :math:`g = \partial d/\partial Q`
-    (:func:`tofcore.decode.distance_gradient`: all frequencies and their unwrapping weights, or the
+    (:func:`tofcore.sensor.decode.distance_gradient`: all frequencies and their unwrapping weights, or the
     pulsed ratio) projects each replicate's deviation onto the decoded distance,
 
     .. math:: \hat\sigma_d^2 = \frac{1}{R(R-1)} \sum_r \big(g \cdot (Q^{(r)} - \bar Q)\big)^2,
 
     the variance of the mean of R independent estimates. A CW distance wraps at the unambiguous range
-    U (:meth:`~tofcore.modulation.Modulation.unambiguous_range_m`): noise that carries a distance d near
+    U (:meth:`~tofcore.sensor.modulation.Modulation.unambiguous_range_m`): noise that carries a distance d near
     0 or U across the boundary changes the output by U, so the expected squared error adds
     :math:`P\,U^2` with :math:`P = \Phi(-d/\hat\sigma_d) + \Phi(-(U - d)/\hat\sigma_d)` (normal tails,
     the central limit of the pixel mean; d from the noise-free first hit). At 16 spp the phase noise of
@@ -106,25 +105,6 @@ def _normal_tail(x):
     poly = t * (0.254829592 + t * (-0.284496736 + t * (1.421413741 + t * (-1.453152027 + t * 1.061405429))))
     upper = 0.5 * poly * np.exp(-z * z)
     return np.where(x >= 0, upper, 1.0 - upper)
-
-
-def raw_images(correlation_means: np.ndarray, ambient_mean: np.ndarray, sensor) -> np.ndarray:
-    """Noise-free raw images (R, H, W) in electrons, before scattering and saturation.
-
-    Notes
-    -----
-    .. math:: Q_j = R \\, T_j \\, (\\bar{c}_j + L_{amb} \\, \\delta_j)
-
-    R the responsivity (e⁻ s⁻¹ per W m⁻² sr⁻¹), T_j the raw image's exposure,
-    :math:`\\bar c_j` the pixel's mean Σ w g_j (radiance-weighted correlation),
-    :math:`L_{amb}` the ambient radiance and δ_j the gate duty: unmodulated
-    light adds to every bucket the charge its gate lets through (SPEC §3).
-    """
-    mod = sensor.modulation
-    xp = namespace(correlation_means)
-    exposure = xp.asarray(mod.raw_exposure_s())[:, None, None]
-    duty = xp.asarray(mod.gate_duty())[:, None, None]
-    return sensor.readout.responsivity * exposure * (correlation_means + ambient_mean[None] * duty)
 
 
 def render(scene: Scene, sensor, pose: np.ndarray | None = None, **settings) -> Frame:
@@ -167,9 +147,9 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     every_pass : build and yield a frame after every pass (False: only the final one, which saves
         decoding the intermediate passes).
     adaptive : after a uniform pilot of 16 spp, give each pass's samples to the pixels whose estimated
-        depth error is largest (:mod:`tofcore.adaptive`); False: every pixel gets ``spp``.
-    sampler : ``"sobol"`` (randomized QMC, default) or ``"independent"`` (:mod:`tofcore.qmc`).
-    light_paths : connect the camera paths to light vertices with MIS (:mod:`tofcore.light_paths`).
+        depth error is largest (:mod:`tofcore.tracer.adaptive`); False: every pixel gets ``spp``.
+    sampler : ``"sobol"`` (randomized QMC, default) or ``"independent"`` (:mod:`tofcore.tracer.qmc`).
+    light_paths : connect the camera paths to light vertices with MIS (:mod:`tofcore.tracer.light_paths`).
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering and decoding on the GPU;
         the random sensor noise is drawn on the CPU so that both devices give the same frame) or
         ``"auto"`` (the GPU when usable, else the CPU). The frame's arrays are NumPy either way;

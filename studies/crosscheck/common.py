@@ -74,7 +74,7 @@ def make_setup(name: str, width: int = 128, height: int = 106, detail: int = 4) 
 # ----------------------------------------------------------------------------------------- tofcore
 def sine_correlations(freqs_hz):
     """cos 2πfτ, sin 2πfτ per frequency (picklable, so tofcore traces on worker processes)."""
-    from tofcore.modulation import phasor_correlations
+    from tofcore.sensor.modulation import phasor_correlations
     return phasor_correlations(freqs_hz)
 
 

@@ -50,7 +50,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import common as cc  # noqa: E402
 
 import tofcore  # noqa: E402
-import tofcore.adaptive  # noqa: E402
+import tofcore.tracer.adaptive  # noqa: E402
 
 FREQS = (16e6, 80e6, 120e6)
 MAIN = 1   # index of the plotted frequency (80 MHz)
@@ -107,7 +107,7 @@ def run_tofcore(s: cc.Setup, spp: int, ref, ref_var, mask, log, variant: str = "
     settings = VARIANTS[variant]
 
     def allocate(t, n):
-        return tofcore.adaptive.allocate_samples(depth_sigma(t, FREQS[MAIN]), t.sample_count, n)
+        return tofcore.tracer.adaptive.allocate_samples(depth_sigma(t, FREQS[MAIN]), t.sample_count, n)
 
     rows, spent_eval = [], 0.0
     t0 = time.perf_counter()

@@ -407,7 +407,7 @@ def test_error_bad_preset_file_and_limits_are_reports(tof, tmp_path, monkeypatch
     add_plane_and_cube()
     add_tof_camera(output_dir=str(tmp_path / "out"))
     settings = bpy.context.scene.camera.data.tof
-    kinect = (tofcore.presets.PRESETS_DIR / "kinect_v2.toml").read_text()
+    kinect = (tofcore.sensor.presets.PRESETS_DIR / "kinect_v2.toml").read_text()
     huge = tmp_path / "huge.toml"
     huge.write_text(kinect.replace("width = 512", "width = 100000").replace("height = 424", "height = 100000"))
     hot = tmp_path / "hot.toml"

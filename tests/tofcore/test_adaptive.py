@@ -1,4 +1,4 @@
-"""Adaptive sampling (tofcore.adaptive): the allocation rule against a naive reference and its contract
+"""Adaptive sampling (tofcore.tracer.adaptive): the allocation rule against a naive reference and its contract
 (pilot, multiples of R, budget, floor, cap, NaN), and adaptive traces (determinism, sample counts, no bias)."""
 
 import numpy as np
@@ -6,8 +6,8 @@ import pytest
 
 import tofcore
 from tofcore import LED, Camera, trace
-from tofcore.adaptive import CAP, FLOOR, PILOT_SPP, allocate_samples
-from tofcore.qmc import REPLICATES as R
+from tofcore.tracer.adaptive import CAP, FLOOR, PILOT_SPP, allocate_samples
+from tofcore.tracer.qmc import REPLICATES as R
 
 H, W = 12, 16
 P = H * W

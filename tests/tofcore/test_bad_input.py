@@ -25,9 +25,9 @@ import numpy as np
 import pytest
 
 import tofcore
-from tofcore import writers
+from tofcore.output import writers
 from tofcore.cli import main
-from tofcore.presets import PRESETS_DIR
+from tofcore.sensor.presets import PRESETS_DIR
 
 REPO = Path(__file__).resolve().parents[2]
 KINECT = (PRESETS_DIR / "kinect_v2.toml").read_text()

@@ -1,4 +1,4 @@
-"""BSDF (tofcore.bsdf), Fresnel (tofcore.fresnel) and warps (tofcore.sampling).
+"""BSDF (tofcore.scene.bsdf), Fresnel (tofcore.scene.fresnel) and warps (tofcore.scene.sampling).
 
 Numbered like Mitsuba's plugin tests: limits and closed forms first, then the
 properties of a plausible BRDF (eq. 2.11–2.13), then the sampling contract
@@ -14,31 +14,15 @@ import math
 import numpy as np
 import pytest
 
-from tofcore.bsdf import (
-    SMOOTH_ROUGHNESS_RAD,
-    SurfaceParams,
-    beckmann_alpha,
-    eval_bsdf,
-    eval_pdf_bsdf,
-    oren_nayar,
-    pdf_bsdf,
-    sample_bsdf,
-    specular_fresnel,
-    specular_probability,
-    vcavity_geometry,
+from tofcore.scene.bsdf import (
+    SMOOTH_ROUGHNESS_RAD, SurfaceParams, beckmann_alpha, eval_bsdf, eval_pdf_bsdf, oren_nayar, pdf_bsdf, sample_bsdf,
+    specular_fresnel, specular_probability, vcavity_geometry,
 )
 from tofcore.errors import SceneError
-from tofcore.fresnel import fresnel_conductor, fresnel_dielectric
-from tofcore.sampling import (
-    beckmann_distribution,
-    pdf_beckmann_normal,
-    pdf_concentric_disk,
-    pdf_cosine_hemisphere,
-    pdf_vcavity_visible_normal,
-    sample_beckmann_normal,
-    sample_concentric_disk,
-    sample_cosine_hemisphere,
-    sample_vcavity_visible_normal,
+from tofcore.scene.fresnel import fresnel_conductor, fresnel_dielectric
+from tofcore.scene.sampling import (
+    beckmann_distribution, pdf_beckmann_normal, pdf_concentric_disk, pdf_cosine_hemisphere, pdf_vcavity_visible_normal,
+    sample_beckmann_normal, sample_concentric_disk, sample_cosine_hemisphere, sample_vcavity_visible_normal,
 )
 
 # Materials of the checks: (metallic, ior, extinction). A dielectric with the

@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from tofcore.bvh import BVH, RAY_CHUNK, Hits, intersect_brute
+from tofcore.scene.bvh import BVH, RAY_CHUNK, Hits, intersect_brute
 
 
 def unit(x):

@@ -1,4 +1,4 @@
-"""Tests of tofcore.camera: OpenCV distortion, exact undistortion, jitter, thin lens, field of view, validation.
+"""Tests of tofcore.scene.camera: OpenCV distortion, exact undistortion, jitter, thin lens, field of view, validation.
 
 OpenCV (``cv2.projectPoints``, ``cv2.undistortPointsIter``) is the reference
 where it is installed; the tests that need it skip otherwise.
@@ -9,7 +9,7 @@ import math
 import numpy as np
 import pytest
 
-from tofcore.camera import _RAY_BLOCK, Camera
+from tofcore.scene.camera import _RAY_BLOCK, Camera
 from tofcore.errors import ConfigError
 
 # Kinect-v2-sized intrinsics (512 × 424, fx ≈ 365) with strong distortion of both kinds.

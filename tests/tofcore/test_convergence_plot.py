@@ -6,7 +6,7 @@ import zlib
 import numpy as np
 import pytest
 
-from tofcore import convergence_plot as cp
+from tofcore.output import convergence_plot as cp
 
 W, H = 320, 200
 BACKENDS = ("numpy", "opencv", "matplotlib")

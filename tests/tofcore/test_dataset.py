@@ -22,7 +22,7 @@ import pytest
 pytest.importorskip("OpenEXR")
 
 import tofcore  # noqa: E402
-from tofcore.dataset import CHANNELS, Dataset, DatasetError, FrameRef, Intrinsics  # noqa: E402
+from tofcore.output.dataset import CHANNELS, Dataset, DatasetError, FrameRef, Intrinsics  # noqa: E402
 
 REPO = Path(__file__).resolve().parents[2]
 FAILED_LABEL = "box_on_wall/pose0/o3d303"
@@ -330,7 +330,7 @@ def test_a_channel_missing_from_the_file_names_file_and_channels(copy):
 # --------------------------------------------------------------------------- PyTorch adapter
 
 def test_importing_tofcore_and_the_reader_imports_neither_torch_nor_batch():
-    code = ("import sys, tofcore, tofcore.dataset; "
+    code = ("import sys, tofcore, tofcore.output.dataset; "
             "print(sorted(m for m in ('torch', 'batch', 'bpy') if m in sys.modules))")
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO / "tests",
                          check=True).stdout
@@ -339,10 +339,10 @@ def test_importing_tofcore_and_the_reader_imports_neither_torch_nor_batch():
 
 def test_the_torch_adapter_without_torch_says_so_in_one_line(monkeypatch):
     monkeypatch.setitem(sys.modules, "torch", None)
-    monkeypatch.delitem(sys.modules, "tofcore.torch_dataset", raising=False)
-    with pytest.raises(ImportError, match=r"^tofcore.torch_dataset: needs PyTorch, which is not installed: "
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset", raising=False)
+    with pytest.raises(ImportError, match=r"^tofcore.output.torch_dataset: needs PyTorch, which is not installed: "
                                           r"pip install torch") as exc:
-        import tofcore.torch_dataset  # noqa: F401
+        import tofcore.output.torch_dataset  # noqa: F401
     assert _one_line(exc)
 
 
@@ -360,8 +360,8 @@ def test_the_torch_adapter_logic_on_a_stand_in_torch(dataset, monkeypatch):
     fake = _fake_torch()
     for name, module in (("torch", fake), ("torch.utils", fake.utils), ("torch.utils.data", fake.utils.data)):
         monkeypatch.setitem(sys.modules, name, module)
-    monkeypatch.delitem(sys.modules, "tofcore.torch_dataset", raising=False)
-    from tofcore.torch_dataset import TorchDataset
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset", raising=False)
+    from tofcore.output.torch_dataset import TorchDataset
 
     data = TorchDataset(dataset, channels=["depth", "valid", "raw"], preset="kinect_v2",
                         transform=lambda s: {**s, "seen": True})
@@ -371,14 +371,14 @@ def test_the_torch_adapter_logic_on_a_stand_in_torch(dataset, monkeypatch):
     assert {k for k, v in sample.items() if isinstance(v, tuple) and v[0] == "tensor"} == {
         "depth", "valid", "raw", "intrinsics", "distortion", "world_from_sensor"}
     assert sample["raw"][1].shape == (9, 13, 16) and sample["valid"][1].dtype == bool
-    monkeypatch.delitem(sys.modules, "tofcore.torch_dataset")
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset")
 
 
 def test_the_torch_adapter_with_torch(dataset):
     torch = pytest.importorskip("torch")
     from torch.utils.data import DataLoader
 
-    from tofcore.torch_dataset import TorchDataset
+    from tofcore.output.torch_dataset import TorchDataset
 
     data = TorchDataset(dataset, channels=["depth", "gt_depth", "valid", "raw"], preset="kinect_v2")
     batch = next(iter(DataLoader(data, batch_size=2)))

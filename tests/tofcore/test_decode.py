@@ -1,16 +1,18 @@
-"""Tests of tofcore.decode on synthetic raw images of single returns: raw_j = S g_j(2d/c) + A_amb gate_duty_j."""
+"""Tests of tofcore.sensor.decode on synthetic raw images of single returns: raw_j = S g_j(2d/c) + A_amb gate_duty_j."""
 
 import time
 
 import numpy as np
 import pytest
 
-from tofcore.decode import (decode, decode_cw, decode_pulsed, default_unwrap_tolerance_m, phase_amplitude_offset,
-                            radial_to_z, systematic_error_curve, unwrap)
+from tofcore.sensor.decode import (
+    decode, decode_cw, decode_pulsed, default_unwrap_tolerance_m, phase_amplitude_offset, radial_to_z,
+    systematic_error_curve, unwrap,
+)
 from tofcore.errors import ConfigError
-from tofcore.frame import Reason
-from tofcore.modulation import Modulation, ideal_raw
-from tofcore.transport import SPEED_OF_LIGHT_M_S
+from tofcore.output.frame import Reason
+from tofcore.sensor.modulation import Modulation, ideal_raw
+from tofcore.constants import SPEED_OF_LIGHT_M_S
 
 C = SPEED_OF_LIGHT_M_S
 KINECT = dict(frequencies_hz=(80e6, 16e6, 120e6), phase_steps=(3, 3, 3), exposure_s=(8e-3, 4e-3, 8e-3))
@@ -240,7 +242,8 @@ def test_radial_to_z_is_distance_times_ray_z():
 
 # ------------------------------------------------------------------ linearisation (distance_gradient)
 from tofcore import load_preset  # noqa: E402
-from tofcore.decode import distance_gradient, unwrap_weights  # noqa: E402
+from tofcore.sensor.decode import distance_gradient, unwrap_weights  # noqa: E402
+
 
 def _random_returns(n, max_m, seed):
     """n single returns: distance in [0.3, max_m) m, signal 200–2000 e⁻, ambient 0–500 e⁻ per unit duty."""

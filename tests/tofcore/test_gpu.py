@@ -20,11 +20,11 @@ import pytest
 
 import tofcore
 from tofcore import backend
-from tofcore.camera import Camera
-from tofcore.modulation import Modulation
-from tofcore.presets import load_preset
+from tofcore.scene.camera import Camera
+from tofcore.sensor.modulation import Modulation
+from tofcore.sensor.presets import load_preset
 from tofcore.render import render
-from tofcore.sensor import Noise, Scattering
+from tofcore.sensor.config import Noise, Scattering
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import fakecupy  # noqa: E402
@@ -251,7 +251,7 @@ def test_traversal_kernels_equal_numpy_traversal(scene_name):
 def test_uniform_kernel_equals_numpy_hash():
     import cupy as cp
 
-    from tofcore import rng
+    from tofcore.tracer import rng
 
     key = rng.seed_key(1234)
     pixel = np.random.default_rng(0).integers(0, 1 << 40, 1_000_000)
@@ -265,10 +265,10 @@ def test_uniform_kernel_equals_numpy_hash():
 @pytest.mark.gpu
 @cuda_only
 def test_qmc_kernels_equal_numpy_twins():
-    """The scrambled Sobol' points (tofcore.qmc) bit for bit, 1-D and 2-D, large sample indices included."""
+    """The scrambled Sobol' points (tofcore.tracer.qmc) bit for bit, 1-D and 2-D, large sample indices included."""
     import cupy as cp
 
-    from tofcore import qmc, rng
+    from tofcore.tracer import qmc, rng
 
     key = rng.seed_key(99)
     pixel = np.random.default_rng(0).integers(0, 1 << 22, 1_000_000)
@@ -288,8 +288,8 @@ def test_fused_kernels_equal_their_numpy_twins():
     """Fresnel and the square-wave correlation, over the whole domain incl. grazing, TIR and eta < 1."""
     import cupy as cp
 
-    from tofcore import fresnel
-    from tofcore.modulation import square_correlation
+    from tofcore.scene import fresnel
+    from tofcore.sensor.modulation import square_correlation
 
     rng = np.random.default_rng(3)
     n = 1_000_000
@@ -313,7 +313,7 @@ def test_kinect_frame_stays_within_the_gpu_memory_budget():
     """A 512 × 424 frame at 64 spp: peak device memory ≤ one chunk's budget + the accumulators."""
     import cupy as cp
 
-    from tofcore import transport
+    from tofcore.tracer import transport
 
     pool = cp.get_default_memory_pool()
     pool.free_all_blocks()

@@ -1,4 +1,4 @@
-"""Light vertices with MIS (tofcore.light_paths) and LED emission sampling (LED.power_w, emission_pdf,
+"""Light vertices with MIS (tofcore.tracer.light_paths) and LED emission sampling (LED.power_w, emission_pdf,
 sample_emission): pdfs against quadrature and histograms, and the tracer with light paths unbiased against
 the tracer without them.
 
@@ -14,9 +14,10 @@ import numpy as np
 import pytest
 
 import tofcore
-from tofcore import LED, Camera, qmc, trace
-from tofcore import rng as tof_rng
-from tofcore.light_paths import DIM_EMISSION, bsdf_strategy_weight, led_probabilities
+from tofcore import LED, Camera, trace
+from tofcore.tracer import qmc
+from tofcore.tracer import rng as tof_rng
+from tofcore.tracer.light_paths import DIM_EMISSION, bsdf_strategy_weight, led_probabilities
 
 LEDS = [LED(kind="point", intensity_w_sr=1.7), LED(kind="lambertian", intensity_w_sr=0.6)]
 

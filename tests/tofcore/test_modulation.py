@@ -1,4 +1,4 @@
-"""Tests of tofcore.modulation: validation, raw-image bookkeeping and the correlation functions g_j(τ)."""
+"""Tests of tofcore.sensor.modulation: validation, raw-image bookkeeping and the correlation functions g_j(τ)."""
 
 import pickle
 
@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from tofcore.errors import ConfigError
-from tofcore.modulation import Modulation, ideal_raw, pulsed_correlation, sine_correlation, square_correlation
-from tofcore.transport import SPEED_OF_LIGHT_M_S
+from tofcore.sensor.modulation import Modulation, ideal_raw, pulsed_correlation, sine_correlation, square_correlation
+from tofcore.constants import SPEED_OF_LIGHT_M_S
 
 KINECT = dict(frequencies_hz=(80e6, 16e6, 120e6), phase_steps=(3, 3, 3), exposure_s=(8e-3, 4e-3, 8e-3))
 

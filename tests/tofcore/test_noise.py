@@ -1,4 +1,4 @@
-"""Tests of tofcore.noise: raw shot + read noise reproduces Li's eq. 2.43 through decoding; Li, Keller; validation.
+"""Tests of tofcore.sensor.noise: raw shot + read noise reproduces Li's eq. 2.43 through decoding; Li, Keller; validation.
 
 Derivation checked by the raw-noise tests (it is also in ``li_sigma_m``'s docstring).
 A 4-bucket sine pixel collects, in bucket k (gate phase θ_k = k π/2),
@@ -33,7 +33,7 @@ import numpy as np
 import pytest
 
 from tofcore.errors import ConfigError
-from tofcore.noise import add_distance_noise, add_raw_noise, keller_amplitude_noise, li_sigma_m
+from tofcore.sensor.noise import add_distance_noise, add_raw_noise, keller_amplitude_noise, li_sigma_m
 
 C_M_S = 299_792_458.0
 F_HZ = 80e6  # Kinect v2's main frequency; d_amb = 1.87 m

@@ -1,4 +1,4 @@
-"""Tests of tofcore.optics: J1, the PSF kernels, the reflecting convolution, and scattering's effect on depth.
+"""Tests of tofcore.sensor.optics: J1, the PSF kernels, the reflecting convolution, and scattering's effect on depth.
 
 Tolerances: kernel sums and charge conservation are float64 round-off (1e-12);
 convolution paths agree with a direct sum to 1e-12 relative; J1 to its
@@ -13,8 +13,10 @@ import numpy as np
 import pytest
 
 from tofcore.errors import ConfigError
-from tofcore.optics import (AIRY_FIRST_RING_PEAK, J1_ZERO_1, J1_ZERO_2, MAX_SIZE_PX, TAIL_FRACTION, _convolve_cv2,
-                            _convolve_fft, airy_profile, apply_scattering, bessel_j1, psf_kernel)
+from tofcore.sensor.optics import (
+    AIRY_FIRST_RING_PEAK, J1_ZERO_1, J1_ZERO_2, MAX_SIZE_PX, TAIL_FRACTION, _convolve_cv2, _convolve_fft, airy_profile,
+    apply_scattering, bessel_j1, psf_kernel,
+)
 
 C_M_S = 299_792_458.0
 

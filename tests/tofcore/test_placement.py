@@ -13,9 +13,9 @@ import pytest
 
 import tofcore
 from tofcore import LED, Camera, Scene
-from tofcore.modulation import phasor_correlations
-from tofcore.pose import look_at
-from tofcore.scene import RECENTRE_BEYOND_M
+from tofcore.sensor.modulation import phasor_correlations
+from tofcore.scene.pose import look_at
+from tofcore.scene.scene import RECENTRE_BEYOND_M
 
 ROOM = tofcore.demo_scene("room", detail=2)
 CAMERA = Camera.from_fov(48, 40, 70.0, 60.0)

@@ -1,4 +1,4 @@
-"""Randomized QMC samples (tofcore.qmc): bit tricks, the Sobol' net property, scrambling, replicates, determinism.
+"""Randomized QMC samples (tofcore.tracer.qmc): bit tricks, the Sobol' net property, scrambling, replicates, determinism.
 
 Statistical checks use fixed seeds, so each is deterministic; thresholds are quantiles a correct sampler
 exceeds with probability ≤ 0.1 % (chi-square) or ≈ 6e-5 (|corr| < 4/√N, a 4σ bound for uncorrelated
@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from tofcore import qmc
-from tofcore import rng as tof_rng
+from tofcore.tracer import qmc
+from tofcore.tracer import rng as tof_rng
 
 U32 = np.uint32
 R = qmc.REPLICATES

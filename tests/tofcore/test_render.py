@@ -7,10 +7,10 @@ import pytest
 
 import tofcore
 from tofcore import Ambient, Camera, ConfigError
-from tofcore.modulation import Modulation
-from tofcore.presets import load_preset
+from tofcore.sensor.modulation import Modulation
+from tofcore.sensor.presets import load_preset
 from tofcore.render import render
-from tofcore.sensor import Noise, Scattering
+from tofcore.sensor.config import Noise, Scattering
 
 
 def small(sensor, w=32, h=24, hfov=60.0, **changes):
@@ -136,7 +136,7 @@ def test_skip_ambient_changes_nothing():
 
 def test_skip_scattering_changes_nothing():
     """Strength 0 (skipped) equals an explicit identity PSF."""
-    from tofcore import optics
+    from tofcore.sensor import optics
 
     raw = np.random.default_rng(0).random((3, 10, 12))
     np.testing.assert_allclose(optics.apply_scattering(raw, optics.psf_kernel("airy", strength=0.0, radius_px=2.0)),
@@ -147,8 +147,8 @@ def test_skip_scattering_changes_nothing():
 
 
 def test_skip_conductor_fresnel_changes_nothing():
-    from tofcore.bsdf import SurfaceParams, specular_fresnel
-    from tofcore.fresnel import fresnel_conductor, fresnel_dielectric
+    from tofcore.scene.bsdf import SurfaceParams, specular_fresnel
+    from tofcore.scene.fresnel import fresnel_conductor, fresnel_dielectric
 
     cos = np.linspace(0, 1, 50)
     params = SurfaceParams(reflectance=0.5, roughness=0.3, metallic=np.zeros(50), ior=1.5, extinction=2.0)

@@ -113,7 +113,7 @@ def test_load_errors_name_the_file(tmp_path):
         Scene.load(old)
 
 
-@pytest.mark.parametrize("name", tofcore.demo.NAMES)
+@pytest.mark.parametrize("name", tofcore.scene.demo.NAMES)
 def test_demo_scenes_build(name):
     s = tofcore.demo_scene(name)
     assert s.triangle_count > 0 and s.dropped_triangles == 0

@@ -1,4 +1,4 @@
-"""Tests of tofcore.sensor and tofcore.presets: the three presets, round trips and every bad-preset error."""
+"""Tests of tofcore.sensor and tofcore.sensor.presets: the three presets, round trips and every bad-preset error."""
 
 import json
 import math
@@ -8,12 +8,12 @@ from pathlib import Path
 
 import pytest
 
-from tofcore.camera import Camera
+from tofcore.scene.camera import Camera
 from tofcore.errors import ConfigError
-from tofcore.led import LED
-from tofcore.modulation import Modulation
-from tofcore.presets import PRESETS_DIR, list_presets, load_preset
-from tofcore.sensor import InvalidRules, Noise, Readout, Scattering, Sensor
+from tofcore.scene.led import LED
+from tofcore.sensor.modulation import Modulation
+from tofcore.sensor.presets import PRESETS_DIR, list_presets, load_preset
+from tofcore.sensor.config import InvalidRules, Noise, Readout, Scattering, Sensor
 
 # SPEC §5 / thesis Tab. 4.1: resolution, FOV (h, v) in degrees, range, frame rate, IR image.
 TABLE_4_1 = {

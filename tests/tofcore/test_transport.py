@@ -5,9 +5,10 @@ import pytest
 
 import tofcore
 from tofcore import LED, Ambient, Camera, ConfigError, Material, Scene
-from tofcore import rng as tof_rng
-from tofcore import qmc, transport
-from tofcore.transport import SPEED_OF_LIGHT_M_S, pass_schedule, trace
+from tofcore.tracer import rng as tof_rng
+from tofcore.tracer import qmc, transport
+from tofcore.constants import SPEED_OF_LIGHT_M_S
+from tofcore.tracer.transport import pass_schedule, trace
 
 C = SPEED_OF_LIGHT_M_S
 RHO = 0.8

@@ -1,4 +1,4 @@
-"""Worker processes of the CPU tracer (tofcore.workers): same frame bit for bit, shared memory, fallbacks."""
+"""Worker processes of the CPU tracer (tofcore.tracer.workers): same frame bit for bit, shared memory, fallbacks."""
 
 from __future__ import annotations
 
@@ -10,9 +10,11 @@ import numpy as np
 import pytest
 
 import tofcore
-from tofcore import LED, Camera, workers
+from tofcore import LED, Camera
+from tofcore import limits
+from tofcore.tracer import workers
 from tofcore.errors import Cancelled
-from tofcore.modulation import phasor_correlations
+from tofcore.sensor.modulation import phasor_correlations
 
 
 def corner(width=48, height=36):
@@ -97,16 +99,16 @@ def test_cancel_stops_the_workers_and_the_next_render_works():
 
 
 def test_usable_cpus_respects_the_cgroup_quota(tmp_path):
-    assert 1 <= workers.usable_cpus() <= (os.cpu_count() or 1)
+    assert 1 <= limits.usable_cpus() <= (os.cpu_count() or 1)
     (tmp_path / "cpu.max").write_text("150000 100000\n")
-    assert workers._cgroup_quota(tmp_path) == 2          # 1.5 CPUs → 2 workers
+    assert limits._cgroup_quota(tmp_path) == 2          # 1.5 CPUs → 2 workers
     (tmp_path / "cpu.max").write_text("max 100000\n")
-    assert workers._cgroup_quota(tmp_path) is None
+    assert limits._cgroup_quota(tmp_path) is None
     v1 = tmp_path / "v1"
     (v1 / "cpu").mkdir(parents=True)
     (v1 / "cpu" / "cpu.cfs_quota_us").write_text("400000")
     (v1 / "cpu" / "cpu.cfs_period_us").write_text("100000")
-    assert workers._cgroup_quota(v1) == 4
+    assert limits._cgroup_quota(v1) == 4
 
 
 def test_python_executable_inside_blender(monkeypatch, tmp_path):

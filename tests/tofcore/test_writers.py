@@ -8,8 +8,8 @@ import zlib
 import numpy as np
 import pytest
 
-from tofcore import writers
-from tofcore.frame import Frame, Reason
+from tofcore.output import png, writers
+from tofcore.output.frame import Frame, Reason
 
 H, W, K = 6, 8, 3
 LABELS = ("f80MHz_s0", "f80MHz_s1", "f80MHz_s2", "f80MHz_s3")
@@ -110,7 +110,7 @@ def test_previews_are_rgb8(written):
                                    np.arange(H * W * 3, dtype=np.uint8).reshape(H, W, 3)])
 def test_numpy_png_encoder_matches_opencv(image):
     cv2 = pytest.importorskip("cv2")
-    decoded = cv2.imdecode(np.frombuffer(writers._encode_png_numpy(image), np.uint8), cv2.IMREAD_UNCHANGED)
+    decoded = cv2.imdecode(np.frombuffer(png.encode_png_numpy(image), np.uint8), cv2.IMREAD_UNCHANGED)
     np.testing.assert_array_equal(decoded[..., ::-1] if image.ndim == 3 else decoded, image)
 
 
@@ -127,10 +127,10 @@ def test_png_without_opencv(frame, tmp_path, monkeypatch):
 
 
 def test_colour_maps():
-    assert writers._TURBO.shape == writers._DIVERGING.shape == (256, 3)
-    blue, red = writers._DIVERGING[0], writers._DIVERGING[255]
+    assert png.TURBO.shape == png.DIVERGING.shape == (256, 3)
+    blue, red = png.DIVERGING[0], png.DIVERGING[255]
     assert blue[2] > blue[0] and red[0] > red[2]
-    assert writers._DIVERGING[127:129].min() >= 250  # white in the middle
+    assert png.DIVERGING[127:129].min() >= 250  # white in the middle
     assert set(writers._REASON_RGB) == set(Reason)
     assert len({tuple(c) for c in writers._REASON_RGB.values()}) == len(Reason)
 
@@ -215,7 +215,7 @@ def test_prefix_with_separator_raises(frame, tmp_path):
 
 
 def test_convergence_png_is_written_and_listed(tmp_path):
-    from tofcore import convergence_plot
+    from tofcore.output import convergence_plot
 
     logged = make_frame()
     logged.stats["convergence"] = [{"pass": i + 1, "seconds": 0.1 * 2 ** i, "spp": 2 ** i, "rays": 48,
@@ -233,7 +233,7 @@ def test_convergence_png_is_written_and_listed(tmp_path):
 
 
 def test_convergence_png_without_log_or_plotting_packages(frame, tmp_path, monkeypatch):
-    from tofcore import convergence_plot
+    from tofcore.output import convergence_plot
 
     monkeypatch.setattr(writers, "cv2", None)
     monkeypatch.setattr(convergence_plot, "cv2", None)

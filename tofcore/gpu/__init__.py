@@ -2,18 +2,23 @@
 
 The simulator itself is written once (:mod:`tofcore.backend`); this folder
 holds only the pieces that NumPy's API cannot express fast enough on a GPU.
-Every kernel has a NumPy twin that ``tests/tofcore/test_gpu.py`` compares it
-with on the GPU machine:
+Every kernel is the twin of a NumPy reference function, listed in the one
+dispatch table :data:`tofcore.backend.KERNELS` (which ``tests/tofcore/test_kernels.py``
+walks, on the GPU machine comparing each kernel with its reference):
 
 ==========================  ==============================================  ==================================
-module                      kernel                                          NumPy twin
+module                      kernel                                          NumPy reference
 ==========================  ==============================================  ==================================
 :mod:`.traversal`           closest hit / any hit over the BVH records      ``BVH.intersect`` / ``BVH.occluded``
-:mod:`.fused`               counter-based uniforms (SplitMix64 ×2)          :func:`tofcore.rng.uniform`
-:mod:`.fused`               dielectric and conductor Fresnel                :mod:`tofcore.fresnel`
+:mod:`.fused`               counter-based uniforms (SplitMix64 ×2)          :func:`tofcore.tracer.rng.uniform`
+:mod:`.fused`               Owen-scrambled Sobol' points (2-D and 1-D)      :func:`tofcore.tracer.qmc.scrambled_2d`,
+                                                                            :func:`~tofcore.tracer.qmc.scrambled_1d`
+:mod:`.fused`               dielectric and conductor Fresnel                ``fresnel.fresnel_dielectric`` /
+                                                                            ``fresnel.fresnel_conductor``
 :mod:`.fused`               square-wave correlation g_j(τ)                  ``modulation.square_correlation``
 ==========================  ==============================================  ==================================
 
-Nothing here is imported unless a device array reaches a dispatching function,
+The kernels take their shared constants (BVH record layout, hash constants, replicate count) from the
+Python modules they twin. Nothing here is imported unless a device array reaches a reference function,
 so the CPU path never imports CuPy.
 """

@@ -4,12 +4,12 @@ On the GPU every NumPy-style operation is a kernel launch and a pass over device
 of them is launch- and bandwidth-bound. The chains here are the ones the GPU profile found hot,
 each bit-identical to its NumPy twin (integer arithmetic; float operations in the same order).
 
-* :func:`uniform` — :func:`tofcore.rng.uniform`: two SplitMix64 finalisers over a mix of
+* :func:`uniform` — :func:`tofcore.tracer.rng.uniform`: two SplitMix64 finalisers over a mix of
   (key, pixel, sample, dimension), 53 bits → [0, 1); 14 array operations in NumPy, one kernel here.
-* :func:`fresnel_dielectric`, :func:`fresnel_conductor` — :mod:`tofcore.fresnel`: evaluated several
+* :func:`fresnel_dielectric`, :func:`fresnel_conductor` — :mod:`tofcore.scene.fresnel`: evaluated several
   times per vertex (BSDF value, pdf, lobe choice); 28 % of the bytes the GPU trace moved (counted on
   the Kinect room frame), 11 and 12 operations each in NumPy.
-* :func:`square_correlation` — :func:`tofcore.modulation.square_correlation`, per raw image and
+* :func:`square_correlation` — :func:`tofcore.sensor.modulation.square_correlation`, per raw image and
   contribution: 7 operations in NumPy.
 """
 
@@ -18,7 +18,8 @@ from __future__ import annotations
 import functools
 
 from .. import backend
-from .. import rng as _rng
+from ..tracer import qmc
+from ..tracer import rng as _rng
 
 _MASK64 = (1 << 64) - 1
 
@@ -43,7 +44,7 @@ def _uniform_kernel(cp):
 
 
 def uniform(key, pixel, sample, dim: int):
-    """:func:`tofcore.rng.uniform` for CuPy ``pixel`` and ``sample`` arrays, bit for bit."""
+    """:func:`tofcore.tracer.rng.uniform` for CuPy ``pixel`` and ``sample`` arrays, bit for bit."""
     cp = backend.namespace(pixel, sample)
     dim_mix = (int(dim) * int(_rng._MIX_DIM)) & _MASK64
     return _uniform_kernel(cp)(pixel.astype(cp.int64, copy=False), sample.astype(cp.int64, copy=False),
@@ -75,18 +76,14 @@ _QMC_PREAMBLE = """
 __device__ unsigned int owen(unsigned int x, unsigned int seed) {
     x = __brev(x);
     x += seed;
-    x ^= x * 0x6c50b47cu;
-    x ^= x * 0xb82f1e52u;
-    x ^= x * 0xc7afe638u;
-    x ^= x * 0x8d22f6e6u;
-    return __brev(x);
+""" + "".join(f"    x ^= x * {int(k):#010x}u;\n" for k in qmc._LK) + """    return __brev(x);
 }
 """
+"""The Laine–Karras hash of :func:`tofcore.tracer.qmc.owen_scramble`, its constants taken from ``qmc._LK``."""
 
 
 @functools.lru_cache(maxsize=None)
 def _qmc_kernel(cp, two: bool):
-    from .. import qmc
     c = {k: f"{int(getattr(_rng, k)):#x}ULL" for k in ("_GOLDEN", "_MIX_PIXEL", "_MIX_SAMPLE", "_M1", "_M2")}
     body = _QMC_BODY.replace("REPLICATES", f"{qmc.REPLICATES}LL")
     for name in ("GOLDEN", "MIX_PIXEL", "MIX_SAMPLE", "M1", "M2"):
@@ -110,9 +107,18 @@ def _qmc_kernel(cp, two: bool):
                                 "float64 u", body, "tofcore_qmc_1d", preamble=_QMC_PREAMBLE)
 
 
+def scrambled_2d(key, pixel, sample, dim: int):
+    """:func:`tofcore.tracer.qmc.scrambled_2d` for CuPy ``pixel`` and ``sample`` arrays, bit for bit."""
+    return qmc_sample(key, pixel, sample, dim, two=True)
+
+
+def scrambled_1d(key, pixel, sample, dim: int):
+    """:func:`tofcore.tracer.qmc.scrambled_1d` for CuPy ``pixel`` and ``sample`` arrays, bit for bit."""
+    return qmc_sample(key, pixel, sample, dim, two=False)
+
+
 def qmc_sample(key, pixel, sample, dim: int, two: bool):
-    """:func:`tofcore.qmc.sample_2d` (``two``) or :func:`tofcore.qmc.sample_1d` for CuPy arrays, bit for bit."""
-    from .. import qmc
+    """The ``"sobol"`` sampler's (u, v) (``two``) or u for CuPy arrays: one kernel for both dimensions."""
     cp = backend.namespace(pixel, sample)
     mixes = [cp.uint64((int(d) * int(_rng._MIX_DIM)) & _MASK64) for d in (dim, dim + qmc.SEED_DIM_OFFSET)]
     args = (pixel.astype(cp.int64, copy=False), sample.astype(cp.int64, copy=False), cp.uint64(int(key)), *mixes)
@@ -176,20 +182,20 @@ def _square_correlation_kernel(cp):
 
 
 def fresnel_dielectric(cos_theta_i, eta):
-    """:func:`tofcore.fresnel.fresnel_dielectric` for CuPy arrays, bit for bit."""
+    """:func:`tofcore.scene.fresnel.fresnel_dielectric` for CuPy arrays, bit for bit."""
     cp = backend.namespace(cos_theta_i, eta)
     return _fresnel_dielectric_kernel(cp)(cp.asarray(cos_theta_i, cp.float64), cp.asarray(eta, cp.float64))
 
 
 def fresnel_conductor(cos_theta_i, eta, k):
-    """:func:`tofcore.fresnel.fresnel_conductor` for CuPy arrays, bit for bit."""
+    """:func:`tofcore.scene.fresnel.fresnel_conductor` for CuPy arrays, bit for bit."""
     cp = backend.namespace(cos_theta_i, eta, k)
     return _fresnel_conductor_kernel(cp)(cp.asarray(cos_theta_i, cp.float64), cp.asarray(eta, cp.float64),
                                          cp.asarray(k, cp.float64))
 
 
 def square_correlation(tau_s, f_hz: float, offset_fraction: float, duty: float):
-    """:func:`tofcore.modulation.square_correlation` for a CuPy array of delays, bit for bit."""
+    """:func:`tofcore.sensor.modulation.square_correlation` for a CuPy array of delays, bit for bit."""
     cp = backend.namespace(tau_s)
     return _square_correlation_kernel(cp)(cp.asarray(tau_s, cp.float64), float(f_hz), float(offset_fraction),
                                           0.25 + 0.5 * duty, max(0.0, duty - 0.5), min(duty, 0.5), float(duty))

@@ -1,6 +1,6 @@
 // Closest-hit and any-hit traversal of tofcore's 4-wide BVH records, one thread per ray.
 //
-// The twin of tofcore.bvh.BVH.intersect / BVH.occluded (NumPy, breadth first); the records are read
+// The twin of tofcore.scene.bvh.BVH.intersect / BVH.occluded (NumPy, breadth first); the records are read
 // exactly as BVH.build lays them out (int32 words, floats stored as their bits):
 //   node record at row r (WIDTH = 4 children per row):
 //     rows r+0..r+2  child box minimum x, y, z      rows r+3..r+5  child box maximum x, y, z
@@ -15,13 +15,9 @@
 // same t, u, v bit for bit; only a tie between two triangles at exactly the same t may be resolved
 // differently (the traversal orders differ).
 
-#define WIDTH 4
-#define NODE_ROWS 7
-#define LEAF_ROWS 10
-#define CHILD_ROW 6
-#define PRIM_ROW 9
+// The record layout (WIDTH, NODE_ROWS, LEAF_ROWS, CHILD_ROW, PRIM_ROW) and TINY_DIR are #defined from
+// tofcore/scene/bvh.py's constants by traversal.py, which puts them in front of this source.
 #define STACK_SIZE 96
-#define TINY_DIR 1e-30
 
 struct Ray {
     float o[3];

@@ -1,8 +1,8 @@
-"""BVH traversal on the GPU: one CUDA thread per ray over the records :class:`tofcore.bvh.BVH` builds.
+"""BVH traversal on the GPU: one CUDA thread per ray over the records :class:`tofcore.scene.bvh.BVH` builds.
 
 The twin of ``BVH.intersect`` (closest hit) and ``BVH.occluded`` (any hit, early exit): same records,
 same watertight triangle test in the same float32 operation order (compiled without FMA contraction),
-same ``ignore_prim`` rule; see ``traversal.cu``. :class:`~tofcore.bvh.BVH` dispatches here when the
+same ``ignore_prim`` rule; see ``traversal.cu``. :func:`tofcore.backend.device_twin` dispatches here when the
 rays are CuPy arrays.
 """
 
@@ -15,14 +15,26 @@ import numpy as np
 
 from .. import backend
 from ..errors import TofError
+from ..scene import bvh as _bvh
+from ..scene.bvh import Hits
 
 _THREADS = 128
 _SOURCE = Path(__file__).with_name("traversal.cu")
 
 
+#: the constants the kernel shares with :mod:`tofcore.scene.bvh`, #defined from the Python source.
+LAYOUT = {"WIDTH": _bvh.WIDTH, "NODE_ROWS": _bvh._NODE_ROWS, "LEAF_ROWS": _bvh._LEAF_ROWS,
+          "CHILD_ROW": _bvh._CHILD_ROW, "PRIM_ROW": _bvh._PRIM_ROW, "TINY_DIR": _bvh._TINY_DIR}
+
+
+def source() -> str:
+    """The CUDA source: the shared constants as ``#define`` lines, then ``traversal.cu``."""
+    return "".join(f"#define {name} {value!r}\n" for name, value in LAYOUT.items()) + _SOURCE.read_text()
+
+
 @functools.lru_cache(maxsize=None)
 def _module(cp_module):
-    return cp_module.RawModule(code=_SOURCE.read_text(), options=("--std=c++17", "--fmad=false"))
+    return cp_module.RawModule(code=source(), options=("--std=c++17", "--fmad=false"))
 
 
 def _rays(cp, bvh, origins, directions, t_max, ignore_prim):
@@ -50,10 +62,9 @@ def _launch(cp, kernel_name, n, args):
                            "use device='cpu' for this scene")
 
 
-def intersect(bvh, origins, directions, t_max=None, ignore_prim=None):
-    """Closest hits (``tofcore.bvh.Hits`` of CuPy arrays), as ``BVH.intersect``."""
-    from ..bvh import Hits
-
+def intersect(bvh, origins, directions, t_max=None, ignore_prim=None, *, workers: int = 2, counters=None):
+    """Closest hits (``tofcore.scene.bvh.Hits`` of CuPy arrays), as ``BVH.intersect`` (``workers`` and
+    ``counters`` are the reference's CPU options, unused here)."""
     cp = backend.namespace(origins, directions)
     o, d, tm, ig, nodes, leaves, n = _rays(cp, bvh, origins, directions, t_max, ignore_prim)
     t = cp.empty(n, cp.float32)
@@ -65,8 +76,8 @@ def intersect(bvh, origins, directions, t_max=None, ignore_prim=None):
     return Hits(t=t, prim=prim, u=u, v=v)
 
 
-def occluded(bvh, origins, directions, t_max, ignore_prim=None):
-    """(R,) bool CuPy array: any hit with ``0 < t < t_max``, as ``BVH.occluded``."""
+def occluded(bvh, origins, directions, t_max, ignore_prim=None, *, workers: int = 2, counters=None):
+    """(R,) bool CuPy array: any hit with ``0 < t < t_max``, as ``BVH.occluded`` (CPU options unused)."""
     cp = backend.namespace(origins, directions)
     o, d, tm, ig, nodes, leaves, n = _rays(cp, bvh, origins, directions, t_max, ignore_prim)
     out = cp.empty(n, cp.bool_)

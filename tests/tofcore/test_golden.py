@@ -1,0 +1,155 @@
+"""Golden hashes: CPU frames stay the same bit for bit while the code is reorganised.
+
+Each case renders (or traces) a small frame and hashes its arrays: the raw images, the output depth, the
+per-k decoded distances, the render-error estimate and the sample counts of a :func:`tofcore.render`, or
+the per-bounce sums, replicate sums, ambient sums and transient histogram of a :func:`tofcore.trace`.
+The cases cover 3 demo scenes × 3 presets with and without light vertices, adaptive sampling, ambient
+light, the independent sampler and a transient histogram; one case runs chunks on 2 worker processes and
+must hash like the same case in this process (chunking and workers never change a frame).
+
+The hashes are SHA-256 of each array's dtype, shape and bytes, kept in ``golden_hashes.json``; NumPy
+1.26 (.venv) and NumPy 2 (.venv313) gave the same hashes on the project machine. A change that is meant
+to change frames (physics, presets) regenerates them::
+
+    .venv/bin/python tests/tofcore/test_golden.py --regenerate
+
+and says in its commit message which frames changed and why. ``--show`` prints the differing arrays.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+
+from tofcore import Ambient, Camera, demo_scene, load_preset, render, trace
+
+GOLDEN_FILE = Path(__file__).with_name("golden_hashes.json")
+WIDTH, HEIGHT = 16, 12
+
+#: name → (kind, scene, preset, settings). Render settings are those of tofcore.render; trace settings
+#: those of tofcore.trace with the preset's camera, LEDs and correlation bank.
+CASES: dict[str, tuple[str, str, str, dict]] = {
+    "plane_kinect_default": ("render", "plane", "kinect_v2", dict(spp=8, max_depth=2)),
+    "plane_o3d_no_light_paths": ("render", "plane", "o3d303", dict(spp=8, max_depth=3, light_paths=False)),
+    "plane_xtion_ambient": ("render", "plane", "xtion2", dict(spp=8, max_depth=2, ambient="sky")),
+    "corner_kinect_adaptive": ("render", "corner", "kinect_v2", dict(spp=40, max_depth=3, adaptive=True)),
+    "corner_o3d_default": ("render", "corner", "o3d303", dict(spp=8, max_depth=3)),
+    "corner_xtion_independent": ("render", "corner", "xtion2",
+                                 dict(spp=8, max_depth=3, sampler="independent", light_paths=False)),
+    "box_kinect_ambient_no_light_paths": ("render", "box_on_wall", "kinect_v2",
+                                          dict(spp=8, max_depth=3, ambient="env", light_paths=False)),
+    "box_o3d_adaptive": ("render", "box_on_wall", "o3d303", dict(spp=40, max_depth=2, adaptive=True)),
+    "box_xtion_default": ("render", "box_on_wall", "xtion2", dict(spp=8, max_depth=4)),
+    "corner_kinect_trace_transient": ("trace", "corner", "kinect_v2",
+                                      dict(spp=8, max_depth=3, transient_bin_m=0.05, transient_max_m=12.0)),
+    "box_xtion_trace_ambient_transient": ("trace", "box_on_wall", "xtion2",
+                                          dict(spp=8, max_depth=3, ambient="sky", light_paths=False,
+                                               transient_bin_m=0.1, transient_max_m=10.0)),
+    "room_kinect_trace": ("trace", "room", "kinect_v2", dict(spp=8, max_depth=4)),
+}
+#: the same frame, traced by 2 worker processes in chunks of 48 paths: must hash like its twin.
+PARALLEL_TWIN = ("corner_kinect_trace_transient", dict(workers=2, chunk_size=48))
+
+
+def _ambient(name: str | None) -> Ambient | None:
+    """A uniform sky, or an environment map with a bright band (both exercise the ambient stage)."""
+    if name == "sky":
+        return Ambient(radiance_w_m2_sr=0.02)
+    if name == "env":
+        env = np.full((8, 16), 0.01)
+        env[5:7] = 0.2
+        return Ambient(environment=env, environment_strength=1.5)
+    return None
+
+
+def _sensor(preset: str):
+    sensor = load_preset(preset)
+    return dataclasses.replace(sensor, camera=Camera.from_fov(WIDTH, HEIGHT, 60.0))
+
+
+def run_case(name: str, **overrides) -> dict[str, np.ndarray]:
+    """The arrays of one case, by name (``overrides`` change its settings)."""
+    kind, scene_name, preset, settings = CASES[name]
+    settings = dict(settings, seed=7, **overrides)
+    settings.setdefault("workers", 1)
+    settings["ambient"] = _ambient(settings.get("ambient"))
+    scene = demo_scene(scene_name, detail=1)
+    sensor = _sensor(preset)
+    if kind == "render":
+        settings.setdefault("adaptive", False)
+        frame = render(scene, sensor, **settings)
+        return {"raw": frame.raw, "depth": frame.depth, "distance_per_k": frame.distance_per_k,
+                "render_error": frame.render_error, "samples": frame.samples, "valid": frame.valid,
+                "amplitude": frame.amplitude, "gt_distance": frame.gt_distance}
+    t = trace(scene, sensor.camera, sensor.leds, world_from_sensor=scene.metadata["world_from_sensor"],
+              correlations=sensor.modulation.correlation_bank(), **settings)
+    arrays = {"sample_count": t.sample_count, "signal_sum": t.signal_sum, "correlation_sum": t.correlation_sum,
+              "ambient_sum": t.ambient_sum, "replicate_sum": t.replicate_sum,
+              "first_hit_distance": t.first_hit.distance_m, "first_hit_normal": t.first_hit.normal}
+    if t.transient_sum is not None:
+        arrays["transient_sum"] = t.transient_sum
+    return arrays
+
+
+def digest(array: np.ndarray) -> str:
+    """SHA-256 of an array's dtype, shape and bytes (C order): equal iff equal bit for bit."""
+    a = np.ascontiguousarray(np.asarray(array))
+    h = hashlib.sha256(f"{a.dtype.str}{a.shape}".encode())
+    h.update(a.tobytes())
+    return h.hexdigest()[:32]
+
+
+def hashes(name: str, **overrides) -> dict[str, str]:
+    return {key: digest(value) for key, value in run_case(name, **overrides).items()}
+
+
+def _golden() -> dict[str, dict[str, str]]:
+    return json.loads(GOLDEN_FILE.read_text(encoding="utf-8"))
+
+
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_frame_hashes_are_unchanged(name):
+    expected = _golden()[name]
+    got = hashes(name)
+    changed = sorted(k for k in expected.keys() | got.keys() if expected.get(k) != got.get(k))
+    assert not changed, (f"golden case {name!r}: arrays changed bit for bit: {changed} (an intentional physics "
+                         f"change regenerates them: see this file's docstring)")
+
+
+def test_workers_and_chunks_do_not_change_the_frame():
+    twin, overrides = PARALLEL_TWIN
+    assert hashes(twin, **overrides) == _golden()[twin]
+
+
+def _regenerate() -> None:
+    old = _golden() if GOLDEN_FILE.exists() else {}
+    table = {name: hashes(name) for name in sorted(CASES)}
+    for name, new in table.items():
+        changed = sorted(k for k in new if old.get(name, {}).get(k) != new[k])
+        print(f"{name}: {'changed ' + ', '.join(changed) if changed else 'unchanged'}")
+    GOLDEN_FILE.write_text(json.dumps(table, indent=1, sort_keys=True) + "\n", encoding="utf-8")
+    print(f"wrote {GOLDEN_FILE}")
+
+
+def _show() -> None:
+    golden = _golden()
+    for name in sorted(CASES):
+        got = hashes(name)
+        changed = sorted(k for k in got if golden.get(name, {}).get(k) != got[k])
+        print(f"{name}: {'DIFFERS ' + ', '.join(changed) if changed else 'ok'}")
+
+
+if __name__ == "__main__":
+    if "--regenerate" in sys.argv[1:]:
+        _regenerate()
+    elif "--show" in sys.argv[1:]:
+        _show()
+    else:
+        sys.exit("usage: test_golden.py --regenerate | --show   (pytest runs the checks)")

@@ -1,0 +1,377 @@
+"""Writers: one simulated :class:`~tofcore.output.frame.Frame` to files.
+
+``write_frame(frame, out_dir)`` writes, with ``prefix`` before every name:
+
+===================  ============  =================================================================
+file                 kind          content
+===================  ============  =================================================================
+``frame.exr``        exr           one part, float32 channels, ZIP (lossless): ``depth``,
+                                   ``distance``, ``amplitude``, ``intensity``, ``offset``,
+                                   ``confidence``, ``valid`` (0/1), ``reason`` (code),
+                                   ``gt_distance``, ``gt_depth``, ``direct_distance``, ``object_id``
+                                   (exact below 2²⁴), ``raw.<label>`` per raw image,
+                                   ``distance_k1`` … ``distance_kK``; header attributes
+                                   ``tofcore`` (the JSON document below, without files and
+                                   previews) and ``world_from_sensor`` (4×4 float64)
+``depth_mm.png``     depth_mm      16-bit grey: depth in mm rounded to nearest (ties to even),
+                                   0 where invalid, clipped to 65535 mm (65.535 m)
+``depth.png``        depth         8-bit RGB: turbo-like colour map over [min, max] of the valid
+                                   depth, invalid black
+``intensity.png``    intensity     8-bit RGB grey: log(1 + intensity) over its finite range
+``error.png``        error         8-bit RGB: depth − gt_depth in mm, blue (−) – white – red (+)
+                                   over ±limit_mm, limit = max(1 mm, 99th percentile of |error|),
+                                   black where invalid or without ground truth
+``reason.png``       reason        8-bit RGB: one colour per :class:`Reason` (legend in the JSON)
+``convergence.png``  convergence   8-bit RGB 640×400 plot of ``stats["convergence"]``: estimated RMS
+                                   depth error (mm, log) against time (s, log), spp on the top axis,
+                                   the actual error when the log has ``rms_error_m``; title with the
+                                   final spp, time and error (:mod:`tofcore.output.convergence_plot`)
+``points.ply``       ply           binary little-endian valid points, sensor frame, metres:
+                                   float x y z, float amplitude (e⁻), uchar intensity (grey level
+                                   of ``intensity.png``)
+``frame.json``       json          frame metadata, stats, units, preview limits, and every file
+                                   above with its size and SHA-256; written last
+===================  ============  =================================================================
+
+Every file is written atomically (temp file ``.name.tmp-XXXXXXXX`` in the same
+directory, flush, fsync, ``os.replace``): a failure leaves the previous file or
+none, never a partial one. ``frame.json`` is the frame's done record: an existing
+one is removed before anything else is written, since it would describe files
+about to be replaced. NaN and ±inf become ``null`` in JSON.
+
+OpenCV encodes the PNGs when importable, else a NumPy + zlib encoder does;
+EXR needs the optional ``OpenEXR`` package (``pip install OpenEXR``).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import hashlib
+import json
+import math
+import os
+import secrets
+from collections.abc import Callable, Iterable, Mapping
+from pathlib import Path, PurePath
+
+import numpy as np
+
+from .frame import Frame, Reason
+from .png import DIVERGING, GREY, TURBO, apply_lut, encode_png
+
+try:
+    import OpenEXR
+except ImportError:
+    OpenEXR = None
+
+FORMATS = ("exr", "png", "ply", "json")
+
+# Images written as EXR channels of the same name (all (H, W)).
+_EXR_IMAGES = ("depth", "distance", "amplitude", "intensity", "offset", "confidence", "valid", "reason",
+               "gt_distance", "gt_depth", "direct_distance", "object_id")
+
+UNITS = {
+    "depth": "m", "distance": "m", "render_error": "m", "gt_distance": "m", "gt_depth": "m", "direct_distance": "m",
+    "distance_k<k>": "m", "amplitude": "e-", "offset": "e-", "intensity": "e-", "raw.<label>": "e-",
+    "samples": "samples per pixel", "confidence": "1", "valid": "0/1", "reason": "Reason code", "object_id": "object index, -1 none",
+    "depth_mm.png": "mm", "points.ply": "m, sensor frame (x right, y down, z forward)",
+}
+
+# One colour (8-bit RGB) per invalid-pixel reason.
+_REASON_RGB = {
+    Reason.VALID: (200, 200, 200), Reason.NO_RETURN: (0, 0, 0), Reason.LOW_AMPLITUDE: (40, 90, 220),
+    Reason.SATURATED: (230, 30, 30), Reason.OUT_OF_RANGE: (220, 0, 220), Reason.UNWRAPPING_FAILED: (255, 160, 0),
+}
+
+_DEPTH_MM_MAX = 65535
+_ERROR_FLOOR_MM = 1.0
+_ERROR_PERCENTILE = 99.0
+
+
+# --------------------------------------------------------------------------- public API
+
+def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str] | str = FORMATS, *,
+                prefix: str = "") -> dict[str, Path]:
+    """Write ``frame`` to ``out_dir`` (created if needed); return the files by kind.
+
+    Parameters
+    ----------
+    frame : the frame to write.
+    out_dir : output directory.
+    formats : any of ``"exr"``, ``"png"``, ``"ply"``, ``"json"`` (a single name is accepted).
+    prefix : put before every file name, e.g. ``"000042_"``; no path separators.
+
+    Returns
+    -------
+    ``{kind: path}`` with kinds ``exr``, ``depth_mm``, ``depth``, ``intensity``, ``error``,
+    ``reason``, ``convergence``, ``ply``, ``json`` for the formats asked (see the module docstring).
+
+    Raises
+    ------
+    ValueError : unknown format or bad prefix, before anything is written.
+    TypeError : ``metadata`` or ``stats`` holds something JSON cannot hold, before anything is written.
+    ImportError : ``"exr"`` asked without the OpenEXR package, before anything is written.
+    """
+    formats = _check_formats(formats)
+    if Path(prefix).name != prefix:
+        raise ValueError(f"write_frame: prefix must be a plain file-name prefix, got {prefix!r}")
+    if "exr" in formats and OpenEXR is None:
+        raise ImportError("write_frame: format 'exr' needs the OpenEXR package, which is not installed: "
+                          "pip install OpenEXR  (or pip install 'tofcore[exr]')")
+    from .convergence_plot import convergence_png  # here: that module imports this one's PNG encoder
+
+    document = _frame_document(frame)
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    json_path = out / f"{prefix}frame.json"
+    json_path.unlink(missing_ok=True)
+    written: dict[str, Path] = {}
+    previews: dict[str, dict] = {}
+    if "exr" in formats:
+        written["exr"] = _atomic_write(out / f"{prefix}frame.exr", lambda tmp: _write_exr(tmp, frame, document))
+    if "png" in formats:
+        png = encode_png(_depth_mm(frame))
+        written["depth_mm"] = _atomic_write(out / f"{prefix}depth_mm.png", lambda tmp: tmp.write_bytes(png))
+        for kind, (image, limits) in _previews(frame).items():
+            png = encode_png(image)
+            written[kind] = _atomic_write(out / f"{prefix}{kind}.png", lambda tmp: tmp.write_bytes(png))
+            previews[kind] = {"file": written[kind].name, **limits}
+        png = convergence_png(frame.stats.get("convergence") or [])
+        written["convergence"] = _atomic_write(out / f"{prefix}convergence.png", lambda tmp: tmp.write_bytes(png))
+    if "ply" in formats:
+        written["ply"] = _atomic_write(out / f"{prefix}points.ply", lambda tmp: _write_ply(tmp, frame))
+    if "json" in formats:
+        text = _frame_json(document, written, previews)
+        written["json"] = _atomic_write(json_path, lambda tmp: tmp.write_bytes(text))
+    return written
+
+
+def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Channels of a ``frame.exr`` as ``{name: (H, W) float32 array}`` (see the module docstring)."""
+    if OpenEXR is None:
+        raise ImportError("read_exr: needs the OpenEXR package, which is not installed: pip install OpenEXR")
+    channels = OpenEXR.File(str(path), separate_channels=True).channels()
+    return {name: channel.pixels for name, channel in channels.items()}
+
+
+# --------------------------------------------------------------------------- files
+
+def _check_formats(formats: Iterable[str] | str) -> tuple[str, ...]:
+    """``formats`` as a tuple, or ValueError naming the unknown ones and the valid ones."""
+    formats = (formats,) if isinstance(formats, str) else tuple(formats)
+    unknown = [f for f in formats if f not in FORMATS]
+    if unknown:
+        raise ValueError(f"write_frame: formats must be among {FORMATS}, got unknown {unknown!r}")
+    return formats
+
+
+def _atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
+    """Create ``.{name}.tmp-XXXXXXXX`` beside ``path``, ``write(tmp)`` it, fsync, rename it to ``path``.
+
+    ``write`` gets a path, not a handle: OpenEXR 3.3 and 3.4 write to file names only.
+    If ``write`` raises, the temp file is removed and ``path`` is left as it was.
+    """
+    tmp = path.with_name(f".{path.name}.tmp-{secrets.token_hex(4)}")
+    try:
+        open(tmp, "xb").close()
+        write(tmp)
+        with open(tmp, "ab") as fh:
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+    return path
+
+
+def _file_record(kind: str, path: Path) -> dict:
+    """``{kind, name, bytes, sha256}`` of a written file."""
+    with open(path, "rb") as fh:
+        digest = hashlib.file_digest(fh, "sha256").hexdigest()
+    return {"kind": kind, "name": path.name, "bytes": path.stat().st_size, "sha256": digest}
+
+
+# --------------------------------------------------------------------------- EXR
+
+def _exr_channels(frame: Frame) -> dict[str, np.ndarray]:
+    """Every EXR channel as a C-contiguous float32 (H, W) array.
+
+    C order matters: OpenEXR 3.5's Python binding writes strided arrays scrambled.
+    """
+    if len(frame.raw_labels) != len(frame.raw) or len(set(frame.raw_labels)) != len(frame.raw_labels):
+        raise ValueError(f"write_frame: raw_labels must be {len(frame.raw)} distinct names (one per raw "
+                         f"image), got {frame.raw_labels!r}")
+    images = {name: getattr(frame, name) for name in _EXR_IMAGES}
+    images.update({f"raw.{label}": raw for label, raw in zip(frame.raw_labels, frame.raw)})
+    images.update({f"distance_k{k}": d for k, d in enumerate(frame.distance_per_k, start=1)})
+    images.update({name: getattr(frame, name) for name in ("render_error", "samples")
+                   if getattr(frame, name) is not None})
+    for name, image in images.items():
+        if np.shape(image) != (frame.height, frame.width):
+            raise ValueError(f"write_frame: {name} must have shape {(frame.height, frame.width)}, "
+                             f"got {np.shape(image)}")
+    return {name: np.ascontiguousarray(image, dtype=np.float32) for name, image in images.items()}
+
+
+def _write_exr(path: Path, frame: Frame, document: dict) -> None:
+    """Write the single-part scanline EXR of the module docstring to ``path``; ``document`` → ``tofcore``."""
+    header = {
+        "compression": OpenEXR.ZIP_COMPRESSION,
+        "type": OpenEXR.scanlineimage,
+        "tofcore": json.dumps(document, allow_nan=False),
+        "world_from_sensor": np.asarray(frame.world_from_sensor, dtype=np.float64),
+    }
+    OpenEXR.File(header, _exr_channels(frame)).write(str(path))
+
+
+# --------------------------------------------------------------------------- PNG
+
+def _depth_mm(frame: Frame) -> np.ndarray:
+    """(H, W) uint16 depth in millimetres, rounded, 0 where invalid, clipped to 65535 mm."""
+    depth_mm = np.asarray(frame.depth, dtype=np.float64) * 1000.0
+    keep = frame.valid & np.isfinite(depth_mm)
+    return np.where(keep, np.clip(np.rint(depth_mm), 0, _DEPTH_MM_MAX), 0).astype(np.uint16)
+
+
+def _finite_range(values: np.ndarray) -> tuple[float, float]:
+    """(min, max) of the finite values, (nan, nan) if there are none."""
+    finite = values[np.isfinite(values)]
+    return (float(finite.min()), float(finite.max())) if finite.size else (math.nan, math.nan)
+
+
+def _normalise(values: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """(values − lo) / (hi − lo), NaN stays NaN; a constant image maps to 0."""
+    return (values - lo) / (hi - lo if hi > lo else 1.0)
+
+
+def _intensity_grey(frame: Frame) -> tuple[np.ndarray, dict]:
+    """(H, W) uint8 grey of log(1 + intensity) over its finite range (negative clipped to 0), limits."""
+    intensity = np.maximum(np.asarray(frame.intensity, dtype=np.float64), 0.0)
+    lo, hi = _finite_range(intensity)
+    t = _normalise(np.log1p(intensity), math.log1p(lo), math.log1p(hi))
+    grey = apply_lut(t, GREY)[..., 0]
+    return grey, {"colormap": "grey", "scale": "log(1 + intensity)", "min_e": lo, "max_e": hi}
+
+
+def _previews(frame: Frame) -> dict[str, tuple[np.ndarray, dict]]:
+    """The 8-bit RGB previews ``{kind: ((H, W, 3) uint8, colour-map limits)}``."""
+    depth = np.where(frame.valid, frame.depth, np.nan).astype(np.float64)
+    lo, hi = _finite_range(depth)
+    grey, intensity_limits = _intensity_grey(frame)
+    return {
+        "depth": (apply_lut(_normalise(depth, lo, hi), TURBO),
+                  {"colormap": "turbo (polynomial approximation)", "min_m": lo, "max_m": hi, "invalid": "black"}),
+        "intensity": (np.repeat(grey[..., None], 3, axis=2), intensity_limits),
+        "error": _error_preview(frame, depth),
+        "reason": _reason_preview(frame),
+    }
+
+
+def _error_preview(frame: Frame, depth: np.ndarray) -> tuple[np.ndarray, dict]:
+    """Blue–white–red image of (depth − gt_depth) in mm over ±limit_mm, and its limits."""
+    error_mm = (depth - np.asarray(frame.gt_depth, dtype=np.float64)) * 1000.0
+    finite = np.abs(error_mm[np.isfinite(error_mm)])
+    limit_mm = max(_ERROR_FLOOR_MM, float(np.percentile(finite, _ERROR_PERCENTILE)) if finite.size else 0.0)
+    return apply_lut((error_mm / limit_mm + 1.0) / 2.0, DIVERGING), {
+        "colormap": "blue-white-red", "quantity": "depth - gt_depth", "unit": "mm", "limit_mm": limit_mm,
+        "rule": f"max({_ERROR_FLOOR_MM} mm, {_ERROR_PERCENTILE}th percentile of |error|), beyond saturates",
+        "invalid": "black"}
+
+
+def _reason_preview(frame: Frame) -> tuple[np.ndarray, dict]:
+    """One colour per :class:`Reason` code, and the legend ``{name: [r, g, b]}``."""
+    palette = np.array([_REASON_RGB[reason] for reason in Reason], dtype=np.uint8)
+    codes = np.asarray(frame.reason).astype(np.int64)
+    unknown = np.setdiff1d(codes, np.arange(len(palette)))
+    if unknown.size:
+        raise ValueError(f"write_frame: reason must hold Reason codes 0..{len(palette) - 1}, "
+                         f"got {unknown.tolist()!r}")
+    return palette[codes], {"colormap": "reason", "legend": {r.name: list(_REASON_RGB[r]) for r in Reason}}
+
+
+# --------------------------------------------------------------------------- PLY
+
+_PLY_VERTEX = np.dtype([("x", "<f4"), ("y", "<f4"), ("z", "<f4"), ("amplitude", "<f4"), ("intensity", "u1")])
+
+
+def _ply_header(frame: Frame, count: int) -> bytes:
+    """ASCII PLY header for ``count`` vertices of :data:`_PLY_VERTEX`, documenting the frame."""
+    pose = np.asarray(frame.world_from_sensor, dtype=np.float64)
+    lines = [
+        "ply", "format binary_little_endian 1.0",
+        "comment tofcore frame: valid pixels in image order, from the decoded radial distance",
+        "comment sensor frame (OpenCV: x right, y down, z forward), metres",
+        f"comment image {frame.width}x{frame.height}, depth_output {frame.depth_output}",
+        *(f"comment world_from_sensor row {i}: " + " ".join(repr(float(v)) for v in pose[i]) for i in range(4)),
+        "comment amplitude: modulation amplitude in electrons; intensity: grey level of intensity.png",
+        f"element vertex {count}",
+        *(f"property {'float' if _PLY_VERTEX[name] == np.float32 else 'uchar'} {name}" for name in _PLY_VERTEX.names),
+        "end_header",
+    ]
+    return ("\n".join(lines) + "\n").encode("ascii")
+
+
+def _ply_vertices(frame: Frame) -> np.ndarray:
+    """Structured (N,) array of the valid points (sensor frame, m), amplitude (e⁻), intensity grey."""
+    valid = np.asarray(frame.valid, dtype=bool)
+    points = frame.points("sensor")
+    vertices = np.empty(len(points), dtype=_PLY_VERTEX)
+    vertices["x"], vertices["y"], vertices["z"] = points.T
+    vertices["amplitude"] = np.asarray(frame.amplitude)[valid]
+    vertices["intensity"] = _intensity_grey(frame)[0][valid]
+    return vertices
+
+
+def _write_ply(path: Path, frame: Frame) -> None:
+    """Write ``points.ply`` (header, then packed 17-byte little-endian vertices) to ``path``."""
+    with open(path, "wb") as fh:
+        fh.write(_ply_header(frame, int(np.count_nonzero(frame.valid))))
+        fh.write(_ply_vertices(frame).tobytes())
+
+
+# --------------------------------------------------------------------------- JSON
+
+def _frame_document(frame: Frame) -> dict:
+    """JSON-ready description of the frame (also the EXR ``tofcore`` header attribute)."""
+    return _jsonable({
+        "format": "tofcore frame", "version": 1,
+        "width": frame.width, "height": frame.height, "depth_output": frame.depth_output,
+        "world_from_sensor": frame.world_from_sensor, "raw_labels": frame.raw_labels,
+        "distance_per_k": len(frame.distance_per_k), "units": UNITS,
+        "reason_codes": {r.name: int(r) for r in Reason},
+        "metadata": frame.metadata, "stats": frame.stats,
+    }, "frame")
+
+
+def _frame_json(document: dict, written: Mapping[str, Path], previews: Mapping[str, dict]) -> bytes:
+    """UTF-8 ``frame.json``: the frame document, preview limits and the written files."""
+    document = {**document, "previews": _jsonable(previews, "previews"),
+                "files": [_file_record(kind, path) for kind, path in written.items()]}
+    return (json.dumps(document, indent=2, allow_nan=False, ensure_ascii=False) + "\n").encode("utf-8")
+
+
+def _jsonable(value: object, where: str) -> object:
+    """``value`` as plain JSON types: arrays → lists, NumPy scalars → Python, NaN/inf → None."""
+    if isinstance(value, enum.Enum):
+        return value.name
+    if value is None or isinstance(value, (str, bool)):
+        return value
+    if isinstance(value, np.bool_):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return float(value) if math.isfinite(value) else None
+    if isinstance(value, np.ndarray):
+        return _jsonable(value.tolist(), where)
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v, f"{where}[{k!r}]") for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v, f"{where}[{i}]") for i, v in enumerate(value)]
+    if dataclasses.is_dataclass(value) and not isinstance(value, type):
+        return {f.name: _jsonable(getattr(value, f.name), f"{where}.{f.name}") for f in dataclasses.fields(value)}
+    if isinstance(value, PurePath):
+        return str(value)
+    raise TypeError(f"{where}: value must be JSON-convertible (number, string, list, dict, array, "
+                    f"dataclass, path), got {type(value).__name__}")
