@@ -1,4 +1,4 @@
-# Two commands on a fresh machine:  `make demo`  and  `make test`.
+# Two commands on a fresh machine:  `make demo` (runtime only)  and  `make test` (the development stack).
 PYTHON ?= python3.11
 VENV   ?= .venv
 PY     := $(VENV)/bin/python
@@ -28,8 +28,16 @@ $(VENV)/.installed: requirements-dev.txt pyproject.toml
 
 venv: $(VENV)/.installed
 
-demo: venv
-	$(PY) -m tofcore render --scene room --preset kinect_v2 --spp 32 --out out/demo --verbose
+# The demo needs the runtime only (NumPy, tqdm, and OpenEXR for frame.exr): no bpy, Dask or pytest. A venv that
+# `make test` made already has them; pip then installs nothing.
+$(VENV)/.runtime: pyproject.toml
+	[ -x $(PY) ] || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install --quiet --upgrade pip
+	$(PY) -m pip install --quiet -e ".[exr]"
+	touch $@
+
+demo: $(VENV)/.runtime
+	$(PY) -m tofcore render --scene room --preset kinect_v2 --spp 32 --no-noise --out out/demo --verbose
 
 test: venv
 	$(PY) -m pytest -q -m "not slow"
@@ -38,16 +46,24 @@ test-numpy2:
 	@if [ -z "$(PYTHON313)" ]; then echo "python3.13 not found: NumPy 2 check skipped"; else \
 	  [ -x $(VENV313)/bin/python ] || $(PYTHON313) -m venv $(VENV313); \
 	  $(call drop_other_opencv,$(VENV313)/bin/python); \
-	  $(VENV313)/bin/python -m pip install --quiet "numpy>=2" pytest tqdm opencv-contrib-python-headless "OpenEXR>=3.3" && \
+	  $(VENV313)/bin/python -m pip install --quiet "numpy>=2" pytest tqdm opencv-contrib-python-headless "OpenEXR>=3.3" trimesh && \
 	  $(VENV313)/bin/python -m pip install --quiet --no-deps -e . && \
 	  $(VENV313)/bin/python -m pytest -q -m "not slow" tests; fi
 
 bench: venv
 	$(PY) bench/bench_transport.py
 
-# The Blender extension: one validated zip per platform in dist/ (tofcore + OpenEXR wheels, no NumPy).
+# The Blender extension: one validated zip for every platform in dist/ (the pure tofcore wheel, no NumPy).
 addon: venv
 	$(PY) addon/build.py --out dist/
+
+# The add-on in a real Blender GUI (Debian 13's Blender 4.3.2 on a virtual display; root; the first run builds
+# /opt/blender-trixie from Debian's mirror, ~3 min): tests/blender_gui/run.py. DOCS=docs/images refreshes the
+# README's screenshots.
+.PHONY: test-blender
+test-blender: addon
+	$(PY) tests/blender_gui/run.py dist/tof_camera-$$(sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml).zip \
+		--out out/blender-gui $(if $(DOCS),--docs $(DOCS))
 
 # The six thesis experiments (docs/validation.md): PNG plots + JSON numbers in out/studies/, ~10 min on 2 cores.
 STUDIES := corner_path_length corner_roughness systematic_error box_wall_error_map flying_pixels led_shadow

@@ -11,7 +11,8 @@ timer drains the queue, shows each pass in the images of :mod:`.images`
 cursor, and the estimated depth error and elapsed time in the ToF panel. Esc
 sets the job's cancel flag: tofcore raises :class:`tofcore.Cancelled` between
 ray chunks, nothing is written, the images keep the last pass. The final frame
-is written by :func:`tofcore.write_frame` (atomic files) to the output folder;
+is written by :func:`tofcore.write_frame` (atomic files) to the output folder
+(``####`` in it = the frame number, :func:`frame_path`);
 its ``convergence.png`` is then loaded as the image "ToF Convergence"
 (:func:`.images.load_convergence_image`).
 
@@ -50,6 +51,7 @@ from __future__ import annotations
 
 import os
 import queue
+import re
 import tempfile
 import threading
 import time
@@ -194,14 +196,34 @@ def render_target(context) -> tuple:
     return obj, None
 
 
-def output_folder(path: str) -> str:
-    """Absolute output folder; ``//`` of an unsaved .blend goes to the system temporary folder."""
+def output_folder(path: str, frame: int | None = None, *, numbered: bool = False) -> str:
+    """Absolute output folder; ``//`` of an unsaved .blend goes to the system temporary folder.
+
+    With ``frame``, every run of ``#`` becomes the frame number zero-padded to its length (Blender's
+    convention: ``//tof/####/`` → ``//tof/0007/``); ``numbered`` (animations) adds a ``NNNN`` folder
+    when the path has no ``#``, so no frame overwrites another.
+    """
+    if frame is not None:
+        path = frame_path(path, frame, numbered=numbered)
     if path.startswith("//") and not bpy.data.filepath:
-        return os.path.join(tempfile.gettempdir(), "tof-unsaved", path[2:])
+        return os.path.join(unsaved_folder(), path[2:])
     return os.path.normpath(bpy.path.abspath(path))
 
 
-def prepare_render(context, report, *, preview: bool = False) -> RenderJob | None:
+def unsaved_folder() -> str:
+    """Where ``//`` points while the .blend file is unsaved."""
+    return os.path.join(tempfile.gettempdir(), "tof-unsaved")
+
+
+def frame_path(path: str, frame: int, *, numbered: bool = False) -> str:
+    """``path`` with each run of ``#`` replaced by ``frame``, zero-padded to the run's length (a negative
+    frame keeps its sign); without ``#`` and with ``numbered``, ``path/NNNN``."""
+    if "#" not in path:
+        return os.path.join(path, f"{frame:04d}") if numbered else path
+    return re.sub(r"#+", lambda m: f"{frame:0{len(m.group())}d}", path)
+
+
+def prepare_render(context, report, *, preview: bool = False, numbered: bool = False) -> RenderJob | None:
     """Export the scene and build the :class:`RenderJob` of the scene camera, or report why not.
 
     Parameters
@@ -210,6 +232,7 @@ def prepare_render(context, report, *, preview: bool = False) -> RenderJob | Non
     report : ``report(levels, message)`` like ``Operator.report``: ERROR for every reason to stop
         (then None is returned), WARNING for what the exporter skipped.
     preview : the live-preview job (``preview_scale``, ``preview_spp``, nothing written).
+    numbered : an animation frame: the output folder gets the frame number even without ``#``.
     """
     camera_obj, problem = render_target(context)
     if problem:
@@ -229,7 +252,8 @@ def prepare_render(context, report, *, preview: bool = False) -> RenderJob | Non
     if preview:
         quality.update(spp=int(settings.preview_spp), time_budget_s=None, target_error_m=None)
     else:
-        out_dir = output_folder(settings.output_dir) if settings.output_dir.strip() else None
+        out_dir = (output_folder(settings.output_dir, context.scene.frame_current, numbered=numbered)
+                   if settings.output_dir.strip() else None)
         formats = tuple(f for f in sensors.FORMATS if f in settings.formats)
         if out_dir is None and formats:
             report({'ERROR'}, f"Camera {camera_obj.name!r}: output_dir (Output Folder) is empty; choose a folder")
@@ -250,9 +274,6 @@ def prepare_render(context, report, *, preview: bool = False) -> RenderJob | Non
         return None
     for warning in result.warnings:
         report({'WARNING'}, warning)
-    if "exr" in formats and tofcore.output.writers.OpenEXR is None:
-        report({'WARNING'}, "EXR skipped: the OpenEXR package is not installed")
-        formats = tuple(f for f in formats if f != "exr")
     pose = result.world_from_sensor
     if pose is None:
         pose = tofcore.from_blender_matrix_world(camera_obj.matrix_world)
@@ -391,6 +412,12 @@ _render_job: RenderJob | None = None
 
 def active_render_job() -> RenderJob | None:
     return _render_job
+
+
+def claim_render(job: RenderJob | None) -> None:
+    """Make ``job`` the running full render (None: no render runs); the live preview pauses meanwhile."""
+    global _render_job
+    _render_job = job
 
 
 class TOF_OT_render(Operator):

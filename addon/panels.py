@@ -1,11 +1,12 @@
 """User interface: the "ToF Sensor" camera panel, the "Near-IR" material panel, menu entries.
 
 * Properties editor › Camera data › **ToF Sensor** (header checkbox = ``camera.tof.enabled``):
-  preset, Apply Sensor to Camera, Render ToF, Live Preview, the last result; sub-panels
+  Sensor Presets (+/−), preset, Apply Sensor to Camera, Render ToF, Animation, Live Preview, the last
+  result; sub-panels
   Overrides, Quality, Output, Live Preview.
 * Properties editor › Material › **Near-IR**: the IR override of ``material.tof``.
 * Image editor › sidebar › **ToF**: Render ToF and the last result beside the images.
-* 3D Viewport › Add › **ToF Camera**; Topbar › Render › **Render ToF**.
+* 3D Viewport › Add › **ToF Camera**; Topbar › Render › **Render ToF**, **Render ToF Animation**.
 
 Operators are referred to by their ``bl_idname``.
 """
@@ -15,7 +16,8 @@ from __future__ import annotations
 import bpy
 from bpy.types import Panel
 
-from . import gpu, operators, sensors
+from . import gpu, operators, presets, sensors
+from .animation import TOF_OT_render_animation
 from .operators import TOF_OT_add_camera, TOF_OT_apply_sensor, TOF_OT_cancel_render, TOF_OT_render
 
 _STATE_TEXT = {"running": "Rendering", "done": "Done", "cancelled": "Cancelled", "error": "Failed"}
@@ -88,6 +90,7 @@ class TOF_PT_camera(_CameraPanel, Panel):
 
     def draw(self, context):
         settings, layout = _settings_layout(self, context)
+        presets.draw_preset_row(layout)
         layout.prop(settings, "preset")
         if settings.preset == sensors.CUSTOM:
             layout.prop(settings, "preset_path")
@@ -95,6 +98,7 @@ class TOF_PT_camera(_CameraPanel, Panel):
         row = layout.row(align=True)
         row.scale_y = 1.5
         row.operator(TOF_OT_render.bl_idname, icon='RENDER_STILL')
+        row.operator(TOF_OT_render_animation.bl_idname, icon='RENDER_ANIMATION', text="Animation")
         layout.prop(settings, "live_preview")
         draw_result(layout, context.object.name if context.object else None)
 
@@ -147,6 +151,12 @@ class TOF_PT_camera_output(_CameraPanel, Panel):
     def draw(self, context):
         settings, layout = _settings_layout(self, context)
         layout.prop(settings, "output_dir")
+        path = settings.output_dir
+        if path.startswith("//") and not bpy.data.filepath:  # say where "//" goes while the file is unsaved
+            layout.label(text=f"Unsaved file: // is {operators.unsaved_folder()}", icon='INFO')
+        if "#" in path:
+            frame = context.scene.frame_current
+            layout.label(text=f"Frame {frame}: {operators.output_folder(path, frame)}", icon='FILE_FOLDER')
         row = layout.row(heading="Formats", align=True)
         row.prop(settings, "formats")
 
@@ -221,6 +231,7 @@ def draw_add_menu(self, context):
 def draw_render_menu(self, context):
     self.layout.separator()
     self.layout.operator(TOF_OT_render.bl_idname, icon='RENDER_STILL')
+    self.layout.operator(TOF_OT_render_animation.bl_idname, icon='RENDER_ANIMATION')
 
 
 _MENUS = (("VIEW3D_MT_add", draw_add_menu), ("TOPBAR_MT_render", draw_render_menu))

@@ -3,7 +3,7 @@
 =======================  ====  ============  ==========================================================
 preference               unit  default       meaning
 =======================  ====  ============  ==========================================================
-``default_output_dir``   –     //tof/        output folder of new ToF cameras (``//`` = next to the .blend)
+``default_output_dir``   –     //tof/####/   output folder of new ToF cameras (``//`` = next to the .blend)
 ``workers``              –     0             tracer threads per render; 0 = one per CPU
 ``preview_delay_s``      s     0.5           the live preview restarts this long after the last change
 ``device``               –     cpu           where Render ToF and the live preview run: ``cpu`` (NumPy),
@@ -37,7 +37,7 @@ from bpy.types import AddonPreferences, Operator
 
 from . import gpu
 
-DEFAULT_OUTPUT_DIR = "//tof/"
+DEFAULT_OUTPUT_DIR = "//tof/####/"
 PREVIEW_DELAY_S = 0.5
 DEFAULT_DEVICE = "cpu"
 #: How often the installer's modal operator polls pip, seconds.

@@ -22,7 +22,8 @@ property               unit    default     meaning
 ``target_error_mm``    mm      0           stop at this estimated RMS depth error (0: no target)
 ``max_depth``          –       5           surface vertices per path (1 = direct light only)
 ``seed``               –       0           random seed (same seed, same frame)
-``output_dir``         –       //tof/      folder of the written frame (``//`` = next to the .blend)
+``output_dir``         –       //tof/####/  folder of the written frame (``//`` = next to the .blend, ``####``
+                                            = the frame number)
 ``formats``            –       all         any of exr, png, ply, json (``tofcore.write_frame``)
 ``live_preview``       –       False       re-render at low resolution whenever the scene or sensor changes
 ``preview_scale``      1       0.25        preview resolution as a fraction of the sensor's
@@ -133,9 +134,9 @@ class TofCameraSettings(PropertyGroup):
         description="Random seed (integer); the same seed gives the same frame")
 
     output_dir: StringProperty(
-        name="Output Folder", subtype='DIR_PATH', default="//tof/", options=PATH_OPTIONS,
-        description="Folder of the written frame (// = next to the .blend file; a temporary folder while "
-                    "the file is unsaved)")
+        name="Output Folder", subtype='DIR_PATH', default="//tof/####/", options=PATH_OPTIONS,
+        description="Folder of the written frame; #### = the frame number, zero-padded (// = next to the "
+                    ".blend file; a temporary folder while the file is unsaved)")
     formats: EnumProperty(
         name="Formats", options={'ENUM_FLAG'}, default=set(sensors.FORMATS),
         items=(('exr', "EXR", "frame.exr: float32 depth, amplitude, raw images, ground truth (metres, electrons)"),

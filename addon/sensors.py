@@ -45,7 +45,7 @@ def preset_source(settings) -> str:
     if settings.preset != CUSTOM:
         return settings.preset
     if not settings.preset_path.strip():
-        raise tofcore.ConfigError("ToF sensor: preset_path must name a .toml file for preset 'CUSTOM', got ''")
+        raise tofcore.ConfigError("Preset File (preset_path) must name a .toml file when Preset is Custom, got ''")
     return bpy.path.abspath(settings.preset_path)
 
 
@@ -87,10 +87,15 @@ def sensor_from_settings(settings, *, scale: float = 1.0):
     Raises
     ------
     tofcore.ConfigError
-        The preset cannot be read, or an override is invalid; the message starts with the override's
-        UI name and property, e.g. ``"ToF override Range (range_m): …"``.
+        The preset cannot be read, or an override is invalid; the message starts with the setting's
+        UI label and property, e.g. ``"Preset File (preset_path): …"``, ``"ToF override Range (range_m): …"``.
     """
-    sensor = tofcore.load_preset(preset_source(settings))
+    try:
+        sensor = tofcore.load_preset(preset_source(settings))
+    except tofcore.ConfigError as err:
+        if settings.preset != CUSTOM or str(err).startswith("Preset File"):
+            raise
+        raise tofcore.ConfigError(f"Preset File (preset_path): {err}") from None
     steps: list[tuple[str, dict]] = []
     if settings.use_resolution:
         steps.append(("Resolution (width, height)",

@@ -23,8 +23,7 @@ Importing this package never imports bpy, and imports nothing else until a name 
 import importlib
 
 _EXPORTS = {"Job": "jobs", "ViewTask": "jobs", "derive_seed": "jobs", "expand": "jobs", "group_by_view": "jobs",
-            "SetFileError": "setfile", "SetSpec": "setfile", "load_set": "setfile", "parse_set": "setfile",
-            "scaled_sensor": "setfile"}
+            "SetFileError": "setfile", "SetSpec": "setfile", "load_set": "setfile", "parse_set": "setfile"}
 
 __all__ = sorted(_EXPORTS)
 

@@ -84,7 +84,8 @@ def inspect(path: str) -> dict:
 
 
 def export_view(path: str, *, camera: str | None, frame: int | None):
-    """Open ``path``, go to ``frame``, export the evaluated scene as seen from ``camera``.
+    """Open ``path``, go to ``frame``, export the evaluated scene as seen from ``camera`` (None: the scene's
+    active camera, if it has one).
 
     Returns
     -------
@@ -98,7 +99,7 @@ def export_view(path: str, *, camera: str | None, frame: int | None):
     scene = bpy.context.scene
     if frame is not None:
         scene.frame_set(int(frame))
-    camera_obj = None
+    camera_obj = scene.camera
     if camera is not None:
         camera_obj = bpy.data.objects.get(camera)
         if camera_obj is None or camera_obj.type != "CAMERA":

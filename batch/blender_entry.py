@@ -4,7 +4,7 @@ Usage::
 
     blender -b scene.blend --python batch/blender_entry.py -- --preset kinect_v2 --out DATASET/ \\
         [--frames 1-10] [--cameras Cam1,Cam2] [--spp 64] [--max-depth 5] [--seed 0] \\
-        [--time-budget S] [--target-error M] [--ambient W_M2_SR] [--resolution-scale F] \\
+        [--time-budget S] [--target-error LENGTH] [--ambient W_M2_SR] [--resolution-scale F] \\
         [--formats exr,png,ply,json] [--device cpu|gpu|auto] [--retry-failed] [--verify sha256|size] [--quiet]
 
 Blender passes everything after ``--`` to the script untouched. Cameras: the
@@ -23,8 +23,8 @@ batch run``: the same file, camera, frame, preset, quality and seed give the
 same job id and the same frame either way.
 
 Blender's own Python needs ``tofcore`` importable (this repository is put on
-``sys.path``; NumPy ships with Blender) and, for ``exr`` output, the OpenEXR
-package (else pass ``--formats png,ply,json``).
+``sys.path``; NumPy ships with Blender); EXR files are written by tofcore's own
+codec (:mod:`tofcore.output.exr`), no OpenEXR package is loaded into Blender.
 
 Exit code (``sys.exit``): 0 all frames ok, 1 some failed, 2 bad arguments, 130/143 interrupted.
 """
@@ -63,7 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
                         ambient_help="constant ambient radiance (default: the exporter's, from the world)",
                         scale_help="image size factor (intrinsics scaled)")
     parser.add_argument("--formats", type=formats_type, default="exr,png,ply,json",
-                        help="comma list of exr, png, ply, json (exr needs the OpenEXR package)")
+                        help="comma list of exr, png, ply, json")
     add_device_option(parser, gpu_help="on this process's GPU, the first CUDA_VISIBLE_DEVICES shows")
     parser.add_argument("--retry-failed", action="store_true", help="render only the frames recorded as failed")
     parser.add_argument("--verify", choices=["sha256", "size"], default="sha256",

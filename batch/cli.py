@@ -1,31 +1,5 @@
-"""Command line: ``tofcore-batch run | validate | verify | compare`` (in a checkout also ``python -m batch …``).
-
-The dataset generator; installed, it is the package ``tofcore_batch`` (the
-repository's ``batch/`` folder), and its example sets are in
-``tofcore_batch/examples/`` (python -c "import tofcore_batch; print(tofcore_batch.__path__[0])").
-
-Examples::
-
-    tofcore-batch validate batch/examples/demo_set.toml
-    tofcore-batch verify datasets/demo          # checksums of every frame, index lines, stray folders
-    tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --workers 2
-    tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --dask local --workers 2
-    tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --scheduler tcp://10.0.0.5:8786
-    tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --retry-failed
-    tofcore-batch run batch/examples/demo_set.toml --out datasets/demo --device gpu   # one worker per GPU
-    tofcore-batch compare --scene room --presets kinect_v2,o3d303,xtion2 --out report/
-
-Devices (--device, batch/devices.py): cpu (NumPy, the default); gpu (CuPy, one
-worker process per visible GPU, each pinned with CUDA_VISIBLE_DEVICES; limit the
-GPUs with CUDA_VISIBLE_DEVICES=0,2 or --workers); auto (the GPUs when usable,
-else the CPU, the reason printed and stored in every record). On a Dask cluster
-(--scheduler) start each worker with its own CUDA_VISIBLE_DEVICES.
-
-Exit codes: 0 every frame ok; 1 some frames failed (they are in the index with
-their error), or ``verify`` found a problem; 2 bad arguments or set file, or
---device gpu without a usable GPU (nothing rendered); 130 / 143 interrupted by
-Ctrl-C / SIGTERM at any moment (one line, no traceback; finished frames are
-kept, the lock released; rerun to continue).
+"""Command line: ``tofcore-batch run | validate | verify | compare | examples`` (in a checkout also
+``python -m batch …``). The parser's help is :data:`HELP` (plain text: it is what an installed user reads).
 """
 
 from __future__ import annotations
@@ -42,7 +16,38 @@ import sys
 import threading
 from pathlib import Path
 
+<<<<<<< HEAD
 from .interrupt import exit_at_once as _exit_at_once
+=======
+HELP = """The tofcore dataset generator: scene-set files (TOML) to dataset folders.
+
+Examples:
+
+    tofcore-batch examples --copy sets/           # the example sets that ship with tofcore
+    tofcore-batch validate sets/demo_set.toml
+    tofcore-batch run sets/demo_set.toml --out datasets/demo --workers 2
+    tofcore-batch verify datasets/demo            # checksums of every frame, index lines, stray folders
+    tofcore-batch run sets/demo_set.toml --out datasets/demo --dask local --workers 2
+    tofcore-batch run sets/demo_set.toml --out datasets/demo --scheduler tcp://10.0.0.5:8786
+    tofcore-batch run sets/demo_set.toml --out datasets/demo --retry-failed
+    tofcore-batch run sets/demo_set.toml --out datasets/demo --device gpu   # one worker per GPU
+    tofcore-batch compare --scene room --presets kinect_v2,o3d303,xtion2 --out report/
+
+The set-file format: tofcore-batch examples --schema.
+
+Devices (--device): cpu (NumPy, the default); gpu (CuPy, one
+worker process per visible GPU, each pinned with CUDA_VISIBLE_DEVICES; limit the
+GPUs with CUDA_VISIBLE_DEVICES=0,2 or --workers); auto (the GPUs when usable,
+else the CPU, the reason printed and stored in every record). On a Dask cluster
+(--scheduler) start each worker with its own CUDA_VISIBLE_DEVICES.
+
+Exit codes: 0 every frame ok; 1 some frames failed (they are in the index with
+their error), or verify found a problem; 2 bad arguments or set file, or
+--device gpu without a usable GPU (nothing rendered); 130 / 143 interrupted by
+Ctrl-C / SIGTERM at any moment (one line, no traceback; finished frames are
+kept, the lock released; rerun to continue).
+"""
+>>>>>>> main
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
@@ -85,7 +90,7 @@ def _scheduler(text: str) -> str:
 def add_quality_options(parser: argparse.ArgumentParser, *, seed_help: str, ambient_help: str,
                         scale_help: str) -> None:
     """The render-quality flags shared by ``compare`` and the Blender entry script."""
-    from tofcore.cli import max_depth_type, metres_type, number_type, radiance_type, seconds_type, seed_type, spp_type
+    from tofcore.cli import length_type, max_depth_type, number_type, radiance_type, seconds_type, seed_type, spp_type
 
     positive_float = number_type(float, "a finite number > 0", lambda v: 0 < v < math.inf)
     parser.add_argument("--spp", type=spp_type, default=64, metavar="N",
@@ -95,8 +100,9 @@ def add_quality_options(parser: argparse.ArgumentParser, *, seed_help: str, ambi
     parser.add_argument("--seed", type=seed_type, default=0, metavar="N", help=seed_help)
     parser.add_argument("--time-budget", type=seconds_type, default=None, metavar="S",
                         help="stop each render after about S seconds of tracing")
-    parser.add_argument("--target-error", type=metres_type, default=None, metavar="M",
-                        help="stop each render at this estimated RMS depth error (metres)")
+    parser.add_argument("--target-error", type=length_type, default=None, metavar="LENGTH",
+                        help="stop each render at this estimated RMS depth error: 5mm, 0.5cm, 0.005m; a bare "
+                             "number is in mm, as in tofcore render and the Blender add-on")
     parser.add_argument("--ambient", type=radiance_type, default=None, metavar="W_M2_SR", help=ambient_help)
     parser.add_argument("--resolution-scale", type=positive_float, default=1.0, metavar="F", help=scale_help)
 
@@ -199,13 +205,64 @@ def cmd_run(args: argparse.Namespace) -> int:
 def cmd_compare(args: argparse.Namespace) -> int:
     from .compare import compare
     from .run import install_signal_handlers
+    from tofcore.units import implausible_error_warning
 
     install_signal_handlers()
+    warning = implausible_error_warning(args.target_error, "--target-error") if args.target_error else None
+    if warning:
+        print(warning, file=sys.stderr)
     from tofcore.cli import check_output_folder
 
     check_output_folder(args.out)
     _check_dask(args)
     return compare(args)
+
+
+def cmd_examples(args: argparse.Namespace) -> int:
+    """List the example sets that ship with the package, print one, copy them, or print the set-file schema."""
+    import shutil
+
+    from . import setfile
+
+    folder = Path(__file__).resolve().parent / "examples"
+    sets = sorted(folder.glob("*.toml"))
+    if args.schema:
+        print(_plain_text(setfile.__doc__ or ""))
+        return EXIT_OK
+    if args.show is not None:
+        chosen = [p for p in sets if args.show in (p.name, p.stem)]
+        if not chosen:
+            print(f"tofcore-batch examples: error: --show must be one of {[p.stem for p in sets]}, got {args.show!r}",
+                  file=sys.stderr)
+            return EXIT_USAGE
+        print(chosen[0].read_text(encoding="utf-8"), end="")
+        return EXIT_OK
+    if args.copy is not None:
+        from tofcore.cli import check_output_folder
+
+        check_output_folder(args.copy, "--copy")
+        args.copy.mkdir(parents=True, exist_ok=True)
+        for path in sets:
+            target = args.copy / path.name
+            if target.exists():
+                print(f"kept {target} (exists)")
+                continue
+            shutil.copyfile(path, target)
+            print(f"wrote {target}")
+        return EXIT_OK
+    for path in sets:
+        first = next((line.lstrip("# ").strip() for line in path.read_text(encoding="utf-8").splitlines()
+                      if line.startswith("#")), "")
+        print(f"{path.stem:<14} {first}")
+    print(f"\n(in {folder}; tofcore-batch examples --copy DIR copies them, --show NAME prints one)")
+    return EXIT_OK
+
+
+def _plain_text(rst: str) -> str:
+    """reStructuredText of a docstring as plain text for a terminal: ``code`` → code, :role:`x` → x."""
+    text = re.sub(r":[a-z]+:`~?([^`]+)`", r"\1", rst)
+    text = "\n".join(line for line in text.splitlines() if not line.lstrip().startswith(".. "))
+    return text.replace("``", "")
 
 
 def _check_dask(args: argparse.Namespace) -> None:
@@ -265,15 +322,20 @@ def _executor_options(parser: argparse.ArgumentParser) -> None:
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(prog="tofcore-batch", description=__doc__, formatter_class=_Formatter)
-    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,validate,verify,compare}")
+    from tofcore.cli import OneLineParser
+
+    parser = OneLineParser(prog="tofcore-batch", description=HELP, formatter_class=_Formatter)
+    sub = parser.add_subparsers(dest="command", required=True, metavar="{run,validate,verify,compare,examples}",
+                                parser_class=OneLineParser)
 
     run = sub.add_parser("run", help="render a scene set into a dataset folder (resumable)",
                          description="Render every frame of a scene-set file into DATASET/ (frames/<job_id>/, "
                                      "index.jsonl, README.md). Rerunning skips frames whose files verify.",
                          formatter_class=_Formatter,
-                         epilog="example:\n  tofcore-batch run batch/examples/demo_set.toml --out out/demo_dataset")
-    run.add_argument("set_file", type=Path, metavar="SET.toml", help="scene-set file (schema: batch/setfile.py)")
+                         epilog="example:\n  tofcore-batch run sets/demo_set.toml --out out/demo_dataset\n\n"
+                                "tofcore-batch examples --copy sets/ copies the shipped example sets there")
+    run.add_argument("set_file", type=Path, metavar="SET.toml",
+                     help="scene-set file (format: tofcore-batch examples --schema)")
     run.add_argument("--out", type=Path, required=True, metavar="DATASET", help="dataset folder")
     _executor_options(run)
     run.add_argument("--retry-failed", action="store_true",
@@ -286,7 +348,8 @@ def build_parser() -> argparse.ArgumentParser:
                          description="Read and check a set file (keys, types, files, presets, poses, .blend "
                                      "cameras) and list what it would render.",
                          formatter_class=_Formatter,
-                         epilog="example:\n  tofcore-batch validate batch/examples/demo_set.toml --list")
+                         epilog="example:\n  tofcore-batch validate sets/demo_set.toml --list\n\n"
+                                "tofcore-batch examples --copy sets/ copies the shipped example sets there")
     val.add_argument("set_file", type=Path, metavar="SET.toml", help="scene-set file")
     val.add_argument("--out", type=Path, default=None, metavar="DATASET",
                      help="also say how many frames an existing dataset already has")
@@ -318,7 +381,8 @@ def build_parser() -> argparse.ArgumentParser:
                          epilog="example:\n  tofcore-batch compare --scene room --presets kinect_v2,o3d303,xtion2 "
                                 "--out out/compare --spp 32 --resolution-scale 0.5")
     cmp.add_argument("--scene", required=True,
-                     help="demo scene (plane, corner, box_on_wall, room), a .npz scene or a .blend file")
+                     help="demo scene (plane, corner, box_on_wall, room), a .npz scene, a mesh file (.obj, .ply, "
+                          ".gltf, .glb, .stl; needs trimesh) or a .blend file")
     cmp.add_argument("--presets", default="kinect_v2,o3d303,xtion2",
                      help="comma-separated preset names or .toml files")
     cmp.add_argument("--out", type=Path, required=True, metavar="REPORT", help="report folder")
@@ -332,6 +396,19 @@ def build_parser() -> argparse.ArgumentParser:
                         scale_help="image size factor for every preset (intrinsics scaled)")
     _executor_options(cmp)
     cmp.set_defaults(func=cmd_compare)
+
+    ex = sub.add_parser("examples", help="list, print or copy the example scene sets that ship with tofcore",
+                        description="The example scene-set files installed with tofcore: list them, print one "
+                                    "(--show), copy them into a folder to edit and run (--copy), or print the "
+                                    "set-file format (--schema).",
+                        formatter_class=_Formatter,
+                        epilog="example:\n  tofcore-batch examples --copy sets/ && tofcore-batch run "
+                               "sets/demo_set.toml --out out/demo_dataset")
+    what = ex.add_mutually_exclusive_group()
+    what.add_argument("--copy", type=Path, default=None, metavar="DIR", help="copy every example set into DIR")
+    what.add_argument("--show", default=None, metavar="NAME", help="print one example set")
+    what.add_argument("--schema", action="store_true", help="print the set-file format (keys, types, defaults)")
+    ex.set_defaults(func=cmd_examples)
     return parser
 
 

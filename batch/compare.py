@@ -5,7 +5,8 @@
 ==================  ===================================================================================
 ``compare.png``     rows: presets; columns: depth (turbo, one range for all rows), error against the
                     ground truth (depth − gt_depth, blue − / white / red +, one ± limit for all rows),
-                    invalid pixels (colour per reason, valid light grey)
+                    invalid pixels (colour per reason, valid light grey); colour bars with the limits
+                    under the depth and error columns, the reason legend below
 ``compare.md``      the table below, Markdown
 ``compare.json``    the same numbers (metres, seconds, fractions) and the colour-map limits
 ``frames/``, ``index.jsonl``, ``README.md``   the frames themselves: the report folder is a dataset
@@ -49,7 +50,7 @@ _VALID_GREY = (200, 200, 200)
 
 def _set_data(args: argparse.Namespace) -> dict:
     """The command's arguments as a one-scene set (checked by :func:`batch.setfile.parse_set`)."""
-    from .setfile import DEMO_SCENES
+    from .setfile import DEMO_SCENES, MESH_SUFFIXES
 
     scene: dict = {}
     name = args.scene
@@ -57,10 +58,13 @@ def _set_data(args: argparse.Namespace) -> dict:
         scene["demo"] = name
     elif name.endswith(".npz"):
         scene["npz"] = name
+    elif name.lower().endswith(MESH_SUFFIXES):
+        scene["mesh"] = name
     elif name.endswith(".blend"):
         scene["blend"] = name
     else:
-        raise ValueError(f"--scene must be a demo scene {list(DEMO_SCENES)}, a .npz or a .blend file, got {name!r}")
+        raise ValueError(f"--scene must be a demo scene {list(DEMO_SCENES)}, a .npz, mesh ({', '.join(MESH_SUFFIXES)}) "
+                         f"or .blend file, got {name!r}")
     if (args.eye is None) != (args.target is None):
         raise ValueError("--eye and --target go together")
     if args.eye is not None:
@@ -110,6 +114,7 @@ def comparison_image(rows: list[tuple[str, dict[str, np.ndarray]]]) -> tuple[np.
     gt_depth, valid and reason.
     """
     from tofcore.output.frame import Reason
+    from tofcore.output.legend import horizontal_bar
     from tofcore.output.png import DIVERGING, TURBO, apply_lut
     from tofcore.output.writers import _REASON_RGB
 
@@ -127,8 +132,10 @@ def comparison_image(rows: list[tuple[str, dict[str, np.ndarray]]]) -> tuple[np.
         codes = np.clip(ch["reason"].astype(np.int64), 0, len(palette) - 1)
         cells.append((label, [_resize_nearest(img, CELL_WIDTH) for img in (depth_rgb, error_rgb, palette[codes])]))
     row_heights = [max(img.shape[0] for img in imgs) for _, imgs in cells]
+    bars = [horizontal_bar(TURBO, CELL_WIDTH, lo, hi, "m"),
+            horizontal_bar(DIVERGING, CELL_WIDTH, -limit_mm, limit_mm, "mm")]
     width = _LABEL_WIDTH + 3 * (CELL_WIDTH + _GAP)
-    height = _HEADER_HEIGHT + sum(h + _GAP for h in row_heights) + _FOOTER_HEIGHT
+    height = _HEADER_HEIGHT + sum(h + _GAP for h in row_heights) + bars[0].shape[0] + _GAP + _FOOTER_HEIGHT
     canvas = np.empty((height, width, 3), np.uint8)
     canvas[...] = _BACKGROUND
     titles = ("depth", f"depth - ground truth (+-{limit_mm:.0f} mm)", "invalid pixels (reason)")
@@ -141,6 +148,10 @@ def comparison_image(rows: list[tuple[str, dict[str, np.ndarray]]]) -> tuple[np.
             x = _LABEL_WIDTH + i * (CELL_WIDTH + _GAP)
             canvas[y:y + img.shape[0], x:x + img.shape[1]] = img
         y += row_height + _GAP
+    for i, bar in enumerate(bars):  # colour bars under the depth and error columns
+        x = _LABEL_WIDTH + i * (CELL_WIDTH + _GAP)
+        canvas[y:y + bar.shape[0], x:x + bar.shape[1]] = bar
+    y += bars[0].shape[0] + _GAP
     x = 8  # legend of the reason colours
     for r in Reason:
         canvas[y + 8:y + 20, x:x + 12] = palette[int(r)]
@@ -194,8 +205,8 @@ def markdown_table(rows: list[dict], title: str) -> str:
             f"| {100 * r['valid_fraction']:.1f} | {100 * r['invalid_fraction']:.1f} | {_mm(r['rms_depth_error_m'])} "
             f"| {_mm(r['median_abs_depth_error_m'])} | {_mm(r['multipath_rms_m'])} | {reasons} |")
     lines += ["", "Errors over valid pixels: depth − ground-truth depth (first hit, noise-free); multipath = "
-              "distance − direct-only distance (k = 1). Rows of compare.png in this order: depth, error, "
-              "invalid pixels."]
+              "distance − direct-only distance (k = 1). compare.png: one row per preset, in this table's order; "
+              "columns: depth, depth − ground truth, invalid pixels (reason); colour bars under the first two."]
     return "\n".join(lines) + "\n"
 
 

@@ -63,6 +63,7 @@ class Job:
     seed: int                        # the render seed (derived)
     set_seed: int
     formats: tuple[str, ...]
+    output: dict = field(default_factory=dict)   # [output] options: exr_half, exr_channels, transient_bin_m/max_m
 
     @property
     def label(self) -> str:
@@ -179,7 +180,9 @@ def suggested_pose(scene: SceneSpec, where: str) -> np.ndarray:
 
     if scene.kind == "demo":
         return tofcore.suggested_pose(tofcore.demo_scene(scene.source))
-    loaded = tofcore.Scene.load(scene.source)
+    from tofcore.scene.mesh_files import load_mesh
+
+    loaded = load_mesh(scene.source) if scene.kind == "mesh" else tofcore.Scene.load(scene.source)
     pose = loaded.metadata.get("world_from_sensor")
     if pose is None:
         raise SetFileError(f"{where}: {scene.source} has no suggested pose (metadata 'world_from_sensor'); "
@@ -249,7 +252,7 @@ def _blend_views(scene: SceneSpec, info: BlendInfo, set_path: str,
 
 def make_job(*, scene: str, source: dict, view: dict, world_from_sensor, preset: str, sensor: dict,
              resolution_scale: float, quality: dict, ambient_w_m2_sr: float | None, set_seed: int,
-             formats: tuple[str, ...]) -> Job:
+             formats: tuple[str, ...], output: dict | None = None) -> Job:
     """A job with its id and derived seed (the one place where ids are made)."""
     import tofcore
 
@@ -262,10 +265,13 @@ def make_job(*, scene: str, source: dict, view: dict, world_from_sensor, preset:
     definition = {"format": JOB_FORMAT, "tofcore": tofcore.__version__, "source": _source_identity(source),
                   "view": view_identity, "sensor": sensor, "quality": quality, "ambient_w_m2_sr": ambient_w_m2_sr,
                   "set_seed": set_seed, "formats": sorted(formats)}
+    if output:  # only when given: the ids of sets without output options stay as they were
+        definition["output"] = output
     job_id = short_hash(definition)
     return Job(job_id=job_id, scene=scene, source=source, view=view, world_from_sensor=pose, preset=preset,
                sensor=sensor, resolution_scale=resolution_scale, quality=quality, ambient_w_m2_sr=ambient_w_m2_sr,
-               seed=derive_seed(set_seed, job_id), set_seed=set_seed, formats=tuple(formats))
+               seed=derive_seed(set_seed, job_id), set_seed=set_seed, formats=tuple(formats),
+               output=dict(output or {}))
 
 
 def expand(spec: SetSpec, inspect_blend: Callable[[str], BlendInfo] = inspect_blend_subprocess) -> Expansion:
@@ -293,7 +299,8 @@ def expand(spec: SetSpec, inspect_blend: Callable[[str], BlendInfo] = inspect_bl
                 job = make_job(scene=scene.name, source=source, view=view, world_from_sensor=matrix,
                                preset=preset.label, sensor=preset.sensor.to_dict(),
                                resolution_scale=preset.resolution_scale, quality=scene.quality.as_dict(),
-                               ambient_w_m2_sr=scene.ambient_w_m2_sr, set_seed=spec.seed, formats=spec.formats)
+                               ambient_w_m2_sr=scene.ambient_w_m2_sr, set_seed=spec.seed, formats=spec.formats,
+                               output=spec.output)
                 if job.job_id in seen:
                     notes.append(f"{job.label}: the same frame as an earlier entry (job {job.job_id}); rendered once")
                     continue

@@ -81,10 +81,18 @@ reproducible bit for bit (spp and target error are).
 
 ``[output]``
 
-===========  ==============  ==================================  ================================================
-``formats``  list of string  ``["exr", "png", "ply", "json"]``   any of exr, png, ply, json; json (the frame's
-                                                                 record with checksums) is always written
-===========  ==============  ==================================  ================================================
+===================  ==============  ==================================  ========================================
+``formats``          list of string  ``["exr", "png", "ply", "json"]``   any of exr, png, ply, json; json (the
+                                                                         frame's record with checksums) is always
+                                                                         written
+``exr_half``         bool            false                               EXR channels as 16-bit half floats
+``exr_channels``     list of string  all                                 only these channels in frame.exr, e.g.
+                                                                         ``["depth", "amplitude", "valid"]``
+``transient_bin_m``  number > 0, m   none                                also write transient.npy: the
+                                                                         time-resolved histogram over optical
+                                                                         path length, bins of this width
+``transient_max_m``  number > 0, m   none                                its longest path length (with the bin)
+===================  ==============  ==================================  ========================================
 
 ``[[scenes]]``
 
@@ -92,6 +100,8 @@ reproducible bit for bit (spp and target error are).
 ``name``             string          source's name    label in the index (unique)
 ``demo``             string          –                a demo scene: plane, corner, box_on_wall, room
 ``npz``              path            –                a scene saved with ``tofcore.Scene.save``
+``mesh``             path            –                an OBJ, PLY, glTF/GLB or STL file (``pip install trimesh``;
+                                                      materials: :mod:`tofcore.scene.mesh_files`)
 ``blend``            path            –                a Blender file (opened through ``bpy`` in a worker)
 ``presets``          list            set's presets    presets for this scene only
 ``ambient_w_m2_sr``  number >= 0     0 (blend: file)  constant ambient radiance; for a .blend the default
@@ -139,6 +149,8 @@ from tofcore.errors import ConfigError, LimitError, SceneError, is_number
 
 #: Formats a frame can be written in (``tofcore.write_frame``).
 FORMATS = ("exr", "png", "ply", "json")
+#: Mesh-file suffixes a ``mesh`` scene may have (read by tofcore.scene.mesh_files through trimesh).
+MESH_SUFFIXES = (".obj", ".ply", ".gltf", ".glb", ".stl")
 #: Demo scene names (``tofcore.demo_scene``); kept here so parsing needs no scene code.
 DEMO_SCENES = ("plane", "corner", "box_on_wall", "room")
 
@@ -148,8 +160,9 @@ DEFAULT_MAX_DEPTH = 5
 
 _TOP_KEYS = ("description", "seed", "presets", "resolution_scale", "quality", "output", "scenes")
 _QUALITY_KEYS = ("spp", "max_depth", "time_budget_s", "target_error_m")
-_OUTPUT_KEYS = ("formats",)
-_SCENE_KEYS = ("name", "demo", "npz", "blend", "presets", "ambient_w_m2_sr", "cameras", "frames", "quality", "poses")
+_OUTPUT_KEYS = ("formats", "exr_half", "exr_channels", "transient_bin_m", "transient_max_m")
+_SCENE_KEYS = ("name", "demo", "npz", "blend", "mesh", "presets", "ambient_w_m2_sr", "cameras", "frames", "quality",
+               "poses")
 _PRESET_KEYS = ("preset", "label", "overrides", "resolution_scale")
 _POSE_KEYS = {
     "suggested": ("suggested",),
@@ -211,7 +224,7 @@ class SceneSpec:
     """One ``[[scenes]]`` entry."""
 
     name: str
-    kind: str                  # "demo", "npz" or "blend"
+    kind: str                  # "demo", "npz", "mesh" or "blend"
     source: str                # demo name, or absolute file path
     presets: tuple[PresetSpec, ...]
     quality: Quality
@@ -232,6 +245,7 @@ class SetSpec:
     formats: tuple[str, ...]
     scenes: tuple[SceneSpec, ...]
     resolution_scale: float = 1.0
+    output: dict = field(default_factory=dict)   # exr_half, exr_channels, transient_bin_m, transient_max_m (given)
 
 
 # --------------------------------------------------------------------------- errors with lines
@@ -381,8 +395,9 @@ _NPZ_CHECKED: dict[tuple[str, int, int], None] = {}
 
 
 def _check_npz(ctx: _Context, source: str, path: list) -> None:
-    """Load the scene file once (per path, size and time) so that a damaged one is reported here, naming the key,
-    and not as a failed frame after the run has started."""
+    """Load the scene file (.npz or mesh) once (per path, size and time) so that a damaged one is reported here,
+    naming the key, and not as a failed frame after the run has started."""
+    from tofcore.scene.mesh_files import is_mesh_file, load_mesh
     from tofcore.scene.scene import Scene
 
     st = Path(source).stat()
@@ -390,7 +405,7 @@ def _check_npz(ctx: _Context, source: str, path: list) -> None:
     if key in _NPZ_CHECKED:
         return
     try:
-        Scene.load(source)
+        load_mesh(source) if is_mesh_file(source) else Scene.load(source)
     except (SceneError, ConfigError) as err:
         raise ctx.error(path, str(err)) from None
     _NPZ_CHECKED[key] = None
@@ -405,10 +420,10 @@ def _count_frames(scenes: Sequence[SceneSpec]) -> int:
     return total
 
 
-def _file(ctx: _Context, value: object, path: list, suffix: str) -> str:
+def _file(ctx: _Context, value: object, path: list, suffixes: tuple[str, ...]) -> str:
     text = _string(ctx, value, path)
-    if not text.endswith(suffix):
-        raise ctx.fail(path, f"a path ending in {suffix}", value)
+    if not text.lower().endswith(suffixes):
+        raise ctx.fail(path, f"a path ending in {' or '.join(suffixes)}", value)
     file = (ctx.base / text).resolve()
     if not file.is_file():
         raise ctx.error(path, f"file not found: {file}")
@@ -455,40 +470,9 @@ def parse_frames(text: str) -> tuple[int, ...]:
 
 # --------------------------------------------------------------------------- sensors
 
-def scaled_sensor(sensor, factor: float):
-    """``sensor`` with its image scaled by ``factor`` and the intrinsics scaled consistently.
-
-    Parameters
-    ----------
-    sensor : tofcore.Sensor
-    factor : image size factor > 0 (e.g. 0.25 for a quarter of the width and height).
-
-    Notes
-    -----
-    Width and height are rounded (half up, at least 1 px); the focal lengths
-    scale with the actual size ratios :math:`s_x = w'/w`, :math:`s_y = h'/h`,
-    and the principal point keeps its place on the sensor with pixel centres at
-    integer coordinates: :math:`c_x' = (c_x + 1/2)\\,s_x - 1/2`. Distortion
-    coefficients act on normalised coordinates and stay as they are, so the
-    field of view is unchanged.
-    """
-    if factor == 1:
-        return sensor
-    cam = sensor.camera
-    exact_w, exact_h = cam.width * factor, cam.height * factor
-    if not math.isfinite(exact_w * exact_h) or exact_w * exact_h > 4 * limits.MAX_PIXELS.value:  # before rounding
-        limits.MAX_PIXELS.check(math.inf, "Camera", "width x height", f"{exact_w:.4g} x {exact_h:.4g}")
-    width = max(1, int(math.floor(exact_w + 0.5)))
-    height = max(1, int(math.floor(exact_h + 0.5)))
-    sx, sy = width / cam.width, height / cam.height
-    return sensor.replace(**{
-        "camera.width": width, "camera.height": height, "camera.fx": cam.fx * sx, "camera.fy": cam.fy * sy,
-        "camera.cx": (cam.cx + 0.5) * sx - 0.5, "camera.cy": (cam.cy + 0.5) * sy - 0.5})
-
-
 def _preset(ctx: _Context, entry: object, path: list, default_scale: float):
     import tofcore
-    from tofcore.sensor.presets import list_presets
+    from tofcore.sensor.presets import list_presets, preset_path
 
     if isinstance(entry, str):
         entry = {"preset": entry}
@@ -503,17 +487,18 @@ def _preset(ctx: _Context, entry: object, path: list, default_scale: float):
             raise ctx.error(path + ["preset"] if "label" in table or len(table) > 1 else path,
                             f"preset file not found: {source}")
     else:
-        if name not in list_presets():
-            close = difflib.get_close_matches(name, list_presets(), n=1)
+        try:
+            source = preset_path(name).stem   # any case: "Kinect_V2" is kinect_v2
+        except ConfigError:
+            close = difflib.get_close_matches(name.casefold(), list_presets(), n=1)
             hint = f" (did you mean {close[0]!r}?)" if close else ""
             raise ctx.error(path, f"unknown preset {name!r}{hint}; presets are {list_presets()} "
-                                  f"or a path to a .toml file")
-        source = name
+                                  f"or a path to a .toml file") from None
     try:
         sensor = tofcore.load_preset(source)
     except ConfigError as err:
         raise ctx.error(path, f"invalid preset: {err}") from None
-    label = _string(ctx, table["label"], path + ["label"]) if "label" in table else Path(name).stem
+    label = _string(ctx, table["label"], path + ["label"]) if "label" in table else Path(source).stem
     overrides = table.get("overrides", {})
     if not isinstance(overrides, Mapping):
         raise ctx.fail(path + ["overrides"], 'a table of "table.field" = value (tofcore.Sensor.replace keys)',
@@ -526,10 +511,10 @@ def _preset(ctx: _Context, entry: object, path: list, default_scale: float):
     scale = (_positive(ctx, table["resolution_scale"], path + ["resolution_scale"])
              if "resolution_scale" in table else default_scale)
     try:
-        sensor = scaled_sensor(sensor, scale)
+        sensor = sensor.scaled(scale)
     except ConfigError as err:
         key = path + ["resolution_scale"] if "resolution_scale" in table else ["resolution_scale"]
-        reason = str(err).removeprefix("Camera: ")
+        reason = str(err).removeprefix("Camera: ").removeprefix("Sensor.scaled: ").removeprefix("Sensor.resized: ")
         raise ctx.error(key, f"cannot scale the sensor {label!r} by {scale}: {reason}") from None
     return PresetSpec(label=label, source=source, sensor=sensor, resolution_scale=scale,
                       overrides=dict(overrides))
@@ -619,9 +604,9 @@ def _pose(ctx: _Context, value: object, path: list, set_seed: int) -> PoseSpec:
 def _scene(ctx: _Context, value: object, path: list, *, presets, quality: Quality, scale: float,
            set_seed: int) -> SceneSpec:
     table = _check_keys(ctx, value, path, _SCENE_KEYS)
-    sources = [k for k in ("demo", "npz", "blend") if k in table]
+    sources = [k for k in ("demo", "npz", "mesh", "blend") if k in table]
     if len(sources) != 1:
-        raise ctx.error(path, f"needs exactly one of 'demo', 'npz', 'blend', got {sources or 'none'}")
+        raise ctx.error(path, f"needs exactly one of 'demo', 'npz', 'mesh', 'blend', got {sources or 'none'}")
     kind = sources[0]
     if kind == "demo":
         source = table["demo"]
@@ -629,8 +614,8 @@ def _scene(ctx: _Context, value: object, path: list, *, presets, quality: Qualit
             raise ctx.fail(path + ["demo"], f"one of {list(DEMO_SCENES)}", source)
         default_name = source
     else:
-        source = _file(ctx, table[kind], path + [kind], f".{kind}")
-        if kind == "npz":
+        source = _file(ctx, table[kind], path + [kind], MESH_SUFFIXES if kind == "mesh" else (f".{kind}",))
+        if kind in ("npz", "mesh"):
             _check_npz(ctx, source, path + [kind])
         default_name = Path(source).stem
     name = _string(ctx, table["name"], path + ["name"]) if "name" in table else default_name
@@ -706,12 +691,9 @@ def parse_set(data: Mapping[str, Any], path: Path | None = None, text: str | Non
                     or not all(isinstance(f, str) and f in FORMATS for f in value)):
                 raise ctx.fail(["output", "formats"], f"a non-empty list of {list(FORMATS)}", value)
             formats = tuple(f for f in FORMATS if f in value or f == "json")
-    if "exr" in formats:
-        import importlib.util
-
-        if importlib.util.find_spec("OpenEXR") is None:
-            raise ctx.error(["output", "formats"], "'exr' needs the OpenEXR package, which is not installed here: "
-                                                   "pip install OpenEXR, or leave 'exr' out of [output] formats")
+        options = _output_options(ctx, output)
+    else:
+        options = {}
     if "scenes" not in top:
         raise ctx.error(["scenes"], "missing: a set needs at least one [[scenes]] table")
     entries = top["scenes"]
@@ -719,6 +701,8 @@ def parse_set(data: Mapping[str, Any], path: Path | None = None, text: str | Non
         raise ctx.fail(["scenes"], "a non-empty array of tables ([[scenes]])", entries)
     scenes = tuple(_scene(ctx, entry, ["scenes", i], presets=presets, quality=quality, scale=scale, set_seed=seed)
                    for i, entry in enumerate(entries))
+    if "exr_channels" in options:
+        _check_exr_channels(ctx, options["exr_channels"], scenes)
     total = _count_frames(scenes)
     _limit(ctx, limits.MAX_SET_FRAMES, total, ["scenes"], "frames (views x frames x presets, all scenes)")
     names = [s.name for s in scenes]
@@ -727,7 +711,45 @@ def parse_set(data: Mapping[str, Any], path: Path | None = None, text: str | Non
             raise ctx.error(["scenes", i, "name"] if "name" in entries[i] else ["scenes", i],
                             f"scene name {name!r} is used twice; give each scene a unique 'name'")
     return SetSpec(path=path, description=description, seed=seed, formats=formats, scenes=scenes,
-                   resolution_scale=scale)
+                   resolution_scale=scale, output=options)
+
+
+def _check_exr_channels(ctx: _Context, channels: list[str], scenes) -> None:
+    """Every ``exr_channels`` name is a channel of every frame the set renders (raw labels per preset)."""
+    from tofcore.output.writers import exr_channel_names
+
+    for scene in scenes:
+        for preset in scene.presets:
+            names = exr_channel_names(preset.sensor.modulation.raw_labels(), scene.quality.max_depth)
+            unknown = [c for c in channels if c not in names]
+            if unknown:
+                raise ctx.fail(["output", "exr_channels"], f"channels of frame.exr for preset {preset.label!r} "
+                                                           f"(unknown: {unknown}; valid: {names})", channels)
+
+
+def _output_options(ctx: _Context, output: dict) -> dict:
+    """The ``[output]`` options besides ``formats``, checked; only those given (job ids of sets without them
+    stay as they were)."""
+    options: dict = {}
+    if "exr_half" in output:
+        if not isinstance(output["exr_half"], bool):
+            raise ctx.fail(["output", "exr_half"], "true or false", output["exr_half"])
+        options["exr_half"] = output["exr_half"]
+    if "exr_channels" in output:
+        value = output["exr_channels"]
+        if not isinstance(value, list) or not value or not all(isinstance(c, str) and c for c in value):
+            raise ctx.fail(["output", "exr_channels"], "a non-empty list of frame.exr channel names", value)
+        options["exr_channels"] = list(dict.fromkeys(value))
+    for key in ("transient_bin_m", "transient_max_m"):
+        if key in output:
+            options[key] = _positive(ctx, output[key], ["output", key], "m")
+    if ("transient_bin_m" in options) != ("transient_max_m" in options):
+        raise ctx.error(["output"], "transient_bin_m and transient_max_m go together (bin width and longest "
+                                    "optical path length, metres)")
+    if "transient_bin_m" in options and options["transient_max_m"] <= options["transient_bin_m"]:
+        raise ctx.fail(["output", "transient_max_m"], f"longer than transient_bin_m "
+                                                      f"({options['transient_bin_m']:g} m)", options["transient_max_m"])
+    return options
 
 
 def load_set(path: str | Path) -> SetSpec:
@@ -753,6 +775,7 @@ FLAG_OF_KEY = {
     "presets": "--presets", "resolution_scale": "--resolution-scale", "quality.spp": "--spp",
     "quality.max_depth": "--max-depth", "quality.time_budget_s": "--time-budget",
     "quality.target_error_m": "--target-error", "seed": "--seed", "output.formats": "--formats", "scenes": "--scene",
+    "scenes.mesh": "--scene",
 }
 
 

@@ -167,6 +167,11 @@ def _load_scene(task: ViewTask):
         _SCENE_CACHE.clear()
         if source["kind"] == "demo":
             _SCENE_CACHE[key] = tofcore.demo_scene(source["name"])
+        elif source["kind"] == "mesh":
+            from tofcore.scene.mesh_files import load_mesh
+
+            _check_unchanged(source)
+            _SCENE_CACHE[key] = load_mesh(source["path"])
         else:
             _check_unchanged(source)
             _SCENE_CACHE[key] = tofcore.Scene.load(source["path"])
@@ -263,7 +268,7 @@ def _base_record(job: Job, task: ViewTask) -> dict:
         "job_id": job.job_id, "status": None, "scene": job.scene, "source": job.source, "view": job.view,
         "preset": job.preset, "sensor_name": job.sensor.get("name"), "seed": job.seed, "set_seed": job.set_seed,
         "settings": {**job.quality, "resolution_scale": job.resolution_scale,
-                     "ambient_w_m2_sr": job.ambient_w_m2_sr, "formats": list(job.formats),
+                     "ambient_w_m2_sr": job.ambient_w_m2_sr, "formats": list(job.formats), **job.output,
                      "width": job.sensor["camera"]["width"], "height": job.sensor["camera"]["height"]},
         "world_from_sensor": job.world_from_sensor, "host": socket.gethostname(), "pid": os.getpid(),
         # Replaced by the frame's stats["device"] once rendered; what was asked for until then.
@@ -286,7 +291,8 @@ def _render(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient):
     q = job.quality
     settings = dict(spp=q["spp"], max_depth=q["max_depth"], seed=job.seed, time_budget_s=q["time_budget_s"],
                     target_error_m=q["target_error_m"], ambient=ambient, workers=task.render_threads,
-                    cancel=_STOP.is_set)
+                    cancel=_STOP.is_set, transient_bin_m=job.output.get("transient_bin_m"),
+                    transient_max_m=job.output.get("transient_max_m"))
     device = render_device(task.device, task.fallback_reason)
     try:
         with gpu_errors():
@@ -315,7 +321,9 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
                                    "preset": job.preset, "seed": job.seed, "set_seed": job.set_seed,
                                    "source": job.source, "export_warnings": warnings}
         partial.mkdir(parents=True)
-        written = tofcore.write_frame(frame, partial, formats=job.formats)
+        formats = (*job.formats, "transient") if "transient_bin_m" in job.output else job.formats
+        written = tofcore.write_frame(frame, partial, formats=formats, exr_half=job.output.get("exr_half", False),
+                                      exr_channels=job.output.get("exr_channels"))
         stats = frame.stats
         convergence = stats.get("convergence", [])
         record.update({
@@ -330,6 +338,7 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
                             for row in convergence],
             "rays_per_second": stats.get("transport", {}).get("rays_per_second"),
             **frame_metrics(frame),
+            "objects": frame.metadata.get("objects", []),
             "export_warnings": warnings,
             "seconds": time.perf_counter() - started,
             "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),

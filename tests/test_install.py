@@ -133,23 +133,23 @@ def test_tofcore_help_and_presets(run, venv):
 
 
 def test_tofcore_render(run):
-    # --formats without exr: the wheel's only dependency is NumPy (EXR needs the [exr] extra).
+    # EXR too: the wheel's only dependencies are NumPy and tqdm (tofcore writes EXR with its own codec).
     proc = run("tofcore", "render", "--scene", "corner", "--preset", "kinect_v2", "--spp", "1", "--max-depth", "1",
-               "--device", "cpu", "--formats", "png,json", "--out", "out", "--quiet")
+               "--device", "cpu", "--formats", "exr,png,json", "--out", "out", "--quiet")
     _ok(proc)
     frame = json.loads((run.cwd / "out" / "frame.json").read_text())
     assert frame["metadata"]["sensor"]["name"] == "kinect_v2" and (frame["width"], frame["height"]) == (512, 424)
     for entry in frame["files"]:
         assert (run.cwd / "out" / entry["name"]).stat().st_size == entry["bytes"]
-    assert "depth_mm.png" in {entry["name"] for entry in frame["files"]}
+    assert {"depth_mm.png", "frame.exr"} <= {entry["name"] for entry in frame["files"]}
     bad = run("tofcore", "render", "--scene", "corner", "--preset", "kinect_v3", "--out", "out2", "--quiet")
     assert bad.returncode == 2 and "kinect_v2" in bad.stderr
 
 
 def test_tofcore_batch_help_validate_run(run):
     out = _ok(run("tofcore-batch", "--help"))
-    assert out.startswith("usage: tofcore-batch ") and "{run,validate,verify,compare}" in out
-    for command in ("run", "validate", "verify", "compare"):
+    assert out.startswith("usage: tofcore-batch ") and "{run,validate,verify,compare,examples}" in out
+    for command in ("run", "validate", "verify", "compare", "examples"):
         assert f"example:\n  tofcore-batch {command} " in _ok(run("tofcore-batch", command, "--help"))
     set_file = run.cwd / "tiny.toml"
     set_file.write_text("""
@@ -195,9 +195,33 @@ def test_installed_progress_and_blend_child_commands(run):
                "--device", "cpu", "--formats", "json", "--out", "out")
     _ok(proc)
     assert "\r" not in proc.stderr and proc.stderr.startswith("pass 1: 2/2 spp"), proc.stderr
-    assert "wrote 1 files to out/" in proc.stdout
+    assert "wrote 4 files to out/" in proc.stdout  # frame.json and the three camera files
     spec = importlib.util.spec_from_file_location("child_commands", REPO / "tests" / "batch" / "test_child_commands.py")
     child = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(child)
     lines = _ok(run("python", "-c", child.CHILD_COMMANDS, "tofcore_batch")).splitlines()
     assert lines == ["tofcore_batch.blend inspect", "tofcore_batch.blend export"]
+
+
+def test_installed_first_command_and_help_for_a_user_without_the_repository(run):
+    """The README's first command after a plain ``pip install`` (no OpenEXR in the venv): the default formats,
+    EXR included, are written by tofcore's own codec; with png/json it renders at the size asked. Help and the
+    example sets need no checkout."""
+    proc = run("tofcore", "render", "--scene", "corner", "--preset", "Kinect_V2", "--spp", "1", "--max-depth", "1",
+               "--device", "cpu", "--out", "out_default", "--quiet")
+    _ok(proc)
+    assert (run.cwd / "out_default" / "frame.exr").is_file() and (run.cwd / "out_default" / "depth.exr").is_file()
+    assert _ok(run("python", "-c", "import importlib.util as u; print(u.find_spec('OpenEXR'))")).strip() == "None"
+    _ok(run("tofcore", "render", "--scene", "corner", "--resolution", "64x53", "--spp", "1", "--max-depth", "1",
+            "--target-error", "5mm", "--device", "cpu", "--formats", "png,json", "--out", "out", "--quiet"))
+    frame = json.loads((run.cwd / "out" / "frame.json").read_text())
+    assert (frame["width"], frame["height"]) == (64, 53) and frame["stats"]["target_error_m"] == 0.005
+    assert {"ir.png", "camera.json", "camera_opencv.yml", "camera_info.yaml"} <= {f["name"] for f in frame["files"]}
+    for command in (("tofcore", "render", "--help"), ("tofcore-batch", "--help"), ("tofcore-batch", "run", "--help")):
+        text = _ok(run(*command))
+        assert "batch/" not in text and "``" not in text, command
+    assert "wrote" in _ok(run("tofcore-batch", "examples", "--copy", "sets"))
+    validate = run("tofcore-batch", "validate", "sets/demo_set.toml")    # the copied set names exr in its formats
+    assert validate.returncode == 0 and "ok —" in validate.stdout, validate.stdout + validate.stderr
+    bad = run("tofcore", "render", "--scene", "chair.glb", "--out", "o", "--formats", "json")
+    assert bad.returncode == 2 and "chair.glb" in bad.stderr

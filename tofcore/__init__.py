@@ -14,7 +14,9 @@ The public API, re-exported from one module per concept. The packages follow the
 * :class:`Sensor`, :func:`load_preset`, :func:`list_presets` — sensor models and presets (``sensor``, ``presets``)
 * :class:`Modulation` — pulsed / square / sine correlation functions (``modulation``)
 * :func:`render` → :class:`Frame` — the camera's output with ground truth (``render``, ``frame``)
-* :func:`write_frame`, :func:`read_exr` — EXR, PNG, PLY and JSON outputs (``writers``)
+* :func:`write_frame`, :func:`read_exr` — EXR, PNG, PLY, JSON and camera-file outputs (``writers``)
+* :func:`load_mesh` — scenes from OBJ, PLY, glTF/GLB and STL files, through trimesh (``scene.mesh_files``)
+* ``exr`` — tofcore's own OpenEXR codec (NumPy + zlib): ``exr.write``, ``exr.read``, ``exr.read_header``
 * ``limits`` — resource limits checked before allocating (:class:`LimitError`)
 """
 
@@ -28,6 +30,7 @@ if _sys.argv[:1] == ["-m"] and "tofcore" in _sys.orig_argv[1:] \
 
 from . import limits
 from .constants import SPEED_OF_LIGHT_M_S
+from .output import exr
 from .errors import Cancelled, ConfigError, LimitError, SceneError, TofError
 from .output.frame import Frame, Reason
 from .output.writers import read_exr, write_frame
@@ -37,6 +40,7 @@ from .scene.camera import Camera
 from .scene.demo import demo_scene, suggested_pose
 from .scene.led import LED
 from .scene.material import Material, Texture
+from .scene.mesh_files import load_mesh
 from .scene.pose import from_blender_matrix_world, look_at
 from .scene.scene import Scene
 from .sensor.config import Sensor
@@ -47,7 +51,8 @@ from .tracer.transport import FirstHit, Transport, trace, trace_progressive
 __all__ = [
     "Ambient", "Camera", "Cancelled", "ConfigError", "FirstHit", "Frame", "LED", "LimitError", "Material", "Modulation",
     "Reason", "SPEED_OF_LIGHT_M_S", "Scene", "SceneError", "Sensor", "Texture", "TofError", "Transport", "demo_scene",
-    "from_blender_matrix_world", "list_presets", "load_preset", "look_at", "read_exr", "render", "render_progressive",
+    "from_blender_matrix_world", "list_presets", "load_mesh", "load_preset", "look_at", "read_exr", "render",
+    "render_progressive",
     "suggested_pose", "trace", "trace_progressive", "write_frame",
 ]
 __version__ = "0.1.0"

@@ -3,8 +3,11 @@
 Examples::
 
     tofcore render --scene room --preset kinect_v2 --spp 64 --out out/room
-    tofcore render --scene my_scene.npz --preset presets/o3d303.toml --target-error 0.002 --verbose
+    tofcore render --scene my_scene.npz --preset my_sensor.toml --target-error 2mm --verbose
+    tofcore render --scene chair.glb --resolution-scale 0.25 --out out/chair
     tofcore presets
+
+Every error is one line, ``tofcore render: error: …``, and exit code 2.
 """
 
 from __future__ import annotations
@@ -24,6 +27,7 @@ from . import limits
 from .console import say, use_safe_output
 from .errors import ConfigError, TofError
 from .progress import PassProgress
+from .units import BARE_LENGTH_UNIT, implausible_error_warning, parse_length_m
 
 
 # --------------------------------------------------------------------------- argument types
@@ -61,14 +65,60 @@ spp_type = number_type(int, "an integer >= 1", lambda v: v >= 1, limits.MAX_SPP)
 max_depth_type = number_type(int, "an integer >= 1", lambda v: v >= 1, limits.MAX_DEPTH)
 seed_type = number_type(int, "an integer >= 0", lambda v: v >= 0)
 seconds_type = number_type(float, "a finite number > 0 (seconds)", _finite_positive)
-metres_type = number_type(float, "a finite number > 0 (metres)", _finite_positive)
 radiance_type = number_type(float, f"a finite number >= 0, at most {limits.MAX_MAGNITUDE:g} (W m^-2 sr^-1)",
                             lambda v: 0 <= v <= limits.MAX_MAGNITUDE)
+scale_type = number_type(float, "a finite number > 0 (image size factor)", _finite_positive)
+pixels_type = number_type(int, "an integer >= 1 (pixels)", lambda v: v >= 1)
+
+
+def length_type(text: str) -> float:
+    """``"5mm"``, ``"0.5cm"``, ``"0.005m"`` or a bare number of millimetres → metres (> 0, finite)."""
+    try:
+        value = parse_length_m(text)
+    except ValueError as err:
+        raise argparse.ArgumentTypeError(str(err)) from None
+    if not _finite_positive(value):
+        raise argparse.ArgumentTypeError(f"must be a length > 0 such as 5mm or 0.005m, got {text!r}")
+    return value
+
+
+length_type.__name__ = "length"
+
+
+def resolution_type(text: str) -> tuple[int, int]:
+    """``"128x106"`` → (128, 106): width and height, integers >= 1."""
+    parts = text.lower().replace("×", "x").split("x")
+    if len(parts) != 2 or not all(p.strip().isdigit() and int(p) >= 1 for p in parts):
+        raise argparse.ArgumentTypeError(f"must be WIDTHxHEIGHT in pixels, e.g. 128x106, got {text!r}")
+    return int(parts[0]), int(parts[1])
+
+
+def vector3_type(text: str) -> tuple[float, float, float]:
+    """``"1,2.5,-3"`` → (1.0, 2.5, -3.0): three finite numbers (metres)."""
+    try:
+        values = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        values = ()
+    if len(values) != 3 or not all(math.isfinite(v) for v in values):
+        raise argparse.ArgumentTypeError(f"must be three numbers X,Y,Z in metres, got {text!r}")
+    return values
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """argparse with one-line errors: ``"tofcore render: error: …"`` and exit code 2 (no usage block); no
+    abbreviated flags (``--resolution`` is not ``--resolution-scale``)."""
+
+    def __init__(self, *args, **kwargs):
+        kwargs.setdefault("allow_abbrev", False)
+        super().__init__(*args, **kwargs)
+
+    def error(self, message: str):
+        self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
 def formats_type(text: str) -> tuple[str, ...]:
     """``"exr,png"`` → ("exr", "png"): a non-empty comma list of known output formats."""
-    from .output.writers import FORMATS
+    FORMATS = ("exr", "png", "ply", "json")   # transient.npy comes with --transient-bin
 
     names = [f.strip() for f in text.split(",")]
     unknown = [f for f in names if f and f not in FORMATS]
@@ -78,15 +128,6 @@ def formats_type(text: str) -> tuple[str, ...]:
         raise argparse.ArgumentTypeError(f"must be a comma list of one or more of {', '.join(FORMATS)}, "
                                          f"got {text!r}{why}")
     return chosen
-
-
-def check_exr(formats, flag: str = "--formats") -> None:
-    """ConfigError unless the OpenEXR package is importable when ``formats`` holds "exr" (before rendering)."""
-    from .output import writers
-
-    if "exr" in formats and writers.OpenEXR is None:
-        raise ConfigError(f"{flag}: 'exr' needs the OpenEXR package, which is not installed: pip install OpenEXR "
-                          f"(or pip install 'tofcore[exr]'), or leave exr out, e.g. {flag} png,ply,json")
 
 
 def check_output_folder(path: Path, flag: str = "--out") -> None:
@@ -104,17 +145,67 @@ def check_output_folder(path: Path, flag: str = "--out") -> None:
 
 
 def _scene(name: str):
+    """(scene, pose or None, ambient or None) of ``--scene``: a demo scene, .npz, mesh file or .blend."""
     from .scene.demo import NAMES, demo_scene
+    from .scene.mesh_files import MESH_SUFFIXES, load_mesh
     from .scene.scene import Scene
 
     if name in NAMES:
-        return demo_scene(name)
+        return demo_scene(name), None, None
     path = Path(name)
-    if path.suffix != ".npz":
-        raise TofError(f"--scene: must be a demo scene {list(NAMES)} or a .npz file, got {name!r}")
+    suffix = path.suffix.lower()
+    if suffix not in (".npz", ".blend", *MESH_SUFFIXES):
+        raise TofError(f"--scene: must be a demo scene {list(NAMES)}, a .npz, .blend or mesh file "
+                       f"({', '.join(sorted(MESH_SUFFIXES))}), got {name!r}")
     if not path.is_file():
         raise TofError(f"--scene: file not found: {path}")
-    return Scene.load(path)
+    if suffix == ".blend":
+        return _blend_scene(path)
+    return (Scene.load(path) if suffix == ".npz" else load_mesh(path)), None, None
+
+
+#: What to install for ``--scene FILE.blend``: Blender's Python module (Python 3.11 wheels need NumPy < 2).
+BPY_HINT = "pip install bpy \"numpy<2\" (Python 3.11), or render the file in Blender with the ToF add-on"
+
+
+def _blend_scene(path: Path):
+    """The add-on's export of a .blend seen from its active camera, read in a child process (this one stays free of
+    bpy, as for set files): (scene, the camera's pose, the world's ambient light)."""
+    import importlib.util
+    import pickle
+    import subprocess
+    import tempfile
+
+    if importlib.util.find_spec("bpy") is None:
+        raise TofError(f"--scene {path}: a .blend file is read through Blender's Python module bpy, which is not "
+                       f"installed: {BPY_HINT}")
+    package = "tofcore_batch" if importlib.util.find_spec("tofcore_batch") else "batch"
+    with tempfile.TemporaryDirectory(prefix="tofcore-blend-") as tmp:
+        out = Path(tmp) / "export.pickle"
+        proc = subprocess.run([sys.executable, "-m", f"{package}.blend", "export", str(path), "--out", str(out)],
+                              capture_output=True, text=True)
+        if proc.returncode != 0 or not out.is_file():
+            tail = (proc.stderr.strip().splitlines() or [f"exit code {proc.returncode}"])[-1]
+            raise TofError(f"--scene {path}: exporting the .blend file through bpy failed: {tail}")
+        scene, pose, ambient, warnings = pickle.loads(out.read_bytes())  # written by our own child process
+    for warning in warnings:
+        print(f"warning: {path}: {warning}", file=sys.stderr)
+    return scene, pose, ambient
+
+
+def _sensor(args: argparse.Namespace):
+    """The preset, resized by ``--resolution-scale`` or ``--width``/``--height``."""
+    from .sensor.presets import load_preset
+
+    sensor = load_preset(args.preset)
+    if args.no_noise:
+        sensor = sensor.replace(**{"noise.model": "none"})
+    if args.width is not None or args.height is not None:
+        cam = sensor.camera
+        width = args.width if args.width is not None else max(1, round(cam.width * args.height / cam.height))
+        height = args.height if args.height is not None else max(1, round(cam.height * args.width / cam.width))
+        return sensor.resized(width, height)
+    return sensor.scaled(args.resolution_scale)
 
 
 def _convergence_table(log: list[dict]) -> str:
@@ -133,21 +224,55 @@ def _convergence_table(log: list[dict]) -> str:
 
 
 def cmd_render(args: argparse.Namespace) -> int:
-    from .sensor.presets import load_preset
     from .render import render
     from .output.writers import write_frame
     from .scene.ambient import Ambient
     from .backend import select_device
+    from .scene.pose import look_at
 
     # Everything that can be checked is checked before the scene is loaded or a ray traced.
     formats = args.formats
-    sensor = load_preset(args.preset)
+    if args.transient_bin is not None and "transient" not in formats:
+        formats = (*formats, "transient")
+    if args.resolution is not None:
+        if args.width is not None or args.height is not None:
+            raise ConfigError("--resolution: give it or --width/--height, not both")
+        args.width, args.height = args.resolution
+    if args.resolution_scale != 1.0 and (args.width is not None or args.height is not None):
+        raise ConfigError("--resolution-scale: give it or --width/--height/--resolution, not one with another")
+    if (args.eye is None) != (args.target is None):
+        raise ConfigError("--eye and --target go together")
+    if args.target_error is not None and not args.quiet:
+        warning = implausible_error_warning(args.target_error, "--target-error")
+        if warning:
+            print(warning, file=sys.stderr)
+    sensor = _sensor(args)
+    transient_max = None
+    if args.transient_bin is not None:
+        transient_max = args.transient_max if args.transient_max is not None else 4 * sensor.range_m[1]
+        if transient_max <= args.transient_bin:
+            raise ConfigError(f"--transient-max must be longer than --transient-bin, got {transient_max:g} m "
+                              f"and {args.transient_bin:g} m")
+    from .render import transient_bins
+
     limits.check_render(sensor, max_depth=args.max_depth, spp=args.spp,
-                        where=f"--preset {args.preset} with --max-depth {args.max_depth}")
-    check_exr(formats)
+                        where=f"--preset {args.preset} with --max-depth {args.max_depth}",
+                        transient_bins=transient_bins(args.transient_bin, transient_max))
+    if args.exr_channels is not None:
+        from .output.writers import exr_channel_names
+
+        names = exr_channel_names(sensor.modulation.raw_labels(), args.max_depth)
+        unknown = [c for c in args.exr_channels if c not in names]
+        if unknown or not args.exr_channels:
+            raise ConfigError(f"--exr-channels: must be a comma list of {', '.join(names)}, got unknown "
+                              f"{', '.join(unknown) or '(none given)'}")
     check_output_folder(args.out)
-    scene = _scene(args.scene)
-    ambient = Ambient(radiance_w_m2_sr=args.ambient) if args.ambient else None
+    scene, file_pose, file_ambient = _scene(args.scene)
+    if args.scene.lower().endswith(".blend") and file_pose is None and args.eye is None:
+        raise ConfigError(f"--scene {args.scene}: the file has no active camera; set one in Blender, or give "
+                          f"--eye X,Y,Z --target X,Y,Z")
+    pose = look_at(np.array(args.eye), np.array(args.target)) if args.eye is not None else file_pose
+    ambient = Ambient(radiance_w_m2_sr=args.ambient) if args.ambient else file_ambient
     device = select_device(args.device)
     device_line = f"device: {device.description}" + (f" (auto: {device.fallback_reason})"
                                                      if device.fallback_reason else "")
@@ -165,31 +290,61 @@ def cmd_render(args: argparse.Namespace) -> int:
             f"{'on after 16 spp' if args.adaptive else 'off'}")
     elif device.fallback_reason and not args.quiet:
         print(device_line, file=sys.stderr)  # --device auto fell back to the CPU: say which device ran and why
-    with PassProgress(quiet=args.quiet) as progress:   # a tqdm bar on a terminal, plain lines in logs
-        frame = render(scene, sensor, spp=args.spp, max_depth=args.max_depth, seed=args.seed,
+    with PassProgress(quiet=args.quiet, total=args.spp) as progress:   # a tqdm bar on a terminal, plain lines in logs
+        frame = render(scene, sensor, pose, spp=args.spp, max_depth=args.max_depth, seed=args.seed,
                        time_budget_s=args.time_budget, target_error_m=args.target_error, ambient=ambient,
                        progress=progress, device=device, sampler=args.sampler,
-                       adaptive=args.adaptive, light_paths=args.light_paths)
+                       adaptive=args.adaptive, light_paths=args.light_paths,
+                       transient_bin_m=args.transient_bin, transient_max_m=transient_max)
     try:
-        files = write_frame(frame, args.out, formats=formats)
-    except (OSError, RuntimeError) as exc:  # a full disk, a folder removed meanwhile; RuntimeError: OpenEXR
-        why = exc.strerror if isinstance(exc, OSError) and exc.strerror else str(exc)
-        raise TofError(f"--out {args.out}: the frame was rendered but could not be written ({why}); files "
-                       f"already in the folder are whole (each is written to a temp name and renamed), the "
-                       f"others were not written") from None
-    stats = frame.stats
+        files = write_frame(frame, args.out, formats=formats, exr_half=args.exr_half,
+                            exr_channels=args.exr_channels)
+    except OSError as exc:  # a full disk, a folder removed meanwhile
+        raise TofError(f"--out {args.out}: the frame was rendered but could not be written "
+                       f"({exc.strerror or exc}); files already in the folder are whole (each is written to a "
+                       f"temp name and renamed), the others were not written") from None
+    lines = []
+    if args.verbose:
+        tracer = frame.stats["transport"]
+        lines.append(f"tracer: {tracer['tracer']}" + (f" ({tracer['tracer_reason']})" if tracer["tracer_reason"]
+                                                      else ""))
     if not args.quiet:
-        valid = frame.valid.mean() * 100
-        err = frame.depth - frame.gt_depth
-        rms = float(np.sqrt(np.nanmean(err[frame.valid] ** 2))) * 1000 if frame.valid.any() else float("nan")
-        rate = stats["transport"]["rays_per_second"] / 1e6
-        for line in (_convergence_table(stats["convergence"]),
-                     f"{stats['spp']} spp in {stats['seconds']:.1f} s ({rate:.2f} M rays/s); valid {valid:.1f} %; "
-                     f"RMS depth error vs ground truth {rms:.1f} mm",
-                     f"wrote {len(files)} files to {args.out}/: {', '.join(sorted(p.name for p in files.values()))}"):
-            if not say(line):
-                break
+        lines += [_convergence_table(frame.stats["convergence"]), summary(frame),
+                  f"wrote {len(files)} files to {args.out}/: {', '.join(sorted(p.name for p in files.values()))}"]
+    for line in lines:  # a stdout that fails (a full disk) is one note: the frame is written
+        if not say(line):
+            break
     return 0
+
+
+def summary(frame) -> str:
+    """The render's numbers, one named line each (what ``tofcore render`` prints after the table)."""
+    from .output.frame import Reason
+
+    stats = frame.stats
+    seen = np.isfinite(frame.gt_depth)
+    valid = frame.valid
+    err = (frame.depth - frame.gt_depth)[valid]
+    rms = f"{float(np.sqrt(np.mean(err ** 2))) * 1000:.1f} mm" if valid.any() else "– (no valid pixel)"
+    est = stats["convergence"][-1]["est_depth_error_m"] if stats.get("convergence") else None
+    noise = (stats.get("plan") or {}).get("raw_noise") or (stats.get("plan") or {}).get("distance_noise")
+    reasons = ", ".join(f"{r.name.lower().replace('_', ' ')} {100 * np.mean(frame.reason == r):.1f} %"
+                        for r in Reason if r and np.any(frame.reason == r)) or "none"
+    causes = ["render noise", *(["sensor noise"] if noise else []), *(["multipath"] if stats.get("max_depth", 1) > 1
+                                                                       else [])]
+    lines = [
+        f"samples per pixel:          {stats['spp']} (mean over the pixels)",
+        f"render time:                {stats['seconds']:.1f} s ({stats['transport']['rays_per_second'] / 1e6:.2f} "
+        f"M rays/s)",
+        f"render noise (estimated):   {'–' if est is None else f'{est * 1000:.2f} mm'} RMS Monte Carlo error of the "
+        f"depth over the pixels that see a surface",
+        f"sensor noise:               {'on (shot and read noise, as the preset says)' if noise else 'off'}",
+        f"valid pixels:               {100 * valid.mean():.1f} % of all, "
+        f"{100 * valid[seen].mean() if seen.any() else 0:.1f} % of those that see a surface",
+        f"invalid pixels by reason:   {reasons}",
+        f"depth error vs ground truth: {rms} RMS over the valid pixels ({' + '.join(causes)})",
+    ]
+    return "\n".join(lines)
 
 
 def cmd_presets(args: argparse.Namespace) -> int:
@@ -211,32 +366,59 @@ class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescrip
 
 
 def build_parser() -> argparse.ArgumentParser:
-    parser = argparse.ArgumentParser(
+    parser = OneLineParser(
         prog="tofcore", description="Time-of-Flight camera simulator (also: python -m tofcore).",
         formatter_class=argparse.RawDescriptionHelpFormatter,
         epilog="example:\n  tofcore render --scene room --preset kinect_v2 --spp 32 --out out/demo\n"
                "  tofcore presets\n\n`tofcore COMMAND --help` for a command's options.")
-    sub = parser.add_subparsers(dest="command", required=True)
+    sub = parser.add_subparsers(dest="command", required=True, parser_class=OneLineParser)
     r = sub.add_parser("render", help="render one frame of a scene with a sensor preset",
                        formatter_class=_HelpFormatter,
                        epilog="example:\n  tofcore render --scene room --preset kinect_v2 --spp 32 --out out/demo "
-                              "--verbose\n\nwrites frame.exr, PNGs, points.ply and frame.json to out/demo/; EXR needs the "
-                              "OpenEXR package\n(pip install 'tofcore[exr]'), else use --formats png,ply,json")
-    r.add_argument("--scene", required=True, help="demo scene (plane, corner, box_on_wall, room) or a .npz file")
-    r.add_argument("--preset", default="kinect_v2", help="preset name (see `presets`) or a .toml file")
+                              "--verbose\n  tofcore render --scene chair.glb --resolution-scale 0.25 "
+                              "--target-error 5mm --out out/chair\n\nwrites frame.exr, depth.exr, PNGs, points.ply, camera YAML files and "
+                              "frame.json to the folder")
+    r.add_argument("--scene", required=True,
+                   help="demo scene (plane, corner, box_on_wall, room), a .npz scene, a mesh file (.obj, .ply, .gltf, "
+                        ".glb, .stl; needs trimesh) or a .blend file (needs bpy)")
+    r.add_argument("--preset", default="kinect_v2",
+                   help="preset name (see `tofcore presets`; any case) or a .toml file")
     r.add_argument("--out", type=Path, required=True, help="output folder")
     r.add_argument("--spp", type=spp_type, default=64, help="most samples per pixel (at most TOFCORE_MAX_SPP)")
     r.add_argument("--max-depth", type=max_depth_type, default=5,
                    help="surface vertices per path (1 = direct only; at most TOFCORE_MAX_DEPTH)")
     r.add_argument("--seed", type=seed_type, default=0, help="random seed >= 0 (same seed, same frame)")
+    r.add_argument("--resolution-scale", type=scale_type, default=1.0, metavar="F",
+                   help="image size factor; fx, fy, cx, cy scale with it (0.25: a quarter of each side)")
+    r.add_argument("--width", type=pixels_type, default=None, metavar="PX",
+                   help="image width in pixels (the height follows the aspect unless --height is given)")
+    r.add_argument("--height", type=pixels_type, default=None, metavar="PX",
+                   help="image height in pixels (the width follows the aspect unless --width is given)")
+    r.add_argument("--resolution", type=resolution_type, default=None, metavar="WxH",
+                   help="image size in pixels, e.g. 128x106 (the same as --width 128 --height 106)")
     r.add_argument("--time-budget", type=seconds_type, default=None, metavar="S",
                    help="stop tracing after about S seconds")
-    r.add_argument("--target-error", type=metres_type, default=None, metavar="M",
-                   help="stop once the estimated RMS depth error (Monte Carlo) is at most M metres")
+    r.add_argument("--target-error", type=length_type, default=None, metavar="LENGTH",
+                   help=f"stop once the estimated RMS depth error (Monte Carlo) is at most this: 5mm, 0.5cm, "
+                        f"0.005m; a bare number is in {BARE_LENGTH_UNIT}, as in the Blender add-on")
     r.add_argument("--ambient", type=radiance_type, default=0.0, metavar="W_M2_SR",
                    help="constant ambient radiance, W m^-2 sr^-1")
+    r.add_argument("--no-noise", action="store_true",
+                   help="no sensor noise (shot and read noise off): the render's own Monte Carlo noise only")
+    r.add_argument("--eye", type=vector3_type, default=None, metavar="X,Y,Z",
+                   help="sensor position, world metres (with --target; default: the scene's suggested view)")
+    r.add_argument("--target", type=vector3_type, default=None, metavar="X,Y,Z", help="point looked at (with --eye)")
     r.add_argument("--formats", type=formats_type, default="exr,png,ply,json",
-                   help="comma list of exr, png, ply, json (exr needs the OpenEXR package)")
+                   help="comma list of exr (frame.exr + depth.exr), png, ply, json (+ camera YAML files), transient")
+    r.add_argument("--exr-half", action="store_true",
+                   help="EXR channels as 16-bit half floats (about 4 mm steps at 4 m)")
+    r.add_argument("--exr-channels", type=lambda text: tuple(c.strip() for c in text.split(",") if c.strip()),
+                   default=None, metavar="NAMES", help="only these channels in frame.exr, e.g. depth,amplitude,valid")
+    r.add_argument("--transient-bin", type=length_type, default=None, metavar="LENGTH",
+                   help="also write transient.npy: the time-resolved histogram over optical path length, bins "
+                        "of this width (e.g. 5cm); memory H x W x bins x 8 bytes")
+    r.add_argument("--transient-max", type=length_type, default=None, metavar="LENGTH",
+                   help="longest optical path length of the histogram (default: 4 x the preset's far range)")
     r.add_argument("--device", choices=("cpu", "gpu", "auto"), default="auto",
                    help="cpu (NumPy), gpu (CuPy on an NVIDIA GPU) or auto (the GPU when usable)")
     r.add_argument("--sampler", choices=("sobol", "independent"), default="sobol",
@@ -246,7 +428,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "estimated depth error is largest)")
     r.add_argument("--no-light-paths", dest="light_paths", action="store_false",
                    help="next-event estimation only (default: also connect to LED-lit points, with MIS)")
-    r.add_argument("--verbose", action="store_true", help="print the scene, sensor, render plan and device")
+    r.add_argument("--verbose", action="store_true", help="print the scene, sensor, render plan, device and tracer (compiled or NumPy, and why)")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     r.set_defaults(func=cmd_render)
     p = sub.add_parser("presets", help="list the sensor presets", formatter_class=_HelpFormatter,

@@ -144,7 +144,7 @@ MAX_WORKERS = Limit(
 
 
 
-def render_bytes(pixels: int, raw_images: int, max_depth: int) -> int:
+def render_bytes(pixels: int, raw_images: int, max_depth: int, transient_bins: int = 0) -> int:
     """Estimated peak memory of one render's per-pixel buffers, bytes.
 
     Notes
@@ -155,12 +155,14 @@ def render_bytes(pixels: int, raw_images: int, max_depth: int) -> int:
     correlation sums and their per-k decoding, per replicate the sums of the
     error estimate, plus the frame's outputs. Fitted to tracemalloc peaks of
     the Kinect v2 preset (R = 9) on the room: 3.2 kB/pixel at K = 5, 5.8 kB at
-    K = 10; the formula gives 3.5 and 6.3 kB.
+    K = 10; the formula gives 3.5 and 6.3 kB. A transient histogram of T bins adds its buffers,
+    20 P T bytes: the float64 sums, their float64 mean and the frame's float32 copy.
     """
-    return 8 * int(pixels) * (7 * int(max_depth) * (int(raw_images) + 1) + 8 * (int(raw_images) + 2))
+    return (8 * int(pixels) * (7 * int(max_depth) * (int(raw_images) + 1) + 8 * (int(raw_images) + 2))
+            + 20 * int(pixels) * int(transient_bins))
 
 
-def check_render(sensor, *, max_depth: int, where: str, spp: int | None = None) -> None:
+def check_render(sensor, *, max_depth: int, where: str, spp: int | None = None, transient_bins: int = 0) -> None:
     """Raise :class:`LimitError` if a render of ``sensor`` with these settings is above a limit.
 
     ``where`` prefixes the message (e.g. ``"render"``, a set file's key path).
@@ -169,11 +171,13 @@ def check_render(sensor, *, max_depth: int, where: str, spp: int | None = None) 
         MAX_SPP.check(int(spp), where, "spp")
     MAX_DEPTH.check(int(max_depth), where, "max_depth")
     cam = sensor.camera
-    need = render_bytes(cam.width * cam.height, sensor.modulation.raw_count, max_depth)
+    need = render_bytes(cam.width * cam.height, sensor.modulation.raw_count, max_depth, transient_bins)
     if MAX_RENDER_BYTES.exceeded(need):
+        transient = f", {transient_bins} transient bins" if transient_bins else ""
         raise LimitError(f"{where}: the estimated render memory ({cam.width} x {cam.height} pixels, "
-                         f"{sensor.modulation.raw_count} raw images, max_depth {max_depth}) must be "
-                         f"{MAX_RENDER_BYTES.describe()}, got {need:,} bytes; lower the resolution or max_depth")
+                         f"{sensor.modulation.raw_count} raw images, max_depth {max_depth}{transient}) must be "
+                         f"{MAX_RENDER_BYTES.describe()}, got {need:,} bytes; lower the resolution or max_depth"
+                         + (" or widen the transient bins" if transient_bins else ""))
 
 
 #: Largest magnitude accepted for a physical scale factor (LED intensity, responsivity, exposure, full well,

@@ -62,6 +62,8 @@ class PassProgress:
     Parameters
     ----------
     quiet : print nothing.
+    total : the render's most samples per pixel; given, the bar is drawn (at 0, its clock running) as soon
+        as the progress starts, before the first pass ends; else at the first pass.
     stream : where to write (default ``sys.stderr``).
     bar : force (True) or refuse (False) the tqdm bar; default: :func:`use_bar` of ``stream``.
     plain_interval_s : least seconds between plain lines (the first and the last pass always print).
@@ -71,7 +73,7 @@ class PassProgress:
     """
 
     def __init__(self, *, quiet: bool = False, stream: TextIO | None = None, bar: bool | None = None,
-                 plain_interval_s: float = PLAIN_INTERVAL_S):
+                 plain_interval_s: float = PLAIN_INTERVAL_S, total: int | None = None):
         self.quiet = quiet
         self.stream = stream or sys.stderr
         self.bar = (not quiet) and (use_bar(self.stream) if bar is None else bar and tqdm_class() is not None)
@@ -79,6 +81,8 @@ class PassProgress:
         self._tqdm = None                      # the bar, made at the first pass
         self._last_line = -float("inf")        # perf_counter of the last plain line
         self._pending: dict | None = None      # a row the interval held back
+        if self.bar and total is not None:
+            self._start_bar(total)
 
     def __call__(self, row: dict) -> None:
         if self.quiet:
@@ -95,12 +99,18 @@ class PassProgress:
         else:
             self._pending = row
 
+    def _start_bar(self, total: int) -> None:
+        """Draw the bar at 0 now: its clock starts with the render, not at the first pass."""
+        self._tqdm = tqdm_class()(total=total, unit="spp", desc="render", file=self.stream, dynamic_ncols=True,
+                                  leave=True, mininterval=0)
+        self._tqdm.set_postfix_str(f"est. error {format_error_mm(None)}", refresh=True)
+
     def _draw(self, row: dict) -> None:
         if self._tqdm is None:
-            self._tqdm = tqdm_class()(total=row["spp_max"], unit="spp", desc="render", file=self.stream,
-                                      dynamic_ncols=True, leave=True, mininterval=0.1)
+            self._start_bar(row["spp_max"])
         self._tqdm.set_postfix_str(f"est. error {format_error_mm(row['est_depth_error_m'])}", refresh=False)
         self._tqdm.update(max(0, min(row["spp"], row["spp_max"]) - self._tqdm.n))
+        self._tqdm.refresh()    # every pass is drawn, whatever tqdm's rate limits held back
 
     def _line(self, row: dict) -> None:
         done = min(1.0, row["spp"] / row["spp_max"]) if row["spp_max"] else 1.0

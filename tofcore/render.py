@@ -39,6 +39,7 @@ import numpy as np
 
 from . import backend, limits
 from .backend import gpu_errors, namespace
+from .constants import SPEED_OF_LIGHT_M_S
 from .errors import ConfigError
 from .output.frame import Frame
 from .plan import Plan, make_plan
@@ -47,6 +48,7 @@ from .scene.scene import Scene
 from .sensor import decode as decoding
 from .sensor import noise as noise_models
 from .sensor import optics
+from .sensor import processing
 from .sensor.raw import raw_images
 from .tracer.adaptive import allocate_samples
 from .tracer.transport import Transport, pass_schedule, trace_progressive
@@ -74,14 +76,19 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     is the RMS error of the output depth; for a z-depth sensor it is scaled by the pixel ray's z
     component (z = d·ω_z). NaN where a pixel has no signal or
     a replicate no sample yet. Scattering and sensor noise are not part of it: this is the render's own
-    noise.
+    noise. A camera that filters its phasors (``processing.phasor_filter``) averages each replicate's
+    deviation over the 3 × 3 neighbours too, frequency by frequency, with the filter's weights at the
+    replicates' mean (:func:`_filtered_deviation`).
     """
     means, counts = transport.replicate_means()         # (R, J+2, H, W), (R, H, W)
     replicates = means.shape[0]
     raw = namespace(means).stack([raw_images(m[1:1 + n_raw], m[-1], sensor) for m in means])
     centre = raw.mean(axis=0)
-    grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation)
-    deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
+    grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation, sensor.processing.unwrap_weights)
+    if sensor.processing.phasor_filter == "none" or not sensor.modulation.is_cw:
+        deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
+    else:
+        deviation = _filtered_deviation(raw - centre[None], np.nan_to_num(centre), sensor)
     var = (deviation**2).sum(axis=0) / (replicates * (replicates - 1))
     ok = (counts.min(axis=0) >= 1) & (np.abs(grad).sum(axis=0) > 0)
     if sensor.modulation.is_cw:
@@ -96,6 +103,41 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     if sensor.depth_output == "z":
         sigma = sigma * namespace(sigma).asarray(np.abs(sensor.camera.pixel_center_directions()[..., 2]))
     return sigma
+
+
+def _filtered_deviation(delta, centre, sensor):
+    r"""(R, H, W) distance deviation of each replicate, through the camera's phasor filter, linearised.
+
+    Notes
+    -----
+    Per frequency i the replicate's phasor deviation :math:`\delta Z = \sum_k \delta Q_k e^{i\theta_k}`
+    (``delta`` = Q^{(r)} − Q̄, ``centre`` = Q̄) is averaged like the phasors,
+    :math:`\delta Z' = \sum_q w_q \delta Z_q` with the filter's weights at the mean
+    (:func:`tofcore.sensor.processing.bilateral_weights`), and turned into a phase deviation of the filtered phasor
+    :math:`Z' = \sum_q w_q \bar Z_q`: :math:`\delta\varphi' = \operatorname{Im}(\delta Z' \bar Z'^*)/|Z'|^2`;
+    the distance deviation is :math:`\sum_i w_i\, c\, \delta\varphi'_i / (4\pi f_i)` with the unwrapping
+    weights :math:`w_i` (:func:`tofcore.sensor.decode.unwrap_weights`).
+    """
+    mod = sensor.modulation
+    xp = namespace(delta)
+    unwrap_w = decoding.unwrap_weights(decoding.decode_cw(centre, mod), mod, sensor.processing.unwrap_weights)
+    deviation = 0.0
+    start = 0
+    for i, (f_hz, n) in enumerate(zip(mod.frequencies_hz, mod.phase_steps)):
+        theta = 2.0 * np.pi * np.arange(n) / n
+        cos_k = xp.asarray(np.round(np.cos(theta), 15))[:, None, None]
+        sin_k = xp.asarray(np.round(np.sin(theta), 15))[:, None, None]
+        mean_re = (cos_k * centre[start:start + n]).sum(axis=0)
+        mean_im = (sin_k * centre[start:start + n]).sum(axis=0)
+        weights = processing.bilateral_weights(mean_re, mean_im, min_amplitude=sensor.invalid.min_amplitude_e * n / 2)
+        z_re, z_im = processing.neighbour_mean(mean_re, weights), processing.neighbour_mean(mean_im, weights)
+        d_re = processing.neighbour_mean((cos_k[None] * delta[:, start:start + n]).sum(axis=1), weights)
+        d_im = processing.neighbour_mean((sin_k[None] * delta[:, start:start + n]).sum(axis=1), weights)
+        norm2 = z_re * z_re + z_im * z_im
+        d_phase = np.where(norm2 > 0, (z_re * d_im - z_im * d_re) / np.where(norm2 > 0, norm2, 1.0), 0.0)
+        deviation = deviation + unwrap_w[i] * SPEED_OF_LIGHT_M_S / (4.0 * np.pi * f_hz) * d_phase
+        start += n
+    return deviation
 
 
 def _normal_tail(x):
@@ -122,7 +164,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                        progress: Callable[[dict], None] | None = None, cancel: Callable[[], bool] | None = None,
                        workers: int | None = None, chunk_size: int | None = None,
                        every_pass: bool = True, device: str | backend.Device = "cpu",
-                       adaptive: bool = True, sampler: str = "sobol", light_paths: bool = True) -> Iterator[Frame]:
+                       adaptive: bool = True, sampler: str = "sobol", light_paths: bool = True,
+                       transient_bin_m: float | None = None, transient_max_m: float | None = None) -> Iterator[Frame]:
     """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
 
     The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
@@ -150,6 +193,9 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
         depth error is largest (:mod:`tofcore.tracer.adaptive`); False: every pixel gets ``spp``.
     sampler : ``"sobol"`` (randomized QMC, default) or ``"independent"`` (:mod:`tofcore.tracer.qmc`).
     light_paths : connect the camera paths to light vertices with MIS (:mod:`tofcore.tracer.light_paths`).
+    transient_bin_m, transient_max_m : also keep the transient (time-resolved) histogram, bins of this
+        width (m of optical path length LED → … → lens) up to this length; ``frame.transient`` is then
+        (H, W, B) mean radiance per bin, bin b centred at (b + ½)·width (:meth:`Transport.transient`).
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering and decoding on the GPU;
         the random sensor noise is drawn on the CPU so that both devices give the same frame) or
         ``"auto"`` (the GPU when usable, else the CPU). The frame's arrays are NumPy either way;
@@ -158,12 +204,14 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
         :class:`~tofcore.backend.GpuUnavailable` with one line naming the cause; with ``"auto"``
         a failure before the first frame falls back to the CPU (recorded in ``fallback_reason``).
     """
-    _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor)
+    _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor,
+                    transient_bins=transient_bins(transient_bin_m, transient_max_m))
     dev = backend.select_device(device)
     settings = dict(spp=spp, max_depth=max_depth, seed=seed, time_budget_s=time_budget_s,
                     target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,
                     progress=progress, cancel=cancel, workers=workers, every_pass=every_pass,
-                    adaptive=adaptive, sampler=sampler, light_paths=light_paths)
+                    adaptive=adaptive, sampler=sampler, light_paths=light_paths,
+                    transient_bin_m=transient_bin_m, transient_max_m=transient_max_m)
     if not dev.is_gpu:
         yield from _render_passes(scene, sensor, pose, chunk_size=chunk_size, device=dev, **settings)
         return
@@ -182,7 +230,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
 
 def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_budget_s, target_error_m, ambient,
                    reference_distance, progress, cancel, workers, chunk_size, every_pass, adaptive, sampler,
-                   light_paths, device: backend.Device) -> Iterator[Frame]:
+                   light_paths, transient_bin_m, transient_max_m, device: backend.Device) -> Iterator[Frame]:
     """:func:`render_progressive` on one resolved device."""
     if sensor.noise.model == "li" and sensor.modulation.kind == "pulsed":
         raise ConfigError(f"render: sensor {sensor.name!r}: noise model 'li' (eq. 2.43) needs a continuous-wave "
@@ -213,7 +261,8 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
                                correlations=correlations, ambient=ambient if plan.ambient else None,
                                spp=spp, max_depth=max_depth, seed=seed, workers=workers, chunk_size=chunk_size,
                                cancel=cancel, device=device, progressive=progressive, sampler=sampler, light_paths=light_paths,
-                               allocate=allocate if adaptive else None)
+                               allocate=allocate if adaptive else None, transient_bin_m=transient_bin_m,
+                               transient_max_m=transient_max_m)
     for transport in passes:
         elapsed = time.perf_counter() - start
         counts = backend.to_host(transport.sample_count)
@@ -239,6 +288,10 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
         if not (done or every_pass):
             continue
         frame = _frame(transport, sensor, pose, plan, seed, n_raw)
+        frame.metadata["objects"] = object_table(scene)
+        if transport.transient_sum is not None:
+            frame.transient = backend.to_host(transport.transient()).astype(np.float32)
+            frame.transient_bin_m = float(transport.transient_bin_m)
         frame.render_error = sigma.astype(np.float32)
         frame.samples = counts.reshape(sensor.camera.height, sensor.camera.width).astype(np.int32)
         frame.stats.update({
@@ -256,7 +309,16 @@ def _render_passes(scene: Scene, sensor, pose, *, spp, max_depth, seed, time_bud
             return
 
 
-def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, sensor=None) -> None:
+def transient_bins(bin_m: float | None, max_m: float | None) -> int:
+    """Bins of a transient histogram of width ``bin_m`` up to ``max_m`` (0 without one, or for values the
+    tracer refuses with its own message)."""
+    if bin_m is None or max_m is None or not 0 < bin_m < max_m < np.inf:
+        return 0
+    return int(np.ceil(max_m / bin_m))
+
+
+def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, sensor=None,
+                    transient_bins: int = 0) -> None:
     """Every setting checked, and the resource limits (:mod:`tofcore.limits`), before anything is allocated."""
     for name, value, lowest in (("spp", spp, 1), ("max_depth", max_depth, 1), ("seed", seed, 0)):
         if not isinstance(value, (int, np.integer)) or isinstance(value, bool) or value < lowest:
@@ -264,10 +326,25 @@ def _check_settings(spp, time_budget_s, target_error_m, *, max_depth=1, seed=0, 
     limits.MAX_SPP.check(int(spp), "render", "spp")
     limits.MAX_DEPTH.check(int(max_depth), "render", "max_depth")
     if sensor is not None and hasattr(sensor, "camera") and hasattr(sensor, "modulation"):
-        limits.check_render(sensor, max_depth=int(max_depth), where="render")
+        limits.check_render(sensor, max_depth=int(max_depth), where="render", transient_bins=transient_bins)
     for name, value in (("time_budget_s", time_budget_s), ("target_error_m", target_error_m)):
         if value is not None and (not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0):
             raise ConfigError(f"render: {name} must be a number > 0, got {value!r}")
+
+
+def object_table(scene: Scene) -> list[dict]:
+    """What the ``object_id`` image's values mean: ``[{"id", "name", "materials"}]`` for every object id of
+    ``scene`` (names from ``scene.object_names``, ``"object <id>"`` where the scene has none; the names of
+    the materials its triangles use, in material-index order). ``object_id`` −1 is no surface."""
+    object_ids = np.asarray(scene.object_ids)
+    material_ids = np.asarray(scene.material_ids)
+    count = max(int(object_ids.max()) + 1 if object_ids.size else 0, len(scene.object_names))
+    table = []
+    for i in range(count):
+        used = np.unique(material_ids[object_ids == i])
+        name = scene.object_names[i] if i < len(scene.object_names) and scene.object_names[i] else f"object {i}"
+        table.append({"id": i, "name": name, "materials": [scene.materials[m].name for m in used.tolist()]})
+    return table
 
 
 def _rms(values: np.ndarray) -> float | None:
@@ -275,10 +352,13 @@ def _rms(values: np.ndarray) -> float | None:
 
 
 def _decode_clean(transport: Transport, sensor, max_k: int, n_raw: int):
-    """Decode the noise-free, scatter-free raw images of bounces ≤ max_k (ground-truth decompositions)."""
+    """Decode the noise-free, scatter-free raw images of bounces ≤ max_k (ground-truth decompositions).
+
+    The camera's frequency weights apply; its spatial phasor filter does not (ground truth is per pixel)."""
     raw = raw_images(transport.correlation(max_k)[:n_raw], transport.ambient(), sensor)
     return decoding.decode(raw, sensor.modulation, min_amplitude_e=0.0, saturation_e=None,
-                           range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+                           range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
+                           unwrap_weights=sensor.processing.unwrap_weights)
 
 
 def _decode_clean_per_k(transport: Transport, sensor, n_raw: int):
@@ -295,8 +375,17 @@ def _decode_clean_per_k(transport: Transport, sensor, n_raw: int):
     ambient = xp.broadcast_to(transport.ambient(), (k, h, w)).reshape(k * h, w)
     raw = raw_images(cumulative.reshape(-1, k * h, w), ambient, sensor)
     decoded = decoding.decode(raw, sensor.modulation, min_amplitude_e=0.0, saturation_e=None,
-                              range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+                              range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
+                              unwrap_weights=sensor.processing.unwrap_weights)
     return decoded.distance.reshape(k, h, w)
+
+
+def _range_scale(sensor) -> np.ndarray | None:
+    """What ``range_m`` limits: the output depth, so z for a z-depth camera (libfreenect2 compares z with its
+    min_depth/max_depth), the radial distance otherwise (None)."""
+    if sensor.depth_output != "z":
+        return None
+    return np.abs(sensor.camera.pixel_center_directions()[..., 2]).astype(np.float64)
 
 
 def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int, n_raw: int) -> Frame:
@@ -311,13 +400,17 @@ def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int
     noise_rng = np.random.default_rng(np.random.SeedSequence([seed, 0x70F]))  # apart from the tracer's stream
     xp = namespace(raw)
     if plan.raw_noise:  # drawn on the CPU from one stream, so both devices give the same frame
-        raw = xp.asarray(noise_models.add_raw_noise(backend.to_host(raw), read_noise_e=sensor.noise.read_noise_e,
-                                                    rng=noise_rng))
+        noisy = noise_models.add_raw_noise(backend.to_host(raw), read_noise_e=sensor.noise.read_noise_e, rng=noise_rng)
+        if sensor.noise.gain_noise > 0:  # Keller's β (eq. 3.1), after the shot and read noise of the same stream
+            noisy = noise_models.keller_amplitude_noise(noisy, alpha_e=0.0, beta=sensor.noise.gain_noise, rng=noise_rng)
+        raw = xp.asarray(noisy)
     full_well = sensor.readout.full_well_e
     raw = np.minimum(raw, full_well)
     decoded = decoding.decode(raw, mod, min_amplitude_e=sensor.invalid.min_amplitude_e,
                               saturation_e=full_well if sensor.invalid.invalidate_saturated else None,
-                              range_m=tuple(sensor.range_m), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+                              range_m=tuple(sensor.range_m), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
+                              unwrap_weights=sensor.processing.unwrap_weights,
+                              phasor_filter=sensor.processing.phasor_filter, range_scale=_range_scale(sensor))
     decoded = decoding.Decoded(**{k: backend.to_host(v) for k, v in vars(decoded).items()})
     raw = backend.to_host(raw)
     distance = np.asarray(decoded.distance, dtype=np.float64)

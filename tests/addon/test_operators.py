@@ -30,8 +30,9 @@ from addon_helpers import Reports  # noqa: E402
 from addon import images, mapping, operators, sensors  # noqa: E402
 
 #: Every file write_frame produces with all formats.
-EXPECTED_FILES = {"frame.exr", "depth_mm.png", "depth.png", "intensity.png", "error.png", "reason.png",
-                  "convergence.png", "points.ply", "frame.json"}
+EXPECTED_FILES = {"frame.exr", "depth.exr", "depth_mm.png", "ir.png", "depth.png", "intensity.png", "error.png",
+                  "reason.png", "convergence.png", "points.ply", "camera_opencv.yml", "camera_info.yaml",
+                  "camera.json", "frame.json"}
 BLENDER_FROM_OPENCV = np.diag([1.0, -1.0, -1.0, 1.0])
 
 
@@ -411,7 +412,7 @@ def test_error_bad_preset_file_and_limits_are_reports(tof, tmp_path, monkeypatch
     huge = tmp_path / "huge.toml"
     huge.write_text(kinect.replace("width = 512", "width = 100000").replace("height = 424", "height = 100000"))
     hot = tmp_path / "hot.toml"
-    hot.write_text(kinect.replace("responsivity = 2.4e7", "responsivity = 1e300"))
+    hot.write_text(re.sub(r"^responsivity = .*$", "responsivity = 1e300", kinect, flags=re.M))
     settings.use_resolution = False
     settings.preset = sensors.CUSTOM
     for path, needle in ((huge, "[camera]: width x height must be at most 16,777,216 pixels"),

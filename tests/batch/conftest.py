@@ -25,19 +25,6 @@ for _name in ("BLENDER_USER_RESOURCES", "XDG_CONFIG_HOME", "XDG_CACHE_HOME"):
     os.makedirs(os.environ[_name], exist_ok=True)
 
 
-def pytest_collection_modifyitems(config, items):
-    """Sets write EXR by default and the tests compare frames through it: without OpenEXR, skip them all."""
-    import importlib.util
-
-    if importlib.util.find_spec("OpenEXR") is not None:
-        return
-    skip = pytest.mark.skip(reason="needs the OpenEXR package (the batch generator writes EXR by default)")
-    here = Path(__file__).parent
-    for item in items:
-        if here in Path(item.fspath).parents:
-            item.add_marker(skip)
-
-
 def pytest_configure(config):
     config.addinivalue_line("markers", "dask: needs dask[distributed]; skipped when it is not installed")
     config.addinivalue_line("markers", "bpy: needs the Blender Python module (bpy); skipped when it is not installed")

@@ -258,14 +258,14 @@ def test_scheduler_address_is_checked_before_anything(tmp_path, address):
 ])
 def test_compare_flags_are_checked_before_rendering(tmp_path, flags, needle):
     preset = tmp_path / "preset.toml"
-    preset.write_text(KINECT.replace("responsivity = 2.4e7", "responsivity = 1e300"))
+    preset.write_text(KINECT.replace("responsivity = 7e7", "responsivity = 1e300"))
     proc = batch("compare", "--scene", "plane", "--out", str(tmp_path / "report"), "--resolution-scale", "0.0625",
                  "--spp", "1", *flags, cwd=tmp_path)
     assert_refused(proc, needle, out=tmp_path / "report")
 
 
 @pytest.mark.parametrize("edit, needle", [
-    (("responsivity = 2.4e7", "responsivity = 1e300"),
+    (("responsivity = 7e7", "responsivity = 1e300"),
      "[readout]: responsivity must be at most 1e+30 (e-/s per W m^-2 sr^-1), got 1e+300"),
     (("intensity_w_sr = 1.0 ", "intensity_w_sr = 1e308 "),
      "[[leds]] #1: intensity_w_sr must be at most 1e+30 (W/sr), got 1e+308"),

@@ -232,3 +232,22 @@ def test_scene_files_never_run_their_scripts(tmp_path):
     assert opened.returncode == 0, opened.stderr[-2000:]
     assert "opened 1" in opened.stdout
     assert not marker.exists(), "the scene file's script ran"
+
+
+def test_tofcore_render_takes_a_blend_file(tmp_path, blend_file):
+    """``tofcore render --scene FILE.blend``: exported by the add-on's exporter in a child process (this one never
+    imports bpy); the file has no active camera, so it asks for one or for --eye/--target."""
+    blend, _ = blend_file
+    env = {**os.environ, "PYTHONPATH": str(REPO)}
+    base = [sys.executable, "-m", "tofcore", "render", "--scene", str(blend), "--resolution-scale", "0.0625",
+            "--spp", "1", "--max-depth", "1", "--formats", "json", "--quiet"]
+    no_camera = subprocess.run([*base, "--out", str(tmp_path / "a")], capture_output=True, text=True, env=env,
+                               timeout=300)
+    assert no_camera.returncode == 2 and "has no active camera" in no_camera.stderr, no_camera.stderr
+    proc = subprocess.run([*base, "--out", str(tmp_path / "b"), "--eye", "0,-2.5,1.5", "--target", "0,0,1.5"],
+                          capture_output=True, text=True, env=env, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    import json
+
+    document = json.loads((tmp_path / "b" / "frame.json").read_text())
+    assert {o["name"] for o in document["metadata"]["objects"]} == {"Wall", "Cube"}

@@ -49,3 +49,37 @@ def test_comparison_image_rows_share_colour_limits():
     assert limits["depth_m"] == [1.0, 2.0]
     assert np.isclose(limits["error_limit_mm"], 10.0, atol=0.01)
     assert limits["reason_colours"]["OUT_OF_RANGE"] == [220, 0, 220]
+
+
+def test_the_comparison_image_has_colour_bars_and_the_table_says_what_rows_and_columns_are():
+    from batch.compare import _HEADER_HEIGHT, _LABEL_WIDTH, markdown_table
+    from tofcore.output.png import DIVERGING as _DIVERGING, TURBO as _TURBO
+
+    h, w = 10, 20
+    depth = np.linspace(1.0, 2.0, h * w, dtype=np.float32).reshape(h, w)
+    ch = {"depth": depth, "gt_depth": depth + 0.01, "valid": np.ones((h, w), np.float32),
+          "reason": np.zeros((h, w), np.float32)}
+    image, _ = comparison_image([("a", ch)])
+    cell_h = round(h * CELL_WIDTH / w)
+    bar_y = _HEADER_HEIGHT + cell_h + 4 + 10                  # the middle of the 12-px bars below the one row
+    for column, lut in ((0, _TURBO), (1, _DIVERGING)):
+        x0 = _LABEL_WIDTH + column * (CELL_WIDTH + 4)
+        strip = image[bar_y, x0 + 6:x0 + CELL_WIDTH - 6]
+        np.testing.assert_array_equal(strip[0], lut[0])
+        np.testing.assert_array_equal(strip[-1], lut[-1])
+    table = markdown_table([], "t")
+    assert "compare.png: one row per preset, in this table's order; columns: depth, depth − ground truth" in table
+    assert "Rows of compare.png in this order" not in table
+
+
+def test_compare_takes_a_mesh_file(tmp_path):
+    trimesh = __import__("pytest").importorskip("trimesh")
+    path = tmp_path / "wall.stl"
+    trimesh.creation.box(extents=[3.0, 0.1, 2.0]).export(str(path))
+    out = tmp_path / "report"
+    proc = batch("compare", "--scene", str(path), "--presets", "kinect_v2", "--out", str(out), "--spp", "1",
+                 "--max-depth", "1", "--resolution-scale", "0.0625", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    (record,) = read_index(out)
+    assert record["source"]["kind"] == "mesh" and record["objects"] == [
+        {"id": 0, "name": "wall.stl", "materials": ["default"]}]

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import tofcore
-from batch.setfile import SetFileError, load_set, parse_frames, scaled_sensor
+from batch.setfile import SetFileError, load_set, parse_frames
 from batch_helpers import TINY, batch, write_set
 
 GOOD = """
@@ -132,7 +132,7 @@ def test_syntax_error_carries_the_line(tmp_path):
 
 
 @pytest.mark.parametrize("body, fragment", [
-    ("[[scenes]]\ndemo = 'corner'\nnpz = 'a.npz'\n", "scenes[0]: needs exactly one of 'demo', 'npz', 'blend'"),
+    ("[[scenes]]\ndemo = 'corner'\nnpz = 'a.npz'\n", "scenes[0]: needs exactly one of 'demo', 'npz', 'mesh', 'blend'"),
     ("[[scenes]]\ndemo = 'kitchen'\n", "scenes[0].demo: must be one of ['plane', 'corner', 'box_on_wall', 'room']"),
     ("seed = -1\n[[scenes]]\ndemo = 'corner'\n", "seed: must be an integer >= 0, got -1"),
     ("[[scenes]]\ndemo = 'corner'\ncameras = ['Cam']\n", "scenes[0].cameras: only a blend scene has cameras"),
@@ -178,6 +178,7 @@ def test_parse_frames():
             parse_frames(bad)
 
 
+<<<<<<< HEAD
 @pytest.mark.parametrize("factor", [0.0625, 0.25, 0.5, 2.0])
 def test_scaled_sensor_keeps_the_field_of_view(factor):
     sensor = tofcore.load_preset("kinect_v2")
@@ -208,3 +209,5 @@ demo = "corner"
 """)
     assert message.startswith(f"{tmp_path / 'set.toml'}:{line}: scenes[0].poses[0].{key}: look_at: "), message
     assert needle in message
+=======
+>>>>>>> main

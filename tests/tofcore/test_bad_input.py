@@ -371,7 +371,10 @@ def test_presets_command_checks_the_limits(capsys, monkeypatch):
     ("--max-depth", "-3", "argument --max-depth: must be an integer >= 1, got '-3'"),
     ("--time-budget", "-1", "argument --time-budget: must be a finite number > 0 (seconds), got '-1'"),
     ("--time-budget", "nan", "argument --time-budget: must be a finite number > 0 (seconds), got 'nan'"),
-    ("--target-error", "inf", "argument --target-error: must be a finite number > 0 (metres), got 'inf'"),
+    ("--target-error", "inf", "argument --target-error: must be a length such as 5mm, 0.5cm or 0.005m (a bare number "
+                              "is in mm), got 'inf'"),
+    ("--target-error", "5 furlongs", "argument --target-error: must be a length such as 5mm"),
+    ("--target-error", "-5mm", "argument --target-error: must be a length > 0 such as 5mm or 0.005m, got '-5mm'"),
     ("--ambient", "-1", "argument --ambient: must be a finite number >= 0, at most 1e+30 (W m^-2 sr^-1), got '-1'"),
     ("--ambient", "1e308", "argument --ambient: must be a finite number >= 0, at most 1e+30"),
     ("--formats", "exr,gif", "argument --formats: must be a comma list of one or more of exr, png, ply, json, "
@@ -388,16 +391,6 @@ def test_bad_flags_through_python_m_tofcore(tmp_path):
     for flag, value in (("--seed", "-1"), ("--formats", "exr,gif"), ("--formats", ",")):
         code, err = run_subprocess(*render_args(tmp_path, f"{flag}={value}"))
         assert_refused(code, err, f"argument {flag}:", repr(value), out=tmp_path / "out")
-
-
-def test_exr_without_openexr_fails_before_rendering(tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(writers, "OpenEXR", None)
-    rendered = []
-    monkeypatch.setattr(sys.modules["tofcore.render"], "render", lambda *a, **k: rendered.append(1))  # not reached
-    code, err = run(render_args(tmp_path, "--formats", "exr,png"), capsys)
-    assert_refused(code, err, "--formats: 'exr' needs the OpenEXR package", "pip install OpenEXR",
-                   out=tmp_path / "out")
-    assert rendered == []
 
 
 def test_output_path_that_is_a_file_fails_before_rendering(tmp_path, capsys):

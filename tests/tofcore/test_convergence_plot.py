@@ -149,6 +149,25 @@ def test_forced_backend_without_its_package_names_it(monkeypatch):
 
 def test_numpy_font_covers_the_texts_it_draws():
     texts = [cp.title_line(make_log(3, rms=True)), "no convergence log", "no estimate", "no timed passes",
-             "samples per pixel", "time (s)", "estimated, mm", "actual vs reference, mm", "1e-05"]
+             "samples per pixel", "time (s)", "estimated, mm", "actual vs reference, mm", "1e-05",
+             "RMS depth error (mm)", "valid", "no return", "low amplitude", "saturated", "out of range",
+             "unwrapping failed", "4.12 m", "-263 mm", "1e+03 mm"]
     assert {c for text in texts for c in text.upper()} <= set(cp._GLYPHS)
     assert all(glyph.shape == (7, 5) for glyph in cp._GLYPHS.values()) and cp._UNKNOWN_GLYPH.shape == (7, 5)
+
+
+@pytest.mark.parametrize("backend", ["numpy", "opencv"])
+def test_the_raster_plots_have_a_turned_y_axis_title(backend):
+    """matplotlib writes "RMS depth error (mm)" beside the y axis; the raster backends now do too: a column of
+    ink, taller than wide, left of the tick labels."""
+    backend_available(backend)
+    image = decode_rgb(cp.convergence_png(make_log(), width_px=W, height_px=H, backend=backend))
+    canvas = cp._NumpyCanvas(4, 4) if backend == "numpy" else cp._CvCanvas(4, 4)
+    _, text_h = canvas.text_size("RMS depth error (mm)", 1)
+    strip = (image[:, :6 + text_h + 2] < 128).any(axis=-1)
+    rows, cols = np.nonzero(strip)
+    assert rows.size > 20 and np.ptp(rows) > 4 * max(1, np.ptp(cols))
+    flat = type(canvas)(200, 40)
+    cp._turned_text(flat, 0, 20, "RMS", cp._INK)
+    ink_rows, ink_cols = np.nonzero((flat.image < 128).any(axis=-1))
+    assert np.ptp(ink_rows) > np.ptp(ink_cols)

@@ -19,8 +19,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-pytest.importorskip("OpenEXR")
-
 import tofcore  # noqa: E402
 from tofcore.output.dataset import CHANNELS, Dataset, DatasetError, FrameRef, Intrinsics  # noqa: E402
 
@@ -315,11 +313,8 @@ def _record_files_again(dataset: Path, job_id: str) -> None:
 def test_a_channel_missing_from_the_file_names_file_and_channels(copy):
     ref = Dataset(copy)[0]
     stored = tofcore.read_exr(ref.folder / "frame.exr")
-    import OpenEXR
-
     del stored["render_error"]
-    OpenEXR.File({"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage},
-                 stored).write(str(ref.folder / "frame.exr"))
+    tofcore.exr.write(ref.folder / "frame.exr", stored)
     _record_files_again(copy, ref.id)  # an older frame, as its record describes it
     ref = Dataset(copy).frame(ref.id)
     with pytest.raises(DatasetError, match=r"frame.exr: channel 'render_error' not in the file; it holds \['ampl"):
@@ -455,3 +450,44 @@ def test_frame_folders_the_index_does_not_list_are_counted_in_a_warning(copy, ke
     with pytest.warns(UserWarning, match=rf"{5 - keep} frame folder\(s\) in frames/ are not in index.jsonl"):
         data = Dataset(copy)
     assert len(data) == keep and len(data.unindexed) == 5 - keep
+
+
+def test_the_torch_adapter_refuses_mixed_presets_in_one_line(dataset, monkeypatch):
+    """torch's default collate would fail inside the DataLoader (stack expects each tensor to be equal size);
+    the adapter says so when it is made, naming the groups and the filter that picks one."""
+    fake = _fake_torch()
+    for name, module in (("torch", fake), ("torch.utils", fake.utils), ("torch.utils.data", fake.utils.data)):
+        monkeypatch.setitem(sys.modules, name, module)
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset", raising=False)
+    from tofcore.output.torch_dataset import TorchDataset
+
+    with pytest.raises(ValueError) as info:
+        TorchDataset(dataset, channels=["depth"])
+    message = str(info.value)
+    assert "\n" not in message and "frames of 2 presets or sizes cannot be stacked" in message
+    assert "kinect_v2 16x13 (3 frames)" in message and "o3d303 11x8 (2 frames)" in message
+    assert "preset='kinect_v2'" in message
+    assert len(TorchDataset(dataset, channels=["depth"], allow_mixed=True)) == 5
+    monkeypatch.delitem(sys.modules, "tofcore.output.torch_dataset")
+
+
+def test_object_ids_have_names_and_materials_in_the_record_frame_json_and_reader(dataset):
+    data = Dataset(dataset)
+    for ref in data.frames():
+        names = {entry["id"]: entry["name"] for entry in ref.record["objects"]}
+        assert ref.record["objects"] == _document(ref)["metadata"]["objects"]
+        assert {i: o["name"] for i, o in ref.objects.items()} == names
+        scene = tofcore.demo_scene(ref.scene)
+        assert [names[i] for i in sorted(names)] == list(scene.object_names)
+        ids = ref.load("object_id")["object_id"]
+        seen = set(np.unique(ids[ids >= 0]).astype(int).tolist())
+        assert seen and seen <= set(names)            # every id in the image has a name
+        for i, entry in ref.objects.items():          # and its materials are the scene's, by name
+            used = np.unique(scene.material_ids[scene.object_ids == i])
+            assert entry["materials"] == [scene.materials[m].name for m in used]
+
+
+def test_a_frame_without_a_transient_histogram_says_how_to_get_one(dataset):
+    ref = Dataset(dataset).frames()[0]
+    with pytest.raises(DatasetError, match=r"no transient histogram \(set \[output\] transient_bin_m"):
+        ref.transient

@@ -396,3 +396,15 @@ def test_distance_gradient_is_zero_for_ambient_only_with_three_steps():
     raw = np.full((m.raw_count, 2), 40.0)
     assert (decode(raw, m).reason == int(Reason.NO_RETURN)).all()
     np.testing.assert_array_equal(distance_gradient(raw, m), 0.0)
+
+
+def test_range_applies_to_the_scaled_distance():
+    """A z-depth camera limits z (libfreenect2 compares z with min_depth): with range_scale = the ray's z
+    component, a pixel at radial 0.52 m on a ray 20° off axis (z = 0.489 m) is OUT_OF_RANGE for [0.5, 4.5]."""
+    m = Modulation(kind="cw_sine", frequencies_hz=(80e6, 16e6, 120e6), phase_steps=(3, 3, 3))
+    raw = ideal_raw(m, np.array([0.52, 0.52]), 1000.0)
+    scale = np.array([1.0, np.cos(np.radians(20.0))])
+    radial = decode(raw, m, range_m=(0.5, 4.5))
+    z = decode(raw, m, range_m=(0.5, 4.5), range_scale=scale)
+    assert radial.valid.tolist() == [True, True]
+    assert z.valid.tolist() == [True, False] and z.reason[1] == Reason.OUT_OF_RANGE

@@ -7,6 +7,7 @@ import io
 import os
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import pytest
@@ -74,6 +75,24 @@ def test_a_terminal_gets_a_tqdm_bar_with_the_estimated_error():
     assert "\r" in text and "32/32" in text and "est. error 3.33 mm" in text and text.endswith("\n")
 
 
+def test_the_bar_is_drawn_at_once_timed_from_the_start_and_redrawn_every_pass(monkeypatch):
+    """Given the render's spp, the bar shows 0/32 before the first pass ends, its clock starts then (not at the
+    first pass), and every pass is drawn, however quickly the passes come."""
+    pytest.importorskip("tqdm")
+    terminal = _Terminal()
+    before = time.time()                        # tqdm's clock
+    show = PassProgress(stream=terminal, total=32)
+    assert "0/32" in terminal.getvalue() and "est. error – mm" in terminal.getvalue()
+    assert before <= show._tqdm.start_t <= time.time()
+    draws = []
+    for row in _rows(32):
+        show(row)
+        draws.append(terminal.getvalue().rsplit("\r", 1)[-1])
+    show.close()
+    assert show._tqdm is None
+    assert [d.split("|")[2].split()[0] for d in draws] == [f"{row['spp']}/32" for row in _rows(32)]
+
+
 def test_a_terminal_without_tqdm_gets_plain_lines(monkeypatch):
     monkeypatch.setitem(sys.modules, "tqdm", None)          # import tqdm raises ImportError
     assert progress_module.tqdm_class() is None
@@ -87,7 +106,7 @@ def test_a_terminal_without_tqdm_gets_plain_lines(monkeypatch):
 
 def _render_cli(tmp_path: Path, *flags: str, python_code: str | None = None) -> subprocess.CompletedProcess:
     args = ["render", "--scene", "corner", "--preset", "kinect_v2", "--spp", "4", "--max-depth", "1",
-            "--target-error", "1e-9", "--device", "cpu", "--formats", "json", "--out", str(tmp_path / "out"), *flags]
+            "--target-error", "1e-9m", "--device", "cpu", "--formats", "json", "--out", str(tmp_path / "out"), *flags]
     env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(REPO)] + ([os.environ["PYTHONPATH"]]
                                                                       if os.environ.get("PYTHONPATH") else [])))
     cmd = [sys.executable, "-m", "tofcore", *args] if python_code is None else \
@@ -99,11 +118,15 @@ def test_render_command_logs_plain_lines_when_stderr_is_not_a_terminal(tmp_path)
     proc = _render_cli(tmp_path)
     assert proc.returncode == 0, proc.stderr
     assert "\r" not in proc.stderr and "\r" not in proc.stdout
-    lines = proc.stderr.splitlines()
+    warning, *lines = proc.stderr.splitlines()   # a target of 1 nm (never reached: every pass runs) is implausible
+    assert warning.startswith("warning: --target-error 1e-06 mm is implausible for a depth error")
     assert lines[0].startswith("pass 1: 1/4 spp  est. error ") and lines[-1].startswith("pass 3: 4/4 spp")
-    # The summary the command prints at the end is kept.
+    # The summary the command prints at the end is kept: one named line per number.
     assert "| pass | spp | seconds | est. depth error mm |" in proc.stdout
-    assert "wrote 1 files to" in proc.stdout and "RMS depth error vs ground truth" in proc.stdout
+    assert "wrote 4 files to" in proc.stdout  # frame.json and the camera files
+    for name in ("samples per pixel:", "render time:", "render noise (estimated):", "sensor noise:", "valid pixels:",
+                 "invalid pixels by reason:", "depth error vs ground truth:"):
+        assert sum(line.startswith(name) for line in proc.stdout.splitlines()) == 1, name
 
 
 def test_render_command_quiet_prints_nothing(tmp_path):
@@ -121,7 +144,7 @@ def test_tofcore_renders_without_tqdm_and_never_imports_it(tmp_path):
             "sys.exit(tofcore.cli.main(sys.argv[1:]))\n")
     proc = _render_cli(tmp_path, python_code=code)
     assert proc.returncode == 0, proc.stderr
-    assert "\r" not in proc.stderr and proc.stderr.startswith("pass 1: 1/4 spp")
+    assert "\r" not in proc.stderr and proc.stderr.splitlines()[1].startswith("pass 1: 1/4 spp")
     code = ("import sys, tofcore, tofcore.cli, tofcore.progress\n"
             "tofcore.render(tofcore.demo_scene('corner'), tofcore.load_preset('kinect_v2'), spp=1, max_depth=1)\n"
             "assert 'tqdm' not in sys.modules, 'tofcore imported tqdm'\n")

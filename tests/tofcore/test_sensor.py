@@ -184,7 +184,8 @@ BAD_PRESETS = [
     ('name = "kinect_v2"', 'name = "kinect_v2"\ncolour = "red"',
      r": unknown top-level key 'colour'; valid keys are \['camera', 'depth_output', 'description', 'frame_rate_hz', "),
     ("[noise]\n", "[noise]\nshot_noise = true\n",
-     r" \[noise\]: unknown key 'shot_noise'; valid keys are \['model', 'modulation_contrast', 'read_noise_e'\]"),
+     r" \[noise\]: unknown key 'shot_noise'; valid keys are \['gain_noise', 'model', 'modulation_contrast', "
+     r"'read_noise_e'\]"),
     ("[camera]\n", "[camera]\nhfov_deg = 70.0\n",
      r" \[camera\]: unknown key 'hfov_deg'; valid keys are \['aperture_radius_m', "),
     ('kind = "lambertian"', 'kind = "lambertian"\ncolor = 850',
@@ -192,7 +193,7 @@ BAD_PRESETS = [
     ('"camera.k3" =', '"camera.k4" = "x"\n"camera.k3" =',
      r" \[sources\]: unknown key 'camera.k4'; keys must name a field"),
     # missing fields
-    ("full_well_e = 1e5", "",
+    ("full_well_e = 2e5", "",
      r" \[readout\]: missing required key 'full_well_e'; required keys are \['responsivity', 'full_well_e'\]"),
     ('name = "kinect_v2"\n', "", r": missing required top-level key 'name'"),
     ("fx = 365.402802\n", "", r" \[camera\]: missing required key 'fx'"),
@@ -270,3 +271,46 @@ def test_toml_syntax_error_names_file_and_line(tmp_path):
     line = KINECT_TEXT.splitlines().index("width = 512                   # Tab. 4.1") + 1
     with pytest.raises(ConfigError, match=re.escape(str(path)) + rf": invalid TOML: .*line {line}\b"):
         load_preset(str(path))
+
+
+@pytest.mark.parametrize("factor", [0.0625, 0.25, 0.5, 2.0])
+def test_scaled_keeps_the_field_of_view(factor):
+    sensor = load_preset("kinect_v2")
+    scaled = sensor.scaled(factor)
+    cam, new = sensor.camera, scaled.camera
+    assert new.width == int(math.floor(cam.width * factor + 0.5))
+    assert new.height == int(math.floor(cam.height * factor + 0.5))
+    # The image edges (u = -1/2 and u = W - 1/2) see the same angles before and after.
+    for (c, f, n), (c2, f2, n2) in (((cam.cx, cam.fx, cam.width), (new.cx, new.fx, new.width)),
+                                    ((cam.cy, cam.fy, cam.height), (new.cy, new.fy, new.height))):
+        assert math.isclose((-0.5 - c) / f, (-0.5 - c2) / f2, rel_tol=1e-12)
+        assert math.isclose((n - 0.5 - c) / f, (n2 - 0.5 - c2) / f2, rel_tol=1e-12)
+    assert (new.k1, new.k2, new.k3) == (cam.k1, cam.k2, cam.k3)
+    assert scaled.readout == sensor.readout and scaled.leds == sensor.leds
+    assert sensor.scaled(1.0) is sensor
+
+
+def test_resized_to_another_aspect_scales_each_axis():
+    """128 x 128 from 512 x 424: s_x = 1/4, s_y = 128/424; a pixel's ray through its centre keeps its angle
+    where the centre lands on the same point of the sensor (the image's centre and corners)."""
+    sensor = load_preset("kinect_v2")
+    cam, new = sensor.camera, sensor.resized(128, 128).camera
+    assert (new.width, new.height) == (128, 128)
+    assert math.isclose(new.fx, cam.fx / 4) and math.isclose(new.fy, cam.fy * 128 / 424)
+    assert math.isclose((new.cy + 0.5) / 128, (cam.cy + 0.5) / 424)
+    with pytest.raises(ConfigError, match=r"Sensor\.resized: width must be an integer >= 1, got 0"):
+        sensor.resized(0, 10)
+    with pytest.raises(ConfigError, match=r"Sensor\.scaled: factor must be a finite number > 0, got -1"):
+        sensor.scaled(-1)
+
+
+@pytest.mark.parametrize("name", ["Kinect_V2", "KINECT-V2", "kinect v2", "O3D303"])
+def test_preset_names_ignore_case_and_separators(name):
+    assert load_preset(name).name == load_preset(name.lower().replace("-", "_").replace(" ", "_")).name
+
+
+def test_a_misspelt_preset_gets_a_did_you_mean():
+    with pytest.raises(ConfigError, match=r"got 'kinect_v3' \(did you mean 'kinect_v2'\?\)"):
+        load_preset("kinect_v3")
+    with pytest.raises(ConfigError, match=r"got 'xtoin2' \(did you mean 'xtion2'\?\)"):
+        load_preset("xtoin2")

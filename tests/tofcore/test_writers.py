@@ -1,14 +1,20 @@
 """Writers: EXR round trip, PNG depth and previews, PLY, JSON checksums, atomic writes."""
 
 import hashlib
+import os
+import subprocess
+import sys
 import json
 import re
+import subprocess
+import sys
 import zlib
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from tofcore.output import png, writers
+from tofcore.output import exr, png, writers
 from tofcore.output.frame import Frame, Reason
 
 H, W, K = 6, 8, 3
@@ -54,12 +60,10 @@ def frame() -> Frame:
 
 @pytest.fixture
 def written(frame, tmp_path):
-    formats = writers.FORMATS if writers.OpenEXR is not None else ("png", "ply", "json")
-    return writers.write_frame(frame, tmp_path / "out", formats, prefix="f0_")
+    return writers.write_frame(frame, tmp_path / "out", writers.FORMATS, prefix="f0_")
 
 
 def test_exr_round_trip_is_bit_exact(frame, tmp_path):
-    openexr = pytest.importorskip("OpenEXR")
     path = writers.write_frame(frame, tmp_path, "exr")["exr"]
     channels = writers.read_exr(path)
     expected = {name: getattr(frame, name) for name in writers._EXR_IMAGES}
@@ -69,17 +73,32 @@ def test_exr_round_trip_is_bit_exact(frame, tmp_path):
     for name, image in expected.items():
         assert channels[name].dtype == np.float32 and channels[name].shape == (H, W), name
         assert channels[name].tobytes() == np.asarray(image, np.float32).tobytes(), name
-    header = openexr.File(str(path)).header()
+    header = exr.read_header(path)
+    assert header["compression"] == "zip"
     np.testing.assert_array_equal(header["world_from_sensor"], frame.world_from_sensor)
     document = json.loads(header["tofcore"])
     assert document["metadata"]["intrinsics"]["fx"] == 10.0 and document["raw_labels"] == list(LABELS)
+    openexr = pytest.importorskip("OpenEXR")   # the reference library reads the same
+    theirs = openexr.File(str(path), separate_channels=True)
+    assert json.loads(theirs.header()["tofcore"]) == document
+    for name, channel in theirs.channels().items():
+        assert channel.pixels.tobytes() == channels[name].tobytes(), name
 
 
-def test_exr_without_openexr_names_the_package(frame, tmp_path, monkeypatch):
-    monkeypatch.setattr(writers, "OpenEXR", None)
-    with pytest.raises(ImportError, match="pip install OpenEXR"):
-        writers.write_frame(frame, tmp_path / "out")
-    assert not (tmp_path / "out").exists()
+def test_a_frame_is_written_and_read_without_native_packages(tmp_path):
+    """No OpenEXR, OpenCV or matplotlib is imported by rendering and writing every format and reading the EXR
+    while bpy is loaded (a stand-in module here): the rule of tofcore.native that keeps Blender alive."""
+    code = ("import sys, types\n"
+            "sys.modules['bpy'] = types.ModuleType('bpy')\n"
+            f"sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+            "from test_writers import make_frame\n"
+            "import tofcore\n"
+            f"written = tofcore.write_frame(make_frame(), {str(tmp_path / 'out')!r})\n"
+            "assert 'depth' in tofcore.read_exr(written['exr']) and 'depth_exr' in written and 'depth' in written, written\n"
+            "print(sorted(m for m in ('OpenEXR', 'cv2', 'matplotlib') if m in sys.modules))\n")
+    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip() == "[]"
 
 
 def test_depth_mm_png_is_millimetres_with_zero_invalid(frame, written):
@@ -98,10 +117,23 @@ def test_depth_mm_clips_far_depth():
 
 
 def test_previews_are_rgb8(written):
+    """The image is the top-left H x W of every preview; depth and error carry a colour bar on the right,
+    reason its legend below (one swatch per Reason, in the reason colours)."""
     cv2 = pytest.importorskip("cv2")
     for kind in ("depth", "intensity", "error", "reason"):
         image = cv2.imread(str(written[kind]), cv2.IMREAD_UNCHANGED)
-        assert image.dtype == np.uint8 and image.shape == (H, W, 3), kind
+        assert image.dtype == np.uint8 and image.ndim == 3 and image.shape[2] == 3, kind
+        assert image.shape[:2] == (H, W) if kind == "intensity" else image.shape[0] >= H and image.shape[1] >= W
+    for kind, lut in (("depth", png.TURBO), ("error", png.DIVERGING)):
+        rgb = cv2.imread(str(written[kind]), cv2.IMREAD_UNCHANGED)[..., ::-1]
+        assert rgb.shape[1] > W + 16
+        bar_column = rgb[:, W + 6 + 8]           # the middle of the bar: top = highest entry, bottom = lowest
+        np.testing.assert_array_equal(bar_column[0], lut[-1])
+        np.testing.assert_array_equal(bar_column[-1], lut[0])
+    reason = cv2.imread(str(written["reason"]), cv2.IMREAD_UNCHANGED)[..., ::-1]
+    legend = reason[H:].reshape(-1, 3)
+    for colour in writers._REASON_RGB.values():
+        assert (legend == colour).all(axis=1).any(), colour
     depth_bgr = cv2.imread(str(written["depth"]), cv2.IMREAD_UNCHANGED)
     assert (depth_bgr[0, 0] == 0).all() and depth_bgr[1, 1].any()
 
@@ -115,7 +147,7 @@ def test_numpy_png_encoder_matches_opencv(image):
 
 
 def test_png_without_opencv(frame, tmp_path, monkeypatch):
-    monkeypatch.setattr(writers, "cv2", None)
+    monkeypatch.setattr(png, "cv2", None)
     path = writers.write_frame(frame, tmp_path, "png")["depth_mm"]
     data = path.read_bytes()
     assert data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR"
@@ -174,7 +206,7 @@ def test_json_checksums_units_and_no_nan(frame, written):
 
 
 def test_unknown_format_raises_before_writing(frame, tmp_path):
-    valid = r"\('exr', 'png', 'ply', 'json'\)"
+    valid = r"\('exr', 'png', 'ply', 'json', 'transient'\)"
     with pytest.raises(ValueError, match=rf"formats must be among {valid}, got unknown \['tiff'\]"):
         writers.write_frame(frame, tmp_path / "out", ("png", "tiff"))
     assert not (tmp_path / "out").exists()
@@ -235,7 +267,7 @@ def test_convergence_png_is_written_and_listed(tmp_path):
 def test_convergence_png_without_log_or_plotting_packages(frame, tmp_path, monkeypatch):
     from tofcore.output import convergence_plot
 
-    monkeypatch.setattr(writers, "cv2", None)
+    monkeypatch.setattr(png, "cv2", None)
     monkeypatch.setattr(convergence_plot, "cv2", None)
     monkeypatch.setattr(convergence_plot, "_MATPLOTLIB", [None])
     assert "convergence" not in frame.stats
@@ -243,3 +275,88 @@ def test_convergence_png_without_log_or_plotting_packages(frame, tmp_path, monke
     data = written["convergence"].read_bytes()
     assert data[12:16] == b"IHDR" and np.frombuffer(data[16:24], ">u4").tolist() == [640, 400]
     assert "convergence" not in writers.write_frame(frame, tmp_path / "json", "json")
+
+
+# --------------------------------------------------------------------------- files the user's tools read
+
+def test_depth_exr_is_one_y_channel_that_opencv_opens(frame, tmp_path):
+    """OpenCV reads EXR only with OPENCV_IO_ENABLE_OPENEXR set before its first EXR call: a child process."""
+    cv2 = pytest.importorskip("cv2")
+    pytest.importorskip("OpenEXR")
+    if not re.search(r"OpenEXR:\s+(build|/|YES|\S*lib)", cv2.getBuildInformation()):
+        pytest.skip(f"this OpenCV {cv2.__version__} is built without OpenEXR")
+    written = writers.write_frame(frame, tmp_path, ("exr",))
+    assert set(writers.read_exr(written["depth_exr"])) == {"Y"}
+    code = ("import sys, cv2, numpy as np; d = cv2.imread(sys.argv[1], cv2.IMREAD_UNCHANGED); "
+            "f = cv2.imread(sys.argv[2], cv2.IMREAD_UNCHANGED); np.save(sys.argv[3], d); print(d.dtype, d.shape, f)")
+    out = tmp_path / "depth.npy"
+    proc = subprocess.run([sys.executable, "-c", code, str(written["depth_exr"]), str(written["exr"]), str(out)],
+                          env={**os.environ, "OPENCV_IO_ENABLE_OPENEXR": "1"}, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split()[:3] == ["float32", f"({H},", f"{W})"]   # frame.exr (26 channels): None
+    np.testing.assert_array_equal(np.load(out), frame.depth)           # NaN where invalid, bit for bit
+
+
+def test_exr_half_and_a_channel_subset(frame, tmp_path):
+    pytest.importorskip("OpenEXR")
+    import OpenEXR
+
+    written = writers.write_frame(frame, tmp_path, ("exr",), exr_half=True, exr_channels=["depth", "valid"])
+    stored = OpenEXR.File(str(written["exr"]), separate_channels=True).channels()
+    assert set(stored) == {"depth", "valid"} and all(c.pixels.dtype == np.float16 for c in stored.values())
+    np.testing.assert_array_equal(stored["depth"].pixels, frame.depth.astype(np.float16))
+    depth = OpenEXR.File(str(written["depth_exr"]), separate_channels=True).channels()["Y"].pixels
+    assert depth.dtype == np.float16
+    with pytest.raises(ValueError, match=r"exr_channels must be a non-empty subset of \['depth', .*got unknown "
+                                         r"\['dpeth'\]"):
+        writers.write_frame(frame, tmp_path / "bad", ("exr",), exr_channels=["dpeth"])
+    assert not (tmp_path / "bad").exists()
+    names = writers.exr_channel_names(LABELS, K)
+    assert names[:-2] == list(writers._exr_channels(frame)) and names[-2:] == ["render_error", "samples"]
+
+
+def test_ir_png_is_16_bit_amplitude_in_full_well_counts(frame, tmp_path):
+    cv2 = pytest.importorskip("cv2")
+    sensor = {"readout": {"full_well_e": 65535.0 * 2}}
+    with_well = Frame(**{**vars(frame), "metadata": {**frame.metadata, "sensor": sensor}})
+    written = writers.write_frame(with_well, tmp_path, ("png", "json"))
+    ir = cv2.imread(str(written["ir"]), cv2.IMREAD_UNCHANGED)
+    assert ir.dtype == np.uint16 and ir.shape == (H, W)
+    np.testing.assert_array_equal(ir, np.clip(np.rint(np.nan_to_num(frame.amplitude) / 2.0), 0, 65535))
+    document = json.loads(written["json"].read_text())
+    assert document["previews"]["ir"]["e_per_count"] == 2.0 and document["previews"]["ir"]["file"] == "ir.png"
+
+
+def test_camera_files_open_in_opencv_ros_and_bop(tmp_path):
+    cv2 = pytest.importorskip("cv2")
+    yaml = pytest.importorskip("yaml")
+    intrinsics = {"width": 512, "height": 424, "fx": 365.5, "fy": 366.25, "cx": 255.75, "cy": 205.5,
+                  "k1": 0.09, "k2": -0.27, "p1": 0.001, "p2": -0.002, "k3": 0.097}
+    frame = Frame(**{**vars(make_frame()), "metadata": {"intrinsics": intrinsics}})
+    written = writers.write_frame(frame, tmp_path, ("json",))
+    k = np.array([[365.5, 0, 255.75], [0, 366.25, 205.5], [0, 0, 1]])
+    dist = [0.09, -0.27, 0.001, -0.002, 0.097]
+    storage = cv2.FileStorage(str(written["opencv_yaml"]), cv2.FILE_STORAGE_READ)
+    np.testing.assert_array_equal(storage.getNode("camera_matrix").mat(), k)
+    np.testing.assert_array_equal(storage.getNode("distortion_coefficients").mat(), [dist])
+    assert (storage.getNode("image_width").real(), storage.getNode("image_height").real()) == (512, 424)
+    ros = yaml.safe_load(written["ros_yaml"].read_text())
+    assert (ros["image_width"], ros["image_height"], ros["distortion_model"]) == (512, 424, "plumb_bob")
+    assert ros["camera_matrix"]["data"] == k.ravel().tolist() and ros["distortion_coefficients"]["data"] == dist
+    assert ros["projection_matrix"]["data"] == np.hstack([k, np.zeros((3, 1))]).ravel().tolist()
+    bop = json.loads(written["bop_camera"].read_text())
+    assert bop == {"cx": 255.75, "cy": 205.5, "depth_scale": 1.0, "fx": 365.5, "fy": 366.25, "height": 424,
+                   "width": 512}
+    listed = {entry["name"] for entry in json.loads(written["json"].read_text())["files"]}
+    assert {"camera_opencv.yml", "camera_info.yaml", "camera.json"} <= listed
+
+
+def test_transient_histogram_file_and_its_bin_width(frame, tmp_path):
+    hist = np.random.default_rng(1).random((H, W, 5)).astype(np.float32)
+    with_hist = Frame(**{**vars(frame), "transient": hist, "transient_bin_m": 0.05})
+    written = writers.write_frame(with_hist, tmp_path, ("transient", "json"))
+    np.testing.assert_array_equal(np.load(written["transient"]), hist)
+    entry = json.loads(written["json"].read_text())["previews"]["transient"]
+    assert (entry["bin_width_m"], entry["bins"], entry["shape"]) == (0.05, 5, [H, W, 5])
+    assert "transient" not in writers.write_frame(frame, tmp_path / "none", ("transient",))

@@ -48,12 +48,10 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..native import inside_blender, optional_module
 from .png import encode_png
 
-try:
-    import cv2
-except ImportError:
-    cv2 = None
+cv2 = optional_module("cv2")
 
 BACKENDS = ("auto", "matplotlib", "opencv", "numpy")
 
@@ -248,7 +246,10 @@ _MATPLOTLIB: list = []
 
 
 def _matplotlib():
-    """(Figure, FigureCanvasAgg), or None when matplotlib is not importable (checked once)."""
+    """(Figure, FigureCanvasAgg), or None when matplotlib is not importable or this is Blender's process
+    (:mod:`tofcore.native`; checked once)."""
+    if not _MATPLOTLIB and inside_blender():
+        _MATPLOTLIB.append(None)
     if not _MATPLOTLIB:
         try:
             from matplotlib.backends.backend_agg import FigureCanvasAgg
@@ -442,6 +443,24 @@ class _NumpyCanvas(_RasterCanvas):
         return max(0, len(text) * 6 - 1) * size, 7 * size
 
 
+def text_canvas(width_px: int, height_px: int) -> _RasterCanvas:
+    """A white raster canvas for labels: OpenCV's when importable, else the NumPy one."""
+    return _CvCanvas(width_px, height_px) if cv2 is not None else _NumpyCanvas(width_px, height_px)
+
+
+def _turned_text(canvas: _RasterCanvas, x: float, y_centre: float, text: str, rgb) -> None:
+    """``text`` turned 90° counter-clockwise (read bottom to top), left edge at ``x``, centred on ``y_centre``."""
+    w, h = canvas.text_size(text, 1)
+    flat = type(canvas)(w + 2, h + 2)
+    flat.text(1, 1, text, rgb, 1)
+    turned = np.rot90(flat.image)                      # (w + 2, h + 2, 3)
+    x0, y0 = int(round(x)), int(round(y_centre - turned.shape[0] / 2))
+    region = canvas.image[max(0, y0):y0 + turned.shape[0], max(0, x0):x0 + turned.shape[1]]
+    part = turned[max(0, -y0):max(0, -y0) + region.shape[0], max(0, -x0):max(0, -x0) + region.shape[1]]
+    ink = (part != 255).any(axis=-1)
+    region[ink] = part[ink]
+
+
 def _draw_raster(canvas: _RasterCanvas, curves: Curves) -> None:
     """The plot on ``canvas``: title, spp axis on top, log–log axes with grid and tick labels, curves,
     legend, and the message when there is no estimate."""
@@ -452,8 +471,10 @@ def _draw_raster(canvas: _RasterCanvas, curves: Curves) -> None:
     y_lo, y_hi = _log_range(np.concatenate([curves.est_mm, curves.rms_mm]), _DEFAULT_Y_LOG10)
     y_ticks = log_ticks(y_lo, y_hi)
     y_labels = [tick_text(t) for t in y_ticks]
-    # Plot area [left, right] × [top, bottom] in pixels.
-    left = 12 + max(canvas.text_size(s, 1)[0] for s in y_labels) + 8
+    y_title = "RMS depth error (mm)"
+    _, y_title_h = canvas.text_size(y_title, 1)
+    # Plot area [left, right] × [top, bottom] in pixels; the y-axis title, turned, left of the tick labels.
+    left = 6 + y_title_h + 8 + max(canvas.text_size(s, 1)[0] for s in y_labels) + 8
     right = width - 16
     top = 8 + title_h + 10 + label_h + 4 + label_h + 8
     bottom = height - (6 + label_h + 8 + label_h + 8)
@@ -481,6 +502,7 @@ def _draw_raster(canvas: _RasterCanvas, curves: Curves) -> None:
         label = tick_text(tick)
         w, _ = canvas.text_size(label, 1)
         canvas.text(x - w / 2, bottom + 6, label, _INK, 1)
+    _turned_text(canvas, 6, (top + bottom) / 2, y_title, _INK)
     axis_label = "time (s)"
     w, _ = canvas.text_size(axis_label, 1)
     canvas.text((left + right - w) / 2, bottom + 6 + label_h + 8, axis_label, _INK, 1)

@@ -1,6 +1,6 @@
 """Reading a dataset folder written by ``tofcore-batch run``: :class:`Dataset`, :class:`FrameRef`.
 
-A dataset is read with tofcore alone (``pip install 'tofcore[exr]'``); this
+A dataset is read with tofcore alone (NumPy; EXR by :mod:`tofcore.output.exr`); this
 module imports neither the ``batch`` package nor bpy nor PyTorch
 (:mod:`tofcore.output.torch_dataset` is the optional PyTorch adapter).
 
@@ -75,8 +75,8 @@ Every array is float32 exactly as stored in ``frame.exr`` (:func:`tofcore.read_e
 images, a bool ``valid``, the 3×3 camera matrix and the pose.
 
 The EXR is read when :meth:`~FrameRef.load` is called, not before, and not
-kept: OpenEXR's Python binding decodes every channel of the file, and only
-the ones asked are returned. ``frame.json`` (intrinsics, pose, raw labels)
+kept: only the channels asked are converted (every chunk is still
+decompressed: each holds all channels of its lines). ``frame.json`` (intrinsics, pose, raw labels)
 is read at first use and kept by the :class:`FrameRef`.
 
 Example
@@ -297,6 +297,24 @@ class FrameRef:
         return tuple(self.document.get("raw_labels") or ())
 
     @property
+    def objects(self) -> dict[int, dict]:
+        """What the ``object_id`` values mean: ``{id: {"name": …, "materials": [...]}}`` (−1 is no surface);
+        from the index record, else ``frame.json`` (empty for frames rendered before the table existed)."""
+        table = self.record.get("objects") or (self.document.get("metadata") or {}).get("objects") or []
+        return {int(entry["id"]): {"name": entry["name"], "materials": list(entry.get("materials", []))}
+                for entry in table}
+
+    @property
+    def transient(self) -> tuple[np.ndarray, float]:
+        """The transient histogram ``(H, W, B)`` float32 and its bin width in metres (``transient.npy``;
+        bin b centred at (b + ½)·width). DatasetError when the frame has none."""
+        entry = (self.document.get("previews") or {}).get("transient")
+        if not entry:
+            raise DatasetError(f"{self.folder / FRAME_JSON}: the frame has no transient histogram (set "
+                               f"[output] transient_bin_m and transient_max_m)")
+        return np.load(self._file(entry["file"]), allow_pickle=False), float(entry["bin_width_m"])
+
+    @property
     def sensor(self) -> dict:
         """The sensor as rendered (``Sensor.to_dict()``), from ``frame.json``."""
         return dict((self.document.get("metadata") or {}).get("sensor") or {})
@@ -342,7 +360,7 @@ class FrameRef:
 
         try:
             stored = read_exr(exr)
-        except (RuntimeError, OSError, ValueError) as exc:  # what OpenEXR raises for a damaged file
+        except (OSError, ValueError) as exc:  # tofcore.output.exr: a damaged or truncated file is a ValueError
             raise DatasetError(f"{exr}: cannot be read as EXR ({type(exc).__name__}: {exc})") from None
         if names is None:
             names = [n for n in IMAGE_CHANNELS if n in stored] + ["raw", "distance_per_k"]
@@ -686,3 +704,18 @@ def _wanted(value, valid: Sequence[str], field: str, root: Path) -> set[str] | N
     if unknown:
         raise DatasetError(f"{root}: frames({field}=…): {field} must be among {list(valid)}, got {unknown[0]!r}")
     return set(values)
+
+
+def check_one_kind(refs: list[FrameRef], where: str) -> None:
+    """ValueError (one line) when the frames differ in preset or image size: torch's default collate cannot
+    stack them (``stack expects each tensor to be equal size``)."""
+    groups: dict[tuple, int] = {}
+    for ref in refs:
+        settings = ref.record.get("settings") or {}
+        key = (ref.preset, settings.get("width"), settings.get("height"))
+        groups[key] = groups.get(key, 0) + 1
+    if len(groups) > 1:
+        listed = "; ".join(f"{p} {w}x{h} ({n} frames)" for (p, w, h), n in sorted(groups.items(), key=str))
+        first = sorted(groups, key=str)[0][0]
+        raise ValueError(f"{where}: frames of {len(groups)} presets or sizes cannot be stacked into batches: "
+                         f"{listed}; choose one with preset={first!r}, or pass allow_mixed=True")

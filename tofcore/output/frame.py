@@ -31,6 +31,10 @@ field                  unit            meaning
 ``render_error``       m               (H, W) estimated Monte Carlo standard error of ``depth`` (the
                                        render's own noise, before sensor noise), NaN where unknown
 ``samples``            –               (H, W) int samples traced per pixel (adaptive sampling varies it)
+``transient``          W m⁻² sr⁻¹      (H, W, B) float32 transient histogram: mean radiance at the lens per
+                                       optical-path-length bin, bin b centred at (b + ½)·``transient_bin_m``;
+                                       None unless asked for (``render(transient_bin_m=…)``)
+``transient_bin_m``    m               bin width of ``transient`` (optical path length LED → … → lens)
 ``stats``              –               dict: time, rays, spp, plan, convergence log, …
 =====================  ==============  ==========================================================
 """
@@ -68,6 +72,8 @@ class Frame:
     world_from_sensor: np.ndarray = field(default_factory=lambda: np.eye(4))
     render_error: np.ndarray | None = None
     samples: np.ndarray | None = None
+    transient: np.ndarray | None = None
+    transient_bin_m: float | None = None
     stats: dict = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
 

@@ -1,7 +1,7 @@
 """8-bit previews as PNG: the colour maps (turbo, diverging, grey) and the PNG encoder.
 
-OpenCV encodes when importable, else NumPy + zlib do (Blender's Python has no OpenCV); both give the
-same pixels. Used by the frame writers, the convergence plot and ``batch compare``.
+OpenCV encodes when importable and this is not Blender's process (:mod:`tofcore.native`), else NumPy +
+zlib do; both give the same pixels. Used by the frame writers, the convergence plot and ``batch compare``.
 """
 
 from __future__ import annotations
@@ -11,10 +11,9 @@ import zlib
 
 import numpy as np
 
-try:
-    import cv2
-except ImportError:
-    cv2 = None
+from ..native import optional_module
+
+cv2 = optional_module("cv2")
 
 
 def encode_png(image: np.ndarray) -> bytes:

@@ -28,8 +28,11 @@ image channel asked)                              ``valid``); metres, electrons 
 =====================  =============  ==========  ==================================================
 
 Only the channels asked are in a sample; the last seven keys always are.
-The default collate batches samples of one size and one raw count: filter by
-``preset`` when batching ``raw`` (presets differ in R) or image size.
+The default collate batches samples of one size and one raw count, so frames of
+several presets or image sizes are refused when the dataset is made, with one
+line listing the groups: choose one with ``preset=``, or pass
+``allow_mixed=True`` (batch size 1, or a ``transform``/collate that makes them
+alike).
 
 Parameters
 ----------
@@ -41,6 +44,8 @@ scene, preset, view : str or iterable of str, optional
     Filters of :meth:`tofcore.output.dataset.Dataset.frames` (default: every frame with status ``"ok"``).
 transform : callable, optional
     Applied to each sample dict; its return value is the sample.
+allow_mixed : bool, default False
+    Accept frames of several presets or image sizes.
 
 Example
 -------
@@ -66,7 +71,7 @@ except ImportError:
 
 import numpy as np
 
-from .dataset import Dataset, FrameRef, _check_channels
+from .dataset import Dataset, FrameRef, _check_channels, check_one_kind
 
 DEFAULT_CHANNELS = ("depth", "gt_depth", "valid")
 
@@ -76,11 +81,14 @@ class TorchDataset(_TorchBase):
 
     def __init__(self, root: str | os.PathLike, channels: Iterable[str] = DEFAULT_CHANNELS, *,
                  scene=None, preset=None, view=None,
-                 transform: Callable[[dict], dict] | None = None):
+                 transform: Callable[[dict], dict] | None = None, allow_mixed: bool = False):
         self.dataset = Dataset(root)
-        self.channels = tuple(_check_channels(channels, f"TorchDataset({str(self.dataset.root)!r})"))
+        where = f"TorchDataset({str(self.dataset.root)!r})"
+        self.channels = tuple(_check_channels(channels, where))
         self.refs: list[FrameRef] = self.dataset.frames(scene=scene, preset=preset, view=view)
         self.transform = transform
+        if not allow_mixed:
+            check_one_kind(self.refs, where)
 
     def __len__(self) -> int:
         return len(self.refs)
@@ -90,3 +98,4 @@ class TorchDataset(_TorchBase):
         sample = {k: torch.from_numpy(np.ascontiguousarray(v)) if isinstance(v, np.ndarray) else v
                   for k, v in sample.items()}
         return self.transform(sample) if self.transform is not None else sample
+

@@ -29,9 +29,30 @@ file                 kind          content
 ``points.ply``       ply           binary little-endian valid points, sensor frame, metres:
                                    float x y z, float amplitude (e⁻), uchar intensity (grey level
                                    of ``intensity.png``)
-``frame.json``       json          frame metadata, stats, units, preview limits, and every file
-                                   above with its size and SHA-256; written last
+``depth.exr``        exr           one channel ``Y``: depth in m (NaN where invalid), the layout
+                                   OpenCV (``cv2.imread(…, cv2.IMREAD_UNCHANGED)``) and EXR viewers
+                                   open as a grey image; header attribute ``tofcore`` as above
+``ir.png``           png           16-bit grey IR image like the Kinect's IR stream: amplitude in
+                                   counts of ``full_well_e`` / 65535 electrons (0 = none, 65535 =
+                                   full well), rounded, clipped; the scale is in ``frame.json``
+``transient.npy``    transient     (H, W, B) float32 transient histogram (``frame.transient``); bin
+                                   width and count in ``frame.json`` (only when the frame has one)
+``camera_opencv.yml``  json        OpenCV ``FileStorage`` YAML: ``camera_matrix``,
+                                   ``distortion_coefficients`` (k1, k2, p1, p2, k3), image size
+``camera_info.yaml``   json        ROS ``sensor_msgs/CameraInfo`` YAML (``plumb_bob``)
+``camera.json``      json          BOP ``camera.json``: fx, fy, cx, cy, width, height, depth_scale 1
+                                   (``depth_mm.png`` is in mm); BOP has no distortion field, the
+                                   coefficients are in the two YAML files
+``frame.json``       json          frame metadata (with ``objects``: the ``object_id`` → object
+                                   name and materials table), stats, units, preview limits, and
+                                   every file above with its size and SHA-256; written last
 ===================  ============  =================================================================
+
+``depth.png`` and ``error.png`` carry a colour bar with their limits on the right, ``reason.png``
+its legend below the image (the image itself is the top-left ``height`` × ``width`` pixels).
+Options: ``exr_half`` writes the EXR channels as 16-bit half floats (about 4 mm steps at 4 m:
+for previews and compact datasets), ``exr_channels`` writes only the named channels of
+``frame.exr``.
 
 Every file is written atomically (temp file ``.name.tmp-XXXXXXXX`` in the same
 directory, flush, fsync, ``os.replace``): a failure leaves the previous file or
@@ -39,8 +60,8 @@ none, never a partial one. ``frame.json`` is the frame's done record: an existin
 one is removed before anything else is written, since it would describe files
 about to be replaced. NaN and ±inf become ``null`` in JSON.
 
-OpenCV encodes the PNGs when importable, else a NumPy + zlib encoder does;
-EXR needs the optional ``OpenEXR`` package (``pip install OpenEXR``).
+PNGs are encoded by :mod:`.png` (OpenCV when importable, never inside Blender: :mod:`tofcore.native`);
+the EXR by tofcore's own codec (:mod:`.exr`, NumPy + zlib), so no native OpenEXR library is ever loaded.
 """
 
 from __future__ import annotations
@@ -57,15 +78,11 @@ from pathlib import Path, PurePath
 
 import numpy as np
 
+from . import exr
 from .frame import Frame, Reason
 from .png import DIVERGING, GREY, TURBO, apply_lut, encode_png
 
-try:
-    import OpenEXR
-except ImportError:
-    OpenEXR = None
-
-FORMATS = ("exr", "png", "ply", "json")
+FORMATS = ("exr", "png", "ply", "json", "transient")
 
 # Images written as EXR channels of the same name (all (H, W)).
 _EXR_IMAGES = ("depth", "distance", "amplitude", "intensity", "offset", "confidence", "valid", "reason",
@@ -92,7 +109,8 @@ _ERROR_PERCENTILE = 99.0
 # --------------------------------------------------------------------------- public API
 
 def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str] | str = FORMATS, *,
-                prefix: str = "") -> dict[str, Path]:
+                prefix: str = "", exr_half: bool = False,
+                exr_channels: Iterable[str] | None = None) -> dict[str, Path]:
     """Write ``frame`` to ``out_dir`` (created if needed); return the files by kind.
 
     Parameters
@@ -101,25 +119,33 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
     out_dir : output directory.
     formats : any of ``"exr"``, ``"png"``, ``"ply"``, ``"json"`` (a single name is accepted).
     prefix : put before every file name, e.g. ``"000042_"``; no path separators.
+    exr_half : EXR channels as 16-bit half floats instead of 32-bit floats.
+    exr_channels : only these channels in ``frame.exr`` (names of :func:`exr_channel_names`); None: all.
 
     Returns
     -------
-    ``{kind: path}`` with kinds ``exr``, ``depth_mm``, ``depth``, ``intensity``, ``error``,
-    ``reason``, ``convergence``, ``ply``, ``json`` for the formats asked (see the module docstring).
+    ``{kind: path}`` with kinds ``exr``, ``depth_exr``, ``depth_mm``, ``ir``, ``depth``, ``intensity``,
+    ``error``, ``reason``, ``convergence``, ``ply``, ``transient``, ``opencv_yaml``, ``ros_yaml``,
+    ``bop_camera``, ``json`` for the formats asked (see the module docstring).
 
     Raises
     ------
     ValueError : unknown format or bad prefix, before anything is written.
     TypeError : ``metadata`` or ``stats`` holds something JSON cannot hold, before anything is written.
-    ImportError : ``"exr"`` asked without the OpenEXR package, before anything is written.
     """
     formats = _check_formats(formats)
     if Path(prefix).name != prefix:
         raise ValueError(f"write_frame: prefix must be a plain file-name prefix, got {prefix!r}")
-    if "exr" in formats and OpenEXR is None:
-        raise ImportError("write_frame: format 'exr' needs the OpenEXR package, which is not installed: "
-                          "pip install OpenEXR  (or pip install 'tofcore[exr]')")
+    channels = _exr_channels(frame) if "exr" in formats else {}
+    if exr_channels is not None:
+        exr_channels = tuple(exr_channels)
+        unknown = [name for name in exr_channels if name not in channels]
+        if unknown or not exr_channels:
+            raise ValueError(f"write_frame: exr_channels must be a non-empty subset of {list(channels)}, "
+                             f"got unknown {unknown!r}")
+        channels = {name: channels[name] for name in exr_channels}
     from .convergence_plot import convergence_png  # here: that module imports this one's PNG encoder
+    from .legend import with_colour_bar, with_legend
 
     document = _frame_document(frame)
     out = Path(out_dir)
@@ -129,11 +155,25 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
     written: dict[str, Path] = {}
     previews: dict[str, dict] = {}
     if "exr" in formats:
-        written["exr"] = _atomic_write(out / f"{prefix}frame.exr", lambda tmp: _write_exr(tmp, frame, document))
+        pose = {"world_from_sensor": np.asarray(frame.world_from_sensor, dtype=np.float64)}
+        written["exr"] = _atomic_write(out / f"{prefix}frame.exr",
+                                       lambda tmp: write_exr(tmp, channels, {"tofcore": document, **pose}, exr_half))
+        depth = {"Y": np.ascontiguousarray(frame.depth, dtype=np.float32)}
+        written["depth_exr"] = _atomic_write(out / f"{prefix}depth.exr",
+                                             lambda tmp: write_exr(tmp, depth, {"tofcore": document, **pose}, exr_half))
     if "png" in formats:
         png = encode_png(_depth_mm(frame))
         written["depth_mm"] = _atomic_write(out / f"{prefix}depth_mm.png", lambda tmp: tmp.write_bytes(png))
+        ir, previews["ir"] = _ir16(frame)
+        png = encode_png(ir)
+        written["ir"] = _atomic_write(out / f"{prefix}ir.png", lambda tmp: tmp.write_bytes(png))
+        previews["ir"]["file"] = written["ir"].name
         for kind, (image, limits) in _previews(frame).items():
+            if kind in ("depth", "error"):
+                image = with_colour_bar(image, limits["lut"], limits["low"], limits["high"], limits["label"])
+            elif kind == "reason":
+                image = with_legend(image, [(r.name.lower().replace("_", " "), _REASON_RGB[r]) for r in Reason])
+            limits = {k: v for k, v in limits.items() if k not in ("lut", "low", "high", "label")}
             png = encode_png(image)
             written[kind] = _atomic_write(out / f"{prefix}{kind}.png", lambda tmp: tmp.write_bytes(png))
             previews[kind] = {"file": written[kind].name, **limits}
@@ -141,18 +181,86 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
         written["convergence"] = _atomic_write(out / f"{prefix}convergence.png", lambda tmp: tmp.write_bytes(png))
     if "ply" in formats:
         written["ply"] = _atomic_write(out / f"{prefix}points.ply", lambda tmp: _write_ply(tmp, frame))
+    if "transient" in formats and frame.transient is not None:
+        written["transient"] = _atomic_write(out / f"{prefix}transient.npy",
+                                             lambda tmp: _write_npy(tmp, frame.transient))
+        previews["transient"] = {"file": written["transient"].name, "shape": list(frame.transient.shape),
+                                 "bin_width_m": frame.transient_bin_m, "bins": int(frame.transient.shape[-1]),
+                                 "bin_centre_m": "(b + 0.5) * bin_width_m, b = 0 .. bins - 1",
+                                 "quantity": "optical path length LED -> scene -> lens",
+                                 "unit": "W m^-2 sr^-1 (mean radiance at the lens per bin)"}
     if "json" in formats:
+        intrinsics = frame.metadata.get("intrinsics") or {}
+        if all(key in intrinsics for key in ("width", "height", "fx", "fy", "cx", "cy")):
+            for kind, name, text in (("opencv_yaml", "camera_opencv.yml", opencv_yaml(intrinsics)),
+                                     ("ros_yaml", "camera_info.yaml", ros_camera_info_yaml(intrinsics)),
+                                     ("bop_camera", "camera.json", bop_camera_json(intrinsics))):
+                data = text.encode("utf-8")
+                written[kind] = _atomic_write(out / f"{prefix}{name}", lambda tmp: tmp.write_bytes(data))
         text = _frame_json(document, written, previews)
         written["json"] = _atomic_write(json_path, lambda tmp: tmp.write_bytes(text))
     return written
 
 
-def read_exr(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """Channels of a ``frame.exr`` as ``{name: (H, W) float32 array}`` (see the module docstring)."""
-    if OpenEXR is None:
-        raise ImportError("read_exr: needs the OpenEXR package, which is not installed: pip install OpenEXR")
-    channels = OpenEXR.File(str(path), separate_channels=True).channels()
-    return {name: channel.pixels for name, channel in channels.items()}
+def read_exr(path: str | os.PathLike, names: Iterable[str] | None = None) -> dict[str, np.ndarray]:
+    """Channels of a ``frame.exr`` (or ``depth.exr``) as ``{name: (H, W) float32 array}`` (half floats widened);
+    ``names`` picks some. A damaged file is a one-line ValueError naming it (:func:`tofcore.output.exr.read`)."""
+    return {name: np.asarray(image, dtype=np.float32) for name, image in exr.read(path, names).items()}
+
+
+def exr_channel_names(raw_labels: Iterable[str], bounces: int) -> list[str]:
+    """The channels ``frame.exr`` holds for a frame with these raw images and ``bounces`` distance_k images
+    (what ``exr_channels`` may choose from); ``render_error`` and ``samples`` come with every render."""
+    return [*_EXR_IMAGES, *(f"raw.{label}" for label in raw_labels),
+            *(f"distance_k{k}" for k in range(1, bounces + 1)), "render_error", "samples"]
+
+
+def opencv_yaml(intrinsics: Mapping) -> str:
+    """OpenCV ``FileStorage`` YAML of the intrinsics (``cv2.FileStorage(path, cv2.FILE_STORAGE_READ)``):
+    ``image_width``, ``image_height``, ``camera_matrix`` (3×3), ``distortion_coefficients`` (1×5: k1, k2,
+    p1, p2, k3, OpenCV's order); pixel centres at integer coordinates, as in OpenCV."""
+    k = _camera_matrix(intrinsics)
+    dist = [float(intrinsics.get(name, 0.0)) for name in ("k1", "k2", "p1", "p2", "k3")]
+
+    def matrix(name: str, rows: int, cols: int, data: list[float]) -> str:
+        return (f"{name}: !!opencv-matrix\n   rows: {rows}\n   cols: {cols}\n   dt: d\n"
+                f"   data: [ {', '.join(repr(v) for v in data)} ]\n")
+
+    size = f"image_width: {int(intrinsics['width'])}\nimage_height: {int(intrinsics['height'])}\n"
+    return ("%YAML:1.0\n---\n" + size + matrix("camera_matrix", 3, 3, k)
+            + matrix("distortion_coefficients", 1, 5, dist))
+
+
+def ros_camera_info_yaml(intrinsics: Mapping, camera_name: str = "tof") -> str:
+    """ROS ``sensor_msgs/CameraInfo`` YAML (camera_calibration_parsers' layout): ``plumb_bob`` distortion
+    [k1, k2, p1, p2, k3], identity rectification, projection ``[K | 0]``."""
+    k = _camera_matrix(intrinsics)
+    dist = [float(intrinsics.get(name, 0.0)) for name in ("k1", "k2", "p1", "p2", "k3")]
+    p = k[:3] + [0.0] + k[3:6] + [0.0] + k[6:] + [0.0]
+
+    def matrix(name: str, rows: int, cols: int, data: list[float]) -> str:
+        return f"{name}:\n  rows: {rows}\n  cols: {cols}\n  data: [{', '.join(repr(v) for v in data)}]\n"
+
+    return (f"image_width: {int(intrinsics['width'])}\nimage_height: {int(intrinsics['height'])}\n"
+            f"camera_name: {camera_name}\n" + matrix("camera_matrix", 3, 3, k) + "distortion_model: plumb_bob\n"
+            + matrix("distortion_coefficients", 1, 5, dist)
+            + matrix("rectification_matrix", 3, 3, [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0])
+            + matrix("projection_matrix", 3, 4, p))
+
+
+def bop_camera_json(intrinsics: Mapping) -> str:
+    """BOP toolkit ``camera.json``: ``cx, cy, fx, fy, width, height`` and ``depth_scale`` 1.0 (the 16-bit
+    ``depth_mm.png`` times depth_scale is millimetres, as BOP reads depth images)."""
+    data = {"cx": float(intrinsics["cx"]), "cy": float(intrinsics["cy"]), "depth_scale": 1.0,
+            "fx": float(intrinsics["fx"]), "fy": float(intrinsics["fy"]),
+            "height": int(intrinsics["height"]), "width": int(intrinsics["width"])}
+    return json.dumps(data, indent=2) + "\n"
+
+
+def _camera_matrix(intrinsics: Mapping) -> list[float]:
+    """Row-major 3×3 K = [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] as 9 floats."""
+    fx, fy, cx, cy = (float(intrinsics[name]) for name in ("fx", "fy", "cx", "cy"))
+    return [fx, 0.0, cx, 0.0, fy, cy, 0.0, 0.0, 1.0]
 
 
 # --------------------------------------------------------------------------- files
@@ -169,7 +277,6 @@ def _check_formats(formats: Iterable[str] | str) -> tuple[str, ...]:
 def _atomic_write(path: Path, write: Callable[[Path], object]) -> Path:
     """Create ``.{name}.tmp-XXXXXXXX`` beside ``path``, ``write(tmp)`` it, fsync, rename it to ``path``.
 
-    ``write`` gets a path, not a handle: OpenEXR 3.3 and 3.4 write to file names only.
     If ``write`` raises, the temp file is removed and ``path`` is left as it was.
     """
     tmp = path.with_name(f".{path.name}.tmp-{secrets.token_hex(4)}")
@@ -195,10 +302,7 @@ def _file_record(kind: str, path: Path) -> dict:
 # --------------------------------------------------------------------------- EXR
 
 def _exr_channels(frame: Frame) -> dict[str, np.ndarray]:
-    """Every EXR channel as a C-contiguous float32 (H, W) array.
-
-    C order matters: OpenEXR 3.5's Python binding writes strided arrays scrambled.
-    """
+    """Every EXR channel as a float32 (H, W) array."""
     if len(frame.raw_labels) != len(frame.raw) or len(set(frame.raw_labels)) != len(frame.raw_labels):
         raise ValueError(f"write_frame: raw_labels must be {len(frame.raw)} distinct names (one per raw "
                          f"image), got {frame.raw_labels!r}")
@@ -214,18 +318,45 @@ def _exr_channels(frame: Frame) -> dict[str, np.ndarray]:
     return {name: np.ascontiguousarray(image, dtype=np.float32) for name, image in images.items()}
 
 
-def _write_exr(path: Path, frame: Frame, document: dict) -> None:
-    """Write the single-part scanline EXR of the module docstring to ``path``; ``document`` → ``tofcore``."""
-    header = {
-        "compression": OpenEXR.ZIP_COMPRESSION,
-        "type": OpenEXR.scanlineimage,
-        "tofcore": json.dumps(document, allow_nan=False),
-        "world_from_sensor": np.asarray(frame.world_from_sensor, dtype=np.float64),
-    }
-    OpenEXR.File(header, _exr_channels(frame)).write(str(path))
+def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray], attributes: Mapping[str, object],
+              half: bool = False) -> None:
+    """Write a single-part scanline EXR (ZIP, lossless) of ``channels`` ({name: (H, W) array}) to ``path``,
+    by tofcore's own codec (:mod:`.exr`).
+
+    ``attributes``: extra header attributes; a dict becomes a JSON string, an array stays an array.
+    ``half``: 16-bit half-float channels instead of 32-bit floats.
+    """
+    header = {name: json.dumps(value, allow_nan=False) if isinstance(value, Mapping) else value
+              for name, value in attributes.items()}
+    dtype = np.float16 if half else np.float32
+    data = exr.encode({name: np.asarray(image, dtype=dtype) for name, image in channels.items()},
+                      attributes=header, compression="zip")
+    with open(path, "wb") as fh:
+        fh.write(data)
 
 
 # --------------------------------------------------------------------------- PNG
+
+_IR_MAX = 65535
+
+
+def _ir16(frame: Frame) -> tuple[np.ndarray, dict]:
+    """(H, W) uint16 amplitude in counts of full_well_e / 65535 electrons (the sensor's full well from
+    ``frame.metadata["sensor"]``; 1 e⁻ per count without one), rounded, clipped; and its scale."""
+    readout = (frame.metadata.get("sensor") or {}).get("readout") or {}
+    full_well = readout.get("full_well_e")
+    e_per_count = float(full_well) / _IR_MAX if full_well else 1.0
+    amplitude = np.nan_to_num(np.asarray(frame.amplitude, dtype=np.float64), nan=0.0) / e_per_count
+    counts = np.clip(np.rint(amplitude), 0, _IR_MAX).astype(np.uint16)
+    return counts, {"quantity": "amplitude", "bits": 16, "e_per_count": e_per_count,
+                    "rule": "counts = round(amplitude_e / e_per_count), clipped to 0..65535; 65535 = full well"}
+
+
+def _write_npy(path: Path, array: np.ndarray) -> None:
+    """``numpy.save`` of ``array`` as float32 to ``path`` (no pickling)."""
+    with open(path, "wb") as fh:
+        np.save(fh, np.ascontiguousarray(array, dtype=np.float32), allow_pickle=False)
+
 
 def _depth_mm(frame: Frame) -> np.ndarray:
     """(H, W) uint16 depth in millimetres, rounded, 0 where invalid, clipped to 65535 mm."""
@@ -261,7 +392,8 @@ def _previews(frame: Frame) -> dict[str, tuple[np.ndarray, dict]]:
     grey, intensity_limits = _intensity_grey(frame)
     return {
         "depth": (apply_lut(_normalise(depth, lo, hi), TURBO),
-                  {"colormap": "turbo (polynomial approximation)", "min_m": lo, "max_m": hi, "invalid": "black"}),
+                  {"colormap": "turbo (polynomial approximation)", "min_m": lo, "max_m": hi, "invalid": "black",
+                   "colour_bar": "right of the image", "lut": TURBO, "low": lo, "high": hi, "label": "m"}),
         "intensity": (np.repeat(grey[..., None], 3, axis=2), intensity_limits),
         "error": _error_preview(frame, depth),
         "reason": _reason_preview(frame),
@@ -276,7 +408,8 @@ def _error_preview(frame: Frame, depth: np.ndarray) -> tuple[np.ndarray, dict]:
     return apply_lut((error_mm / limit_mm + 1.0) / 2.0, DIVERGING), {
         "colormap": "blue-white-red", "quantity": "depth - gt_depth", "unit": "mm", "limit_mm": limit_mm,
         "rule": f"max({_ERROR_FLOOR_MM} mm, {_ERROR_PERCENTILE}th percentile of |error|), beyond saturates",
-        "invalid": "black"}
+        "invalid": "black", "colour_bar": "right of the image", "lut": DIVERGING, "low": -limit_mm,
+        "high": limit_mm, "label": "mm"}
 
 
 def _reason_preview(frame: Frame) -> tuple[np.ndarray, dict]:
@@ -287,7 +420,8 @@ def _reason_preview(frame: Frame) -> tuple[np.ndarray, dict]:
     if unknown.size:
         raise ValueError(f"write_frame: reason must hold Reason codes 0..{len(palette) - 1}, "
                          f"got {unknown.tolist()!r}")
-    return palette[codes], {"colormap": "reason", "legend": {r.name: list(_REASON_RGB[r]) for r in Reason}}
+    return palette[codes], {"colormap": "reason", "legend": {r.name: list(_REASON_RGB[r]) for r in Reason},
+                            "legend_picture": "below the image"}
 
 
 # --------------------------------------------------------------------------- PLY

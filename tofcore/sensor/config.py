@@ -18,10 +18,13 @@ name                    unit    default     meaning
 ``readout``             –       –           ``[readout]``: :class:`Readout`
 ``noise``               –       Noise()     ``[noise]``: :class:`Noise`
 ``scattering``          –       none        ``[scattering]``: :class:`Scattering`
-``range_m``             m       –           (min, max) valid distance, 0 <= min < max <= the modulation's
+``range_m``             m       –           (min, max) valid output depth (z for ``depth_output`` "z", as the
+                                            Kinect v2 limits z), 0 <= min < max <= the modulation's
                                             unambiguous range
 ``depth_output``        –       "radial"    ``"radial"`` (distance along the ray) or ``"z"`` (along the axis)
 ``invalid``             –       defaults    ``[invalid]``: :class:`InvalidRules`
+``processing``          –       defaults    ``[processing]``: :class:`Processing`, the camera's own frequency
+                                            combination and phasor filter (:mod:`tofcore.sensor.processing`)
 ``frame_rate_hz``       Hz      None        frames per second (metadata; None: unknown)
 ``ir_image``            –       true        whether the real device delivers an IR (amplitude) image
 ``description``         –       ""          one line for listings
@@ -43,7 +46,17 @@ name                    unit    default     meaning
                                         image; ``"li"``: Gaussian noise on the distance, σ of eq. 2.43
 ``read_noise_e``         e⁻    0.0      read noise per raw image (standard deviation), ``"raw"``
 ``modulation_contrast``  1     1.0      c_d of eq. 2.43, in (0, 1], ``"li"``
+``gain_noise``           1     0.0      ``"raw"``: noise proportional to each raw image's charge, as a fraction
+                                        of it (Keller's β, eq. 3.1): the signal-proportional fluctuations
+                                        (illumination power, demodulation timing) that shot and read noise
+                                        lack; it sets a depth-noise floor that does not fall with more light
 =======================  ====  =======  ==========================================================================
+
+``[processing]`` (:class:`Processing`, see :mod:`tofcore.sensor.processing`)
+=====================  ====  ===================  ===========================================================
+``unwrap_weights``     –     "inverse_variance"   ``"inverse_variance"`` or ``"frequency"`` (libfreenect2)
+``phasor_filter``      –     "none"               ``"none"`` or ``"bilateral"`` (libfreenect2, 3 × 3)
+=====================  ====  ===================  ===========================================================
 
 ``[scattering]`` (:class:`Scattering`, see :mod:`tofcore.sensor.optics`)
 ==================  ====  =======  ===============================================================================
@@ -89,7 +102,7 @@ from .. import limits
 from ..errors import ConfigError, is_number
 from ..scene.camera import Camera
 from ..scene.led import LED
-from . import optics
+from . import optics, processing
 from .modulation import Modulation
 
 NOISE_MODELS = ("none", "raw", "li")
@@ -254,6 +267,7 @@ class Noise(_Table):
     model: str = "raw"
     read_noise_e: float = 0.0
     modulation_contrast: float = 1.0
+    gain_noise: float = 0.0
 
     @staticmethod
     def _normalised(values: dict[str, Any], where: str) -> dict[str, Any]:
@@ -263,6 +277,22 @@ class Noise(_Table):
                                    "a finite number >= 0 (electrons)", _finite_non_negative, "electrons"),
             "modulation_contrast": _number(values["modulation_contrast"], where, "modulation_contrast",
                                            "a number in (0, 1]", lambda x: 0.0 < x <= 1.0),
+            "gain_noise": _number(values["gain_noise"], where, "gain_noise", "a number in [0, 1)", _fraction),
+        }
+
+
+@dataclass(frozen=True, kw_only=True)
+class Processing(_Table):
+    """The camera's own processing of its phases; see the module docstring and :mod:`tofcore.sensor.processing`."""
+
+    unwrap_weights: str = "inverse_variance"
+    phasor_filter: str = "none"
+
+    @staticmethod
+    def _normalised(values: dict[str, Any], where: str) -> dict[str, Any]:
+        return {
+            "unwrap_weights": _choice(values["unwrap_weights"], where, "unwrap_weights", processing.UNWRAP_WEIGHTS),
+            "phasor_filter": _choice(values["phasor_filter"], where, "phasor_filter", processing.PHASOR_FILTERS),
         }
 
 
@@ -378,7 +408,8 @@ def _modulation_from_dict(data: object, where: str) -> Modulation:
 
 # ------------------------------------------------------------------ the sensor
 _TABLE_TYPES: dict[str, type] = {"camera": Camera, "leds": LED, "modulation": Modulation, "readout": Readout,
-                                 "noise": Noise, "scattering": Scattering, "invalid": InvalidRules}
+                                 "noise": Noise, "scattering": Scattering, "invalid": InvalidRules,
+                                 "processing": Processing}
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -395,6 +426,7 @@ class Sensor:
     range_m: tuple[float, float]
     depth_output: str = "radial"
     invalid: InvalidRules = InvalidRules()
+    processing: Processing = Processing()
     frame_rate_hz: float | None = None
     ir_image: bool = True
     description: str = ""
@@ -410,7 +442,7 @@ class Sensor:
         name = values["name"]
         if not isinstance(name, str) or not name:
             raise _fail(where, "name", "a non-empty string", name)
-        for key in ("camera", "modulation", "readout", "noise", "scattering", "invalid"):
+        for key in ("camera", "modulation", "readout", "noise", "scattering", "invalid", "processing"):
             _typed(values[key], where, key, _TABLE_TYPES[key], f"a {_TABLE_TYPES[key].__name__}")
         leds = values["leds"]
         if not isinstance(leds, (list, tuple)) or not leds or not all(isinstance(led, LED) for led in leds):
@@ -434,6 +466,9 @@ class Sensor:
         out["sources"] = _checked_sources(values["sources"], where)
         if values["noise"].model == "li" and not values["modulation"].is_cw:
             raise _fail(where, "noise.model", "'raw' or 'none' for a pulsed sensor (eq. 2.43 is for CW)", "li")
+        if values["processing"] != Processing() and not values["modulation"].is_cw:
+            raise _fail(where, "processing", "the defaults for a pulsed sensor (it has no phases to filter or "
+                        "combine)", values["processing"].to_dict())
         return out
 
     @classmethod
@@ -446,7 +481,7 @@ class Sensor:
             raise _fail(where, "leds", "one or more [[leds]] tables", leds)
         values["leds"] = tuple(_led_from_dict(led, f"{where} [[leds]] #{i + 1}") for i, led in enumerate(leds))
         values["modulation"] = _modulation_from_dict(values["modulation"], f"{where} [modulation]")
-        for key in ("readout", "noise", "scattering", "invalid"):
+        for key in ("readout", "noise", "scattering", "invalid", "processing"):
             if isinstance(values[key], Mapping):  # the defaults are objects already
                 values[key] = _TABLE_TYPES[key].from_dict(values[key], f"{where} [{key}]")
             elif not isinstance(values[key], _TABLE_TYPES[key]):
@@ -480,6 +515,41 @@ class Sensor:
             else:
                 target[field] = _plain(value)
         return Sensor.from_dict(data, where="Sensor.replace")
+
+    def resized(self, width: int, height: int) -> Sensor:
+        r"""A copy whose image is ``width`` × ``height`` pixels, the intrinsics scaled with it.
+
+        Notes
+        -----
+        The focal lengths scale with the size ratios :math:`s_x = w'/w`, :math:`s_y = h'/h`, and the
+        principal point keeps its place on the sensor, pixel centres at integer coordinates
+        (:mod:`tofcore.camera`): :math:`c_x' = (c_x + 1/2)\,s_x - 1/2`. Distortion coefficients act on
+        normalised coordinates and stay as they are, so the field of view is unchanged. Everything per
+        pixel (responsivity, noise, scattering radius in pixels) stays as in the preset: the result is the
+        same camera seen at another resolution, not a camera with larger pixels.
+        """
+        for name, value in (("width", width), ("height", height)):
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ConfigError(f"Sensor.resized: {name} must be an integer >= 1, got {value!r}")
+        limits.MAX_PIXELS.check(width * height, "Sensor.resized", "width x height", f"{width} x {height}")
+        cam = self.camera
+        if (width, height) == (cam.width, cam.height):
+            return self
+        sx, sy = width / cam.width, height / cam.height
+        return self.replace(**{
+            "camera.width": width, "camera.height": height, "camera.fx": cam.fx * sx, "camera.fy": cam.fy * sy,
+            "camera.cx": (cam.cx + 0.5) * sx - 0.5, "camera.cy": (cam.cy + 0.5) * sy - 0.5})
+
+    def scaled(self, factor: float) -> Sensor:
+        """A copy with width and height times ``factor`` (rounded half up, at least 1 px) and the intrinsics
+        scaled to the actual size ratios (:meth:`resized`); ``scaled(0.25)`` is a quarter of each side."""
+        if not isinstance(factor, (int, float)) or isinstance(factor, bool) or not 0 < factor < math.inf:
+            raise ConfigError(f"Sensor.scaled: factor must be a finite number > 0, got {factor!r}")
+        cam = self.camera
+        exact_w, exact_h = cam.width * factor, cam.height * factor
+        if exact_w * exact_h > 4 * limits.MAX_PIXELS.value:  # refuse before rounding a huge product
+            limits.MAX_PIXELS.check(math.inf, "Sensor.scaled", "width x height", f"{exact_w:.4g} x {exact_h:.4g}")
+        return self.resized(max(1, int(math.floor(exact_w + 0.5))), max(1, int(math.floor(exact_h + 0.5))))
 
 
 def _source_keys() -> set[str]:

@@ -12,7 +12,13 @@ name                        unit  default    meaning
                                              pulsed: Q1 + Q2)
 ``saturation_e``            e⁻    None       SATURATED where any raw image reaches it (None: never)
 ``range_m``                 m     (0, inf)   OUT_OF_RANGE outside [min, max]
+``range_scale``             1     None       the range test applies to distance × this (per pixel; e.g. the
+                                             ray's z component: a z-depth camera limits z); None: 1
 ``unwrap_tolerance_m``      m     d_min/16   UNWRAPPING_FAILED above this weighted RMS disagreement
+``unwrap_weights``          –     "inverse_  how the frequencies are averaged (:mod:`tofcore.sensor.processing`)
+                                  variance"
+``phasor_filter``           –     "none"     the camera's filter of each frequency's phasors before unwrapping
+                                             (:mod:`tofcore.sensor.processing`)
 ==========================  ====  =========  ==================================================================
 
 Reason precedence (the first that applies wins): SATURATED, NO_RETURN, LOW_AMPLITUDE, UNWRAPPING_FAILED,
@@ -33,6 +39,7 @@ from ..backend import asarray, namespace
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..errors import ConfigError
 from .modulation import Modulation, ideal_raw
+from .processing import PHASOR_FILTERS, UNWRAP_WEIGHTS, bilateral_phasor_filter, check_choice, frequency_weights
 
 NO_RETURN_RELATIVE_AMPLITUDE = 1e-9
 """A ≤ this · B counts as A = 0 (atan2(0, 0)): far above float64 round-off of the DFT sums (~1e-16 N B),
@@ -158,7 +165,8 @@ def default_unwrap_tolerance_m(modulation: Modulation) -> float:
     return float(np.min(modulation.ambiguity_distances_m())) / 16.0
 
 
-def unwrap(cw: CwDecoding, modulation: Modulation, *, tolerance_m: float | None = None) -> Unwrapped:
+def unwrap(cw: CwDecoding, modulation: Modulation, *, tolerance_m: float | None = None,
+           weights: str = "inverse_variance") -> Unwrapped:
     """Multi-frequency phase unwrapping: the distance on which all frequencies agree.
 
     Parameters
@@ -167,6 +175,7 @@ def unwrap(cw: CwDecoding, modulation: Modulation, *, tolerance_m: float | None 
     modulation : the CW modulation that produced them.
     tolerance_m : residual above which a pixel is UNWRAPPING_FAILED (default
         :func:`default_unwrap_tolerance_m`).
+    weights : ``"inverse_variance"`` or ``"frequency"`` (:func:`unwrap_weights`).
 
     Notes
     -----
@@ -194,7 +203,7 @@ def unwrap(cw: CwDecoding, modulation: Modulation, *, tolerance_m: float | None 
                           f"got {n_candidates} for {modulation.frequencies_hz!r}")
     wrapped = cw.wrapped_distance
     xp = namespace(wrapped)
-    weight = unwrap_weights(cw, modulation)
+    weight = unwrap_weights(cw, modulation, weights)
 
     best_r2 = xp.full(wrapped.shape[1:], np.inf)
     best_d = xp.zeros(wrapped.shape[1:])
@@ -213,13 +222,16 @@ def unwrap(cw: CwDecoding, modulation: Modulation, *, tolerance_m: float | None 
                      confidence=np.clip(1.0 - residual / tolerance_m, 0.0, 1.0), failed=residual > tolerance_m)
 
 
-def unwrap_weights(cw: CwDecoding, modulation: Modulation) -> np.ndarray:
-    r"""(F, *shape) normalised inverse-variance weights of the frequencies in :func:`unwrap`.
+def unwrap_weights(cw: CwDecoding, modulation: Modulation, scheme: str = "inverse_variance") -> np.ndarray:
+    r"""(F, *shape) normalised weights of the frequencies in :func:`unwrap`.
 
-    :math:`w_i \propto (f_i A_i)^2 / (A_i + B_i)` (eq. 2.43: σ_d ∝ √(A+B) / (f A)), summing to one;
-    equal weights where no frequency has signal.
+    ``"inverse_variance"``: :math:`w_i \propto (f_i A_i)^2 / (A_i + B_i)` (eq. 2.43: σ_d ∝ √(A+B) / (f A)),
+    summing to one; equal weights where no frequency has signal. ``"frequency"``: :math:`w_i = f_i/\sum f`,
+    the camera's fixed combination (:func:`tofcore.sensor.processing.frequency_weights`).
     """
     xp = namespace(cw.amplitude)
+    if check_choice(scheme, UNWRAP_WEIGHTS, "unwrap", "weights") == "frequency":
+        return frequency_weights(modulation.frequencies_hz, cw.amplitude.shape[1:], xp)
     f_hz = xp.asarray(modulation.frequencies_hz).reshape((-1,) + (1,) * (cw.amplitude.ndim - 1))
     total = cw.amplitude + cw.offset
     weight = np.where(total > 0, (f_hz * cw.amplitude) ** 2 / np.where(total > 0, total, 1.0), 0.0)
@@ -228,7 +240,7 @@ def unwrap_weights(cw: CwDecoding, modulation: Modulation) -> np.ndarray:
     return weight / weight.sum(axis=0)
 
 
-def distance_gradient(raw: np.ndarray, modulation: Modulation) -> np.ndarray:
+def distance_gradient(raw: np.ndarray, modulation: Modulation, weights: str = "inverse_variance") -> np.ndarray:
     r"""(R, *shape) derivative of the decoded distance with respect to each raw image, metres per electron.
 
     The linearisation of :func:`decode` at ``raw`` — what a small error in the raw images (Monte Carlo
@@ -240,7 +252,7 @@ def distance_gradient(raw: np.ndarray, modulation: Modulation) -> np.ndarray:
     CW: with :math:`Z_i = \sum_k Q_k e^{i\theta_k}` per frequency (:func:`phase_amplitude_offset`),
     :math:`\partial\varphi_i/\partial Q_k = (\mathrm{Re}Z_i \sin\theta_k - \mathrm{Im}Z_i \cos\theta_k)
     / |Z_i|^2`, and the unwrapped distance :math:`\bar D = \sum_i w_i D_i` (:func:`unwrap`, weights held
-    fixed) gives :math:`\partial\bar D/\partial Q_{i,k} = w_i \frac{c}{4\pi f_i}
+    fixed, ``weights`` as in :func:`unwrap_weights`) gives :math:`\partial\bar D/\partial Q_{i,k} = w_i \frac{c}{4\pi f_i}
     \partial\varphi_i/\partial Q_{i,k}`. Pulsed (eq. 2.36): :math:`d = s\,Q_2/(Q_1+Q_2)`, s = c t0/2:
     :math:`\partial d/\partial Q_1 = -s Q_2/(Q_1+Q_2)^2`, :math:`\partial d/\partial Q_2 = s Q_1/(Q_1+Q_2)^2`.
     Zero where a frequency has no modulated signal (A ≤ 10⁻⁹ B, as decode's NO_RETURN test).
@@ -254,7 +266,7 @@ def distance_gradient(raw: np.ndarray, modulation: Modulation) -> np.ndarray:
         grad[0] = np.where(total > 0, -scale * raw[1], 0.0)
         grad[1] = np.where(total > 0, scale * raw[0], 0.0)
         return grad
-    weight = unwrap_weights(decode_cw(raw, modulation), modulation)
+    weight = unwrap_weights(decode_cw(raw, modulation), modulation, weights)
     start = 0
     for i, (f_hz, n) in enumerate(zip(modulation.frequencies_hz, modulation.phase_steps)):
         theta = 2.0 * np.pi * np.arange(n) / n
@@ -302,14 +314,17 @@ def decode_pulsed(raw: np.ndarray, modulation: Modulation) -> np.ndarray:
 # ------------------------------------------------------------------ full decoding
 def decode(raw: np.ndarray, modulation: Modulation, *, min_amplitude_e: float = 0.0,
            saturation_e: float | None = None, range_m: tuple[float, float] = (0.0, math.inf),
-           unwrap_tolerance_m: float | None = None) -> Decoded:
+           unwrap_tolerance_m: float | None = None, unwrap_weights: str = "inverse_variance",
+           phasor_filter: str = "none", range_scale: np.ndarray | None = None) -> Decoded:
     """Decode raw images into radial distance, amplitude, offset, intensity, confidence and validity.
 
     Parameters
     ----------
     raw : (R, *shape) raw images in electrons, ordered as ``modulation.raw_labels()``.
     modulation : the sensor's :class:`Modulation`.
-    min_amplitude_e, saturation_e, range_m, unwrap_tolerance_m : see the module docstring table.
+    min_amplitude_e, saturation_e, range_m, unwrap_tolerance_m, unwrap_weights, phasor_filter, range_scale : see the
+        module docstring table; the filter works on the last two axes (an image) of a CW sensor, its
+        amplitude threshold is ``min_amplitude_e``.
 
     Returns
     -------
@@ -319,9 +334,12 @@ def decode(raw: np.ndarray, modulation: Modulation, *, min_amplitude_e: float = 
     range_min, range_max = _check_range(range_m)
     if saturation_e is not None and not saturation_e > 0:
         raise ConfigError(f"decode: saturation_e must be > 0 (electrons) or None, got {saturation_e!r}")
+    check_choice(phasor_filter, PHASOR_FILTERS, "decode", "phasor_filter")
     if modulation.is_cw:
         cw = decode_cw(raw, modulation)
-        result = unwrap(cw, modulation, tolerance_m=unwrap_tolerance_m)
+        if phasor_filter == "bilateral":
+            cw = filtered_phases(cw, modulation, min_amplitude_e)
+        result = unwrap(cw, modulation, tolerance_m=unwrap_tolerance_m, weights=unwrap_weights)
         h = int(np.argmax(modulation.frequencies_hz))
         distance, amplitude, offset = result.distance, cw.amplitude[h], cw.offset[h]
         confidence, unwrap_failed = result.confidence, result.failed
@@ -335,8 +353,9 @@ def decode(raw: np.ndarray, modulation: Modulation, *, min_amplitude_e: float = 
         unwrap_failed = namespace(raw).zeros(amplitude.shape, dtype=bool)
     saturated = (np.any(raw >= saturation_e, axis=0) if saturation_e is not None
                  else namespace(raw).zeros(amplitude.shape, dtype=bool))
+    ranged = distance if range_scale is None else distance * namespace(distance).asarray(range_scale)
     with np.errstate(invalid="ignore"):  # NaN distances of no-return pixels compare False
-        out_of_range = ~((distance >= range_min) & (distance <= range_max))
+        out_of_range = ~((ranged >= range_min) & (ranged <= range_max))
     reason = _first_reason([(saturated, Reason.SATURATED), (no_return, Reason.NO_RETURN),
                             (amplitude < min_amplitude_e, Reason.LOW_AMPLITUDE),
                             (unwrap_failed, Reason.UNWRAPPING_FAILED), (out_of_range, Reason.OUT_OF_RANGE)])
@@ -345,6 +364,18 @@ def decode(raw: np.ndarray, modulation: Modulation, *, min_amplitude_e: float = 
                    amplitude=amplitude.astype(np.float32), offset=offset.astype(np.float32),
                    intensity=raw.mean(axis=0).astype(np.float32),
                    confidence=np.where(valid, confidence, 0.0).astype(np.float32), valid=valid, reason=reason)
+
+
+def filtered_phases(cw: CwDecoding, modulation: Modulation, min_amplitude_e: float) -> CwDecoding:
+    """``cw`` with every frequency's phase from its bilateral-filtered phasor A e^{iφ}; amplitude and offset
+    stay the pixel's own (libfreenect2 keeps them for the IR image and the thresholds)."""
+    real, imag = bilateral_phasor_filter(cw.amplitude * np.cos(cw.phase), cw.amplitude * np.sin(cw.phase),
+                                         min_amplitude=min_amplitude_e)
+    phase = np.mod(np.arctan2(imag, real), 2.0 * np.pi)
+    phase = np.where(phase < 2.0 * np.pi, phase, 0.0)
+    f_hz = namespace(phase).asarray(modulation.frequencies_hz).reshape((-1,) + (1,) * (phase.ndim - 1))
+    return CwDecoding(phase=phase, amplitude=cw.amplitude, offset=cw.offset,
+                      wrapped_distance=SPEED_OF_LIGHT_M_S * phase / (4.0 * np.pi * f_hz))
 
 
 def _first_reason(checks: list) -> np.ndarray:

@@ -43,11 +43,10 @@ import numpy as np
 
 from ..backend import asarray, namespace
 from ..errors import ConfigError
+from ..native import optional_module
 
-try:  # OpenCV is optional: a faster convolution when installed, same result as the NumPy path
-    import cv2
-except ImportError:  # pragma: no cover - depends on the environment
-    cv2 = None
+# OpenCV is optional: a faster convolution when installed (not inside Blender), same result as the NumPy path.
+cv2 = optional_module("cv2")
 
 MODELS = ("none", "airy", "gaussians")
 TAIL_FRACTION = 1e-4

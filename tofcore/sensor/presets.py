@@ -22,6 +22,7 @@ Example
 
 from __future__ import annotations
 
+import difflib
 import os
 import tomllib
 from pathlib import Path
@@ -49,15 +50,26 @@ def list_presets() -> list[str]:
 
 
 def preset_path(name_or_path: str | os.PathLike[str]) -> Path:
-    """The file of a preset: a name from :func:`list_presets`, or a path (anything ending in ``.toml``
-    or containing a directory separator)."""
+    """The file of a preset: a name from :func:`list_presets` (any case; ``-``, ``_`` and spaces alike), or a
+    path (anything ending in ``.toml`` or containing a directory separator). An unknown name is a
+    ConfigError listing the names, with the closest one as "did you mean"."""
     text = os.fspath(name_or_path)
     if isinstance(name_or_path, os.PathLike) or text.endswith(".toml") or "/" in text or os.sep in text:
         return Path(text)
-    if text not in list_presets():
-        raise ConfigError(f"preset: name must be one of {list_presets()} (files in {PRESETS_DIR}) "
-                          f"or a path to a .toml file, got {text!r}")
-    return PRESETS_DIR / f"{text}.toml"
+    names = list_presets()
+    by_folded = {_folded(name): name for name in names}
+    name = by_folded.get(_folded(text))
+    if name is None:
+        close = difflib.get_close_matches(_folded(text), list(by_folded), n=1)
+        hint = f" (did you mean {by_folded[close[0]]!r}?)" if close else ""
+        raise ConfigError(f"preset: name must be one of {names} or a path to a .toml file, got {text!r}{hint}")
+    return PRESETS_DIR / f"{name}.toml"
+
+
+def _folded(name: str) -> str:
+    """A preset name as compared: case and the separators ``-``, ``_``, space ignored (``Kinect-V2`` is
+    ``kinect_v2``)."""
+    return "".join(ch for ch in name.casefold() if ch not in "-_ ")
 
 
 def load_preset(name_or_path: str | os.PathLike[str]) -> Sensor:

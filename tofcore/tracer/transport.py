@@ -35,6 +35,7 @@ Memory is bounded by the chunk size (rays in flight), not by spp.
 from __future__ import annotations
 
 import functools
+import importlib
 import pickle
 import time
 import uuid
@@ -62,6 +63,11 @@ from .workers import process_support
 
 Correlation = Callable[[np.ndarray], np.ndarray]
 """g_j(τ): delay τ in seconds (float64 array) → correlation value per contribution (same shape)."""
+
+COMPILED_TRACER = "tofcore.compiled"
+"""The compiled per-path tracer. It stands above this module (it reuses the scene's, the tracer's and
+the sensor's functions), so :func:`trace_progressive` imports it by name, as
+:func:`tofcore.backend.twin` imports device kernels; it decides itself whether it can run a trace."""
 
 
 @dataclass(frozen=True)
@@ -127,6 +133,8 @@ class TraceStats:
     chunk_seconds: float = 0.0    # thread-seconds inside chunks (all tracing work, summed over workers)
     setup_seconds: float = 0.0    # wall time before the first pass: first-hit buffers, sharing, worker start
     parallel: str = ""            # how chunks ran: "processes", "threads: <why>" or "one"
+    tracer: str = "numpy"         # "compiled" (tofcore.compiled) or "numpy" (this module)
+    tracer_reason: str = ""       # why the NumPy tracer ran where numba is installed, or is not
 
     @property
     def rays(self) -> int:
@@ -146,6 +154,7 @@ class TraceStats:
                 "camera_seconds": self.camera_seconds, "bounce_seconds": self.bounce_seconds,
                 "shadow_seconds": self.shadow_seconds, "chunk_seconds": self.chunk_seconds,
                 "setup_seconds": self.setup_seconds, "parallel": self.parallel,
+                "tracer": self.tracer, "tracer_reason": self.tracer_reason,
                 "rays_per_second": self.rays / self.seconds if self.seconds > 0 else None}
 
 
@@ -376,9 +385,12 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     start = time.perf_counter()
     n_pix = camera.width * camera.height
     n_corr = ctx.n_channels
-    stats = TraceStats()
+    compiled = importlib.import_module(COMPILED_TRACER)
+    tracer = compiled.choose(ctx)  # the compiled per-path tracer where numba and the render's features allow
+    stats = TraceStats(tracer=tracer.tracer, tracer_reason=tracer.reason)
     # Start the worker processes first: they boot and import tofcore while this one traces the first hits.
-    why_not = _start_workers(workers) if workers > 1 and not dev.is_gpu else "one"
+    # The compiled tracer runs on numba's threads instead (they release the GIL).
+    why_not = _start_workers(workers) if workers > 1 and not dev.is_gpu and tracer.packed is None else "one"
     transport = Transport(
         width=camera.width, height=camera.height, max_depth=max_depth, n_correlations=n_corr,
         sample_count=xp.zeros(n_pix, np.int64),
@@ -390,6 +402,8 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     done = np.zeros(n_pix, np.int64)  # host copy of transport.sample_count
     shared, why_not = (None, why_not) if why_not else _share(ctx, transport)
     stats.parallel = "processes" if shared is not None else "one" if why_not == "one" else f"threads: {why_not}"
+    if tracer.packed is not None:
+        stats.parallel = f"numba threads: {compiled.thread_count(workers)}"
     stats.setup_seconds = time.perf_counter() - start
     try:
         with ThreadPoolExecutor(max_workers=workers) as threads:
@@ -397,7 +411,10 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                 counts = None if allocate is None else allocate(transport, n_samples)
                 counts = np.full(n_pix, n_samples, np.int64) if counts is None else _checked_counts(counts, n_pix)
                 chunks = _chunks(counts, _pass_chunk_paths(int(counts.sum()), chunk_size, workers))
-                if shared is not None and len(chunks) > 1:
+                if tracer.packed is not None:
+                    chunks = _chunks(counts, max(chunk_size, compiled.COMPILED_CHUNK_PATHS))
+                    results = compiled.trace_pass(tracer, transport, done, counts, chunks, workers, cancel)
+                elif shared is not None and len(chunks) > 1:
                     results = _run_in_processes(shared, workers, done, counts, chunks, cancel)
                 else:
                     run = functools.partial(_trace_chunk, ctx, transport, first=xp.asarray(done),

@@ -1,0 +1,116 @@
+"""tofcore render for a first-time user: resolution flags, one-line errors, .blend and help text, make demo."""
+
+from __future__ import annotations
+
+import json
+import re
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from tofcore.cli import build_parser, main
+
+REPO = Path(__file__).resolve().parents[2]
+
+
+def _run(argv, capsys) -> tuple[int, str, str]:
+    try:
+        code = main(argv)
+    except SystemExit as exc:
+        code = exc.code
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def _tiny(tmp_path, *extra):
+    return ["render", "--scene", "plane", "--out", str(tmp_path / "out"), "--spp", "1", "--max-depth", "1",
+            "--formats", "json", "--quiet", *extra]
+
+
+@pytest.mark.parametrize("flags, size", [(("--resolution", "64x53"), (64, 53)),
+                                         (("--width", "64", "--height", "40"), (64, 40)),
+                                         (("--width", "128"), (128, 106)),
+                                         (("--resolution-scale", "0.125"), (64, 53))])
+def test_resolution_flags(tmp_path, capsys, flags, size):
+    code, _, err = _run(_tiny(tmp_path, *flags), capsys)
+    assert code == 0, err
+    document = json.loads((tmp_path / "out" / "frame.json").read_text())
+    assert (document["width"], document["height"]) == size
+    intrinsics = document["metadata"]["intrinsics"]
+    assert (intrinsics["width"], intrinsics["height"]) == size
+    assert abs(intrinsics["fx"] - 365.5 * size[0] / 512) < 1.0     # the preset's fx, scaled with the width
+
+
+@pytest.mark.parametrize("argv, needle", [
+    (["--resolution", "128by106"], "argument --resolution: must be WIDTHxHEIGHT in pixels, e.g. 128x106"),
+    (["--resolution", "64x53", "--width", "10"], "--resolution: give it or --width/--height, not both"),
+    (["--resolution-scale", "0.5", "--width", "10"], "--resolution-scale: give it or --width/--height/--resolution"),
+    (["--resolution-sc", "0.5"], "unrecognized arguments: --resolution-sc 0.5"),     # no abbreviations
+    (["--no-such-flag"], "unrecognized arguments: --no-such-flag"),
+    (["--eye", "1,2,3"], "--eye and --target go together"),
+    (["--exr-channels", "dpeth", "--formats", "exr"], "--exr-channels: must be a comma list of depth, distance"),
+    (["--transient-bin", "5m", "--transient-max", "1m"], "--transient-max must be longer than --transient-bin"),
+])
+def test_errors_are_one_line_with_exit_code_2(tmp_path, capsys, argv, needle):
+    code, out, err = _run(_tiny(tmp_path, *argv), capsys)
+    lines = err.strip().splitlines()
+    assert code == 2 and len(lines) == 1 and needle in lines[0], err
+    assert "usage:" not in err and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
+
+
+def test_a_blend_scene_without_bpy_names_the_install(tmp_path, capsys, monkeypatch):
+    blend = tmp_path / "room.blend"
+    blend.write_bytes(b"BLENDER-v500")
+    import importlib.util
+
+    real = importlib.util.find_spec
+    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "bpy" else real(name, *a))
+    code, _, err = _run(["render", "--scene", str(blend), "--out", str(tmp_path / "out"), "--formats", "json"], capsys)
+    assert code == 2 and err.count("\n") == 1
+    assert f"--scene {blend}: a .blend file is read through Blender's Python module bpy, which is not installed: " \
+           f"pip install bpy" in err
+
+
+def test_help_has_no_raw_markup_and_no_repository_paths():
+    """What an installed user reads: no ``code``/:role:`x` markup, no paths into the repository."""
+    from batch.cli import build_parser as batch_parser
+
+    texts = []
+    for parser in (build_parser(), batch_parser()):
+        texts.append(parser.format_help())
+        for action in parser._subparsers._group_actions:
+            texts += [sub.format_help() for sub in action.choices.values()]
+    for text in texts:
+        assert "``" not in text and not re.search(r":[a-z]+:`", text), text
+        assert not re.search(r"(?<![\w-])batch/|presets/\w+\.toml|tofcore/\w+\.py", text), text
+    tofcore_help = "\n".join(texts)
+    assert "a bare number is in mm, as in the Blender add-on" in re.sub(r"\s+", " ", tofcore_help)
+
+
+def test_make_demo_installs_the_runtime_only():
+    proc = subprocess.run(["make", "-n", "demo", "VENV=/nonexistent/venv"], cwd=REPO, capture_output=True, text=True,
+                          timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    steps = proc.stdout
+    assert "requirements-dev.txt" not in steps and "bpy" not in steps and "pytest" not in steps
+    assert '-m pip install --quiet -e ".[exr]"' in steps
+    render = steps.strip().splitlines()[-1]
+    assert "tofcore render --scene room --preset kinect_v2 --spp 32 --no-noise" in render   # as the README shows
+
+
+def test_readme_quotes_the_demo_command_of_the_makefile():
+    render = next(line for line in (REPO / "Makefile").read_text().splitlines() if "tofcore render" in line)
+    command = render.split("-m tofcore ", 1)[1]
+    assert f".venv/bin/tofcore {command}" in (REPO / "README.md").read_text()
+
+
+def test_a_transient_histogram_beyond_the_memory_limit_is_refused_before_rendering(tmp_path, capsys, monkeypatch):
+    """512 x 424 pixels x 10 m / 1 mm = 10,000 bins: 20 bytes each is 43 GB; with a 1 GB limit it is refused."""
+    monkeypatch.setenv("TOFCORE_MAX_RENDER_BYTES", str(1 << 30))
+    code, _, err = _run(["render", "--scene", "plane", "--out", str(tmp_path / "out"), "--transient-bin", "1mm",
+                         "--transient-max", "10m", "--formats", "json"], capsys)
+    assert code == 2 and err.count("\n") == 1 and "10000 transient bins" in err and "widen the transient bins" in err
+    assert not (tmp_path / "out").exists()
