@@ -16,9 +16,8 @@ import sys
 import threading
 from pathlib import Path
 
-<<<<<<< HEAD
 from .interrupt import exit_at_once as _exit_at_once
-=======
+
 HELP = """The tofcore dataset generator: scene-set files (TOML) to dataset folders.
 
 Examples:
@@ -47,7 +46,6 @@ their error), or verify found a problem; 2 bad arguments or set file, or
 Ctrl-C / SIGTERM at any moment (one line, no traceback; finished frames are
 kept, the lock released; rerun to continue).
 """
->>>>>>> main
 
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 

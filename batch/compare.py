@@ -30,7 +30,6 @@ aspect kept) to the same cell width.
 from __future__ import annotations
 
 import argparse
-import importlib.util
 import math
 from pathlib import Path
 
@@ -224,9 +223,6 @@ def compare(args: argparse.Namespace) -> int:
 
     from .setfile import FLAG_OF_KEY, flag_error
 
-    if importlib.util.find_spec("OpenEXR") is None:  # compare has no --formats: its frames are always EXR
-        raise tofcore.ConfigError("compare: writes every frame as EXR, which needs the OpenEXR package, not "
-                                  "installed here: pip install OpenEXR (or pip install 'tofcore[exr]')")
     try:
         spec = parse_set(_set_data(args), path=None)
     except ValueError as err:

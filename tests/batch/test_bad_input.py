@@ -334,18 +334,3 @@ def test_blender_entry_checks_its_flags(tmp_path):
                               text=True, timeout=240)
         assert_refused(proc, needle, out=tmp_path / "dataset")
 
-
-def test_compare_without_openexr_names_what_needs_it_not_a_flag_it_lacks(tmp_path, monkeypatch, capsys):
-    """compare has no --formats: the error must not send the user to one (issue 23)."""
-    import importlib.util
-
-    from batch.cli import main
-
-    real = importlib.util.find_spec
-    monkeypatch.setattr(importlib.util, "find_spec", lambda name, *a: None if name == "OpenEXR" else real(name, *a))
-    code = main(["compare", "--scene", "corner", "--presets", "kinect_v2", "--out", str(tmp_path / "report")])
-    err = capsys.readouterr().err
-    assert code == 2 and err.strip().splitlines() == [
-        "error: compare: writes every frame as EXR, which needs the OpenEXR package, not installed here: pip install "
-        "OpenEXR (or pip install 'tofcore[exr]')"], err
-    assert not (tmp_path / "report").exists()
