@@ -22,11 +22,8 @@ PACKAGES = ("tofcore", "batch", "addon")
 
 #: Floors from the ground up; each floor lists its parts (a module or a package, by import name).
 LAYERS: tuple[tuple[str, ...], ...] = (
-<<<<<<< HEAD
-    ("tofcore.constants", "tofcore.errors", "tofcore.progress", "tofcore.console", "tofcore._interrupt"),
-=======
-    ("tofcore.constants", "tofcore.errors", "tofcore.progress", "tofcore.units", "tofcore.native"),
->>>>>>> main
+    ("tofcore.constants", "tofcore.errors", "tofcore.progress", "tofcore.units", "tofcore.native", "tofcore.console",
+     "tofcore._interrupt"),
     ("tofcore.backend", "tofcore.limits"),
     ("tofcore.scene",),
     ("tofcore.tracer", "tofcore.sensor", "tofcore.plan"),

@@ -178,23 +178,6 @@ def test_parse_frames():
             parse_frames(bad)
 
 
-<<<<<<< HEAD
-@pytest.mark.parametrize("factor", [0.0625, 0.25, 0.5, 2.0])
-def test_scaled_sensor_keeps_the_field_of_view(factor):
-    sensor = tofcore.load_preset("kinect_v2")
-    scaled = scaled_sensor(sensor, factor)
-    cam, new = sensor.camera, scaled.camera
-    assert new.width == int(np.floor(cam.width * factor + 0.5))
-    assert new.height == int(np.floor(cam.height * factor + 0.5))
-    # The image edges (u = -1/2 and u = W - 1/2) see the same angles before and after.
-    for (c, f, n), (c2, f2, n2) in (((cam.cx, cam.fx, cam.width), (new.cx, new.fx, new.width)),
-                                    ((cam.cy, cam.fy, cam.height), (new.cy, new.fy, new.height))):
-        assert np.isclose((-0.5 - c) / f, (-0.5 - c2) / f2)
-        assert np.isclose((n - 0.5 - c) / f, (n2 - 0.5 - c2) / f2)
-    assert (new.k1, new.k2, new.k3) == (cam.k1, cam.k2, cam.k3)
-    assert scaled_sensor(sensor, 1.0) is sensor
-
-
 @pytest.mark.parametrize("pose, line, key, needle", [
     ("eye = [1.0, 1.0, 1.0]\ntarget = [1.0, 1.0, 1.0]", 6, "eye", "target must differ from eye"),
     ("eye = [1.0, 1.0, 1.0]\ntarget = [1.0, 1.0, 0.0]\nup = [0.0, 0.0, 1.0]", 8, "up", "must not be parallel"),
@@ -209,5 +192,3 @@ demo = "corner"
 """)
     assert message.startswith(f"{tmp_path / 'set.toml'}:{line}: scenes[0].poses[0].{key}: look_at: "), message
     assert needle in message
-=======
->>>>>>> main
