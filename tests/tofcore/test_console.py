@@ -41,10 +41,8 @@ def _tofcore(*argv: str, env: dict | None = None, **kwargs) -> subprocess.Comple
 
 
 def _formats() -> str:
-    """Every format tofcore writes: the EXR writer is exercised with the paths too."""
-    from tofcore.output.writers import FORMATS
-
-    return ",".join(FORMATS)
+    """Every file format of a frame: the EXR writer is exercised with the paths too."""
+    return "exr,png,ply,json"
 
 
 def test_the_fallback_spells_what_the_commands_print_in_ascii_and_keeps_path_bytes():
