@@ -33,6 +33,7 @@ from ..scene.camera import _NEWTON_MAX_ITER, _NEWTON_STEP_TOL
 from ..tracer import qmc as _qmc
 from ..tracer import rng as _rng
 from ..tracer import sampler as _sampler
+from ..tracer import surface as _surface
 from ._target import cpu_parallel_function, device_function
 from .layout import LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE
 
@@ -57,6 +58,9 @@ DIM_PIXEL, DIM_LENS = _sampler.PIXEL, _sampler.LENS  # the sampler's one table (
 DIM_LED_CHOICE, DIM_EMISSION = _sampler.LED_CHOICE, _sampler.EMISSION
 SMOOTH_ROUGHNESS_RAD = _bsdf.SMOOTH_ROUGHNESS_RAD
 MIN_LOBE_PROBABILITY = _bsdf.MIN_LOBE_PROBABILITY
+SPAWN_RELATIVE = _surface.SPAWN_RELATIVE
+LEAVE_RELATIVE = _surface.LEAVE_RELATIVE
+OFFSET_FLOOR_M = _surface.OFFSET_FLOOR_M
 ONE_BELOW_ONE = float(np.nextafter(1.0, 0.0))
 SQRT2 = float(np.sqrt(2.0))
 PI = np.pi
@@ -404,6 +408,26 @@ def traverse(nodes_f, nodes_i, leaves_f, leaves_i, o, d, t_max, ignore, any_hit,
 def intersect(geo, o, d, t_max, ignore, any_hit, stack, stack_t):
     """:func:`traverse` over the scene tuple ``geo`` (see tofcore.compiled.setup.scene_arrays)."""
     return traverse(geo[0], geo[1], geo[2], geo[3], o, d, t_max, ignore, any_hit, stack, stack_t)
+
+
+@fn
+def point_offset(p, relative):
+    """``relative`` × the largest coordinate of p, at least OFFSET_FLOOR_M (tofcore.tracer.surface.point_offset)."""
+    return relative * max(max(abs(p[0]), abs(p[1]), abs(p[2])), OFFSET_FLOOR_M)
+
+
+@fn
+def spawn_offset(geo, prim, position, ng):
+    """The distance a ray leaving ``position`` on triangle ``prim`` starts off it along ``ng``
+    (tofcore.tracer.surface.spawn_offset: the point's coordinates or its triangle's, pbrt-v4's bound)."""
+    triangles, vertices = geo[4], geo[5]
+    i0, i1, i2 = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
+    own = max(abs(position[0]), abs(position[1]), abs(position[2]))
+    c0 = np.float64(max(abs(vertices[i0, 0]), abs(vertices[i1, 0]), abs(vertices[i2, 0])))
+    c1 = np.float64(max(abs(vertices[i0, 1]), abs(vertices[i1, 1]), abs(vertices[i2, 1])))
+    c2 = np.float64(max(abs(vertices[i0, 2]), abs(vertices[i1, 2]), abs(vertices[i2, 2])))
+    local = abs(ng[0]) * c0 + abs(ng[1]) * c1 + abs(ng[2]) * c2
+    return SPAWN_RELATIVE * max(max(own, local), OFFSET_FLOOR_M)
 
 
 @fn
@@ -756,7 +780,7 @@ def connect_led(geo, frame, leds, surf, spawn, wo, prim, throughput, i, depth, b
         if depth == 1 and led_table[i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
             counters[4] += 1
         else:
-            o, d, t_max = shadow_ray(spawn, led, frame[5, 0])
+            o, d, t_max = shadow_ray(spawn, led, point_offset(led, SPAWN_RELATIVE))
             counters[2] += 1
             if intersect(geo, o, d, t_max, prim, True, stack, stack_t)[1] >= 0:
                 w = 0.0
@@ -767,7 +791,8 @@ def connect_led(geo, frame, leds, surf, spawn, wo, prim, throughput, i, depth, b
 def light_vertex(geo, frame, leds, key, pixel, sample, independent, counters, stack, stack_t):
     """The sample's light vertex y (light_paths.trace_light_vertices).
 
-    Returns (found, surface of y facing the LED, unit direction y → LED, |y − LED|, emitted, p_B).
+    Returns (found, surface of y facing the LED, unit direction y → LED, |y − LED|, emitted, p_B, the margin
+    a shadow ray to y stops short of it: 4 × y's spawn offset).
     """
     led_positions, led_table, led_cdf = leds[0], leds[1], leds[2]
     u_led = sample_1d(key, pixel, sample, DIM_LED_CHOICE, independent)
@@ -781,28 +806,29 @@ def light_vertex(geo, frame, leds, key, pixel, sample, independent, counters, st
     pdf_dir = led_table[index, 3] * emission_pdf(kind, local[2])
     direction = rotate(local, frame)
     origin = (led_positions[index, 0], led_positions[index, 1], led_positions[index, 2])
-    offset = frame[5, 0]
+    offset = point_offset(origin, LEAVE_RELATIVE)
     query = to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
                     origin[2] + offset * direction[2]))
     counters[3] += 1
     t, prim, u, v = intersect(geo, query, to_f32(direction), F32_INF, -1, False, stack, stack_t)
     surf = surface_at(geo, max(prim, 0), u, v, origin, direction)
     if prim < 0 or not pdf_dir > 0:
-        return False, surf, direction, 0.0, 0.0, 0.0
+        return False, surf, direction, 0.0, 0.0, 0.0, 0.0
     to_led = neg(direction)
     led_distance = norm(sub(surf[0], origin))
     cos_geo = dot(to_led, surf[1])
     cos_shading = max(dot(to_led, surf[4]), 0.0)
     q = led_table[index, 3]
     emitted = led_table[index, 2] / (q if q > 0 else 1.0) * cos_shading / cos_geo if cos_geo > 0 else 0.0
+    margin = 4.0 * spawn_offset(geo, prim, surf[0], surf[1])
     if not led_distance > offset:  # an LED on (or behind) the surface it lights has no light vertex there
-        return True, surf, to_led, led_distance, 0.0, 0.0
-    return True, surf, to_led, led_distance, emitted, pdf_dir * abs(cos_geo) / (led_distance * led_distance)
+        return True, surf, to_led, led_distance, 0.0, 0.0, margin
+    return True, surf, to_led, led_distance, emitted, pdf_dir * abs(cos_geo) / (led_distance * led_distance), margin
 
 
 @fn
-def connect_light(geo, frame, x, spawn, wo, prim, throughput, y, y_to_led, y_led_distance, y_emitted,
-                  y_pdf_area, counters, stack, stack_t):
+def connect_light(geo, x, spawn, wo, prim, throughput, y, y_to_led, y_led_distance, y_emitted,
+                  y_pdf_area, y_margin, counters, stack, stack_t):
     """Strategy B at camera vertex x: (w_B, extra path length |x − y| + |y − LED|) (light_paths.connect)."""
     to_y = sub(y[0], x[0])
     dist = norm(to_y)
@@ -822,7 +848,7 @@ def connect_light(geo, frame, x, spawn, wo, prim, throughput, y, y_to_led, y_led
         w = 0.0
     if w > 0:
         # Stop short of y by a few ray offsets, so y's own surface does not occlude it.
-        o, d, t_max = shadow_ray(spawn, y[0], 4.0 * frame[5, 0])
+        o, d, t_max = shadow_ray(spawn, y[0], y_margin)
         counters[2] += 1
         if intersect(geo, o, d, t_max, prim, True, stack, stack_t)[1] >= 0:
             w = 0.0
@@ -840,20 +866,19 @@ def trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, pi
     them, and writes the path's channel totals (signal, J correlations, ambient) to ``total`` (J + 2,).
     ``wg`` is a (J,) scratch array; ``counters`` (layout.N_COUNTERS,) int64 ray counts. ``frame`` holds the
     world_from_sensor rotation (rows 0–2), the lens centre and the LED axis in the scene frame (rows 3,
-    4) and the ray offset (row 5, column 0); ``leds`` = (positions (L, 3), table (L, 5): kind,
+    4); ``leds`` = (positions (L, 3), table (L, 5): kind,
     intensity, power, emission probability, first-hit shadow skipped; cdf (L − 1,)).
     """
     n_corr = corr_kinds.shape[0]
     n_leds = leds[0].shape[0]
-    offset = frame[5, 0]
     for c in range(total.shape[0]):
         total[c] = 0.0
     # Strategy B's light vertex of this sample (light_paths.trace_light_vertices).
     has_light = False
     y = surface_at(geo, 0, F32_ZERO, F32_ZERO, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
-    y_to_led, y_led_distance, y_emitted, y_pdf_area = (0.0, 0.0, 1.0), 0.0, 0.0, 0.0
+    y_to_led, y_led_distance, y_emitted, y_pdf_area, y_margin = (0.0, 0.0, 1.0), 0.0, 0.0, 0.0, 0.0
     if light_paths:
-        has_light, y, y_to_led, y_led_distance, y_emitted, y_pdf_area = light_vertex(
+        has_light, y, y_to_led, y_led_distance, y_emitted, y_pdf_area, y_margin = light_vertex(
             geo, frame, leds, key, pixel, sample, independent, counters, stack, stack_t)
     # Camera ray (Camera.generate_rays), scene frame.
     pixel_u, pixel_v = sample_2d(key, pixel, sample, DIM_PIXEL, independent)
@@ -870,6 +895,7 @@ def trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, pi
     prev_delta = False    # ... and whether it was a mirror lobe
     for depth in range(1, max_depth + 1):
         if depth == 1:
+            offset = point_offset(origin, LEAVE_RELATIVE)
             query = to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
                             origin[2] + offset * direction[2]))
             counters[0] += 1
@@ -884,6 +910,7 @@ def trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, pi
         segment = norm(sub(position, prev_point))
         path_length = path_length + segment
         wo = to_local(surf, neg(direction))
+        offset = spawn_offset(geo, prim, position, ng)
         spawn = (position[0] + ng[0] * offset, position[1] + ng[1] * offset, position[2] + ng[2] * offset)
         use_mis = light_paths and depth >= 2
         bsdf_area_pdf = prev_pdf * dot(neg(direction), ng) / (segment * segment) if use_mis else 0.0
@@ -911,8 +938,8 @@ def trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, pi
             w = 0.0
             extra = 0.0
             if has_light:
-                w, extra = connect_light(geo, frame, surf, spawn, wo, prim, throughput, y, y_to_led,
-                                         y_led_distance, y_emitted, y_pdf_area, counters, stack, stack_t)
+                w, extra = connect_light(geo, surf, spawn, wo, prim, throughput, y, y_to_led,
+                                         y_led_distance, y_emitted, y_pdf_area, y_margin, counters, stack, stack_t)
             tau = (path_length + extra) / SPEED_OF_LIGHT_M_S
             con_w[depth] += w
             total[0] += w

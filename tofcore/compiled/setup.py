@@ -24,7 +24,7 @@ class Packed:
     geo: tuple            # BVH records and scene arrays, see scene_arrays
     cam: np.ndarray       # (13,) camera numbers, see camera_arrays
     cam_table: np.ndarray  # (5, P) undistortion table (1 column when there is no distortion)
-    frame: np.ndarray     # (6, 3) rotation, lens centre, LED axis, ray offset
+    frame: np.ndarray     # (5, 3) rotation, lens centre, LED axis
     leds: tuple           # (positions (L, 3), table (L, 5), cdf (L − 1,))
     corr_kinds: np.ndarray  # (J,) int64 channel kinds
     corr_table: np.ndarray  # (J, 6) float64 channel parameters
@@ -89,12 +89,12 @@ def camera_table(camera) -> np.ndarray:
 
 
 def frame_array(ctx) -> np.ndarray:
-    """(6, 3): world_from_sensor rotation (rows 0–2), lens centre and LED axis (scene frame), ray offset."""
-    frame = np.zeros((6, 3))
+    """(5, 3): world_from_sensor rotation (rows 0–2), lens centre and LED axis (scene frame). The ray offsets
+    come from each point's own coordinates (kernels.point_offset, kernels.spawn_offset)."""
+    frame = np.zeros((5, 3))
     frame[0:3] = ctx.world_from_sensor[:3, :3]
     frame[3] = np.asarray(ctx.lens_center)
     frame[4] = np.asarray(ctx.led_axis)
-    frame[5, 0] = ctx.offset_scale
     return frame
 
 

@@ -19,6 +19,7 @@ from ..errors import ConfigError
 from ..scene.ambient import Ambient
 from ..scene.camera import Camera
 from ..scene.led import LED, leds_at_pinhole
+from ..scene.pose import rigid_problem
 from ..scene.scene import Scene
 from . import qmc
 from .light_paths import led_probabilities
@@ -69,17 +70,6 @@ class TraceSettings:
     allocate: Callable | None = None
 
 
-OFFSET_RELATIVE = 2.0**-16
-"""Ray-origin offset along the geometric normal, relative to the scene's extent.
-
-~1.5e-5 m per metre of scene: about 250 float32 ulps of the largest coordinate,
-far above the rounding of a float32 hit point (so no self-hit on neighbouring
-triangles) and far below any feature a ToF pixel resolves (so the corner of
-two walls shows no gap — the fixed epsilon of the thesis did, §6.3). The
-triangle a ray leaves is excluded outright (``ignore_prim``).
-"""
-
-
 @dataclass(frozen=True)
 class TraceSetup:
     """Everything a stage needs, fixed for the whole trace."""
@@ -102,7 +92,6 @@ class TraceSetup:
     sampler: Sampler            # the uniforms of every decision (tofcore.tracer.sampler)
     light_paths: bool           # connect camera vertices to light vertices (tofcore.tracer.light_paths)
     led_probability: np.ndarray  # (L,) host: probability of each LED emitting the light vertex
-    offset_scale: float         # metres: OFFSET_RELATIVE × the scene's extent
     transient_bins: int         # 0: no transient histogram
     transient_bin_m: float | None
 
@@ -123,8 +112,6 @@ def make_setup(scene: Scene, camera: Camera, leds: Sequence[LED], settings: Trac
     positions = np.array([x.position_m for x in leds])
     lens_scene = pose[:3, 3] - np.asarray(scene.origin_m)  # the tracer works in the scene frame
     led_scene = positions @ rot.T + lens_scene
-    lo, hi = scene.bounds
-    extent = float(np.max(np.abs(np.concatenate([lo, hi, lens_scene]))))
     xp, max_depth, ambient = device.xp, int(settings.max_depth), settings.ambient
     return TraceSetup(
         scene=scene, table=MaterialTable(scene, xp), camera=camera, device=device, world_from_sensor=pose,
@@ -136,7 +123,6 @@ def make_setup(scene: Scene, camera: Camera, leds: Sequence[LED], settings: Trac
         max_depth=max_depth, sampler=Sampler.for_seed(settings.seed, settings.sampler),
         light_paths=bool(settings.light_paths) and max_depth >= 2 and led_probabilities(leds).sum() > 0,
         led_probability=led_probabilities(leds),
-        offset_scale=OFFSET_RELATIVE * max(extent, 1e-3),
         transient_bins=bins, transient_bin_m=settings.transient_bin_m)
 
 
@@ -159,11 +145,9 @@ def _checked_pose(world_from_sensor) -> np.ndarray:
     pose = np.eye(4) if world_from_sensor is None else np.asarray(world_from_sensor, dtype=np.float64)
     if pose.shape != (4, 4) or not np.isfinite(pose).all():
         raise ConfigError(f"trace: world_from_sensor must be a finite 4x4 matrix, got shape {pose.shape}")
-    rot = pose[:3, :3]
-    if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) or np.linalg.det(rot) < 0 \
-            or not np.allclose(pose[3], [0, 0, 0, 1]):
-        raise ConfigError("trace: world_from_sensor must be a rigid transform (rotation + translation, "
-                          "no scale or shear; last row 0 0 0 1)")
+    problem = rigid_problem(pose)
+    if problem is not None:
+        raise ConfigError(f"trace: world_from_sensor must be a rigid transform (rotation + translation): {problem}")
     return pose
 
 

@@ -34,7 +34,7 @@ from .estimator import bsdf_strategy_weight
 from .light_paths import LightVertices, connect
 from .path import Contribution, PathState, Vertex
 from .setup import TraceSetup
-from .surface import dot, leaving, rotate, shadow_ray, surface_at
+from .surface import dot, leaving, point_offset, rotate, shadow_ray, spawn_offset, surface_at
 from .transport import FirstHit, TraceStats
 
 
@@ -45,7 +45,7 @@ def first_hit(setup: TraceSetup, stats: TraceStats) -> FirstHit:
     d = rotate(xp.asarray(cam.pixel_center_directions().reshape(-1, 3).astype(np.float64)), setup.rotation)
     n = len(d)
     origin = xp.broadcast_to(setup.lens_center, (n, 3))
-    hits = setup.scene.bvh.intersect(leaving(origin, d, setup.offset_scale), d.astype(np.float32))
+    hits = setup.scene.bvh.intersect(leaving(origin, d), d.astype(np.float32))
     stats.camera_rays += n
     hit = hits.prim >= 0
     distance = xp.full(n, np.nan)
@@ -86,7 +86,7 @@ def intersect(setup: TraceSetup, state: PathState, k: int, stats: TraceStats) ->
     A missed ray sees the ambient light, β · L_amb(ω), which goes to the path's ambient total.
     """
     clock = time.perf_counter()
-    query = leaving(state.origin, state.direction, setup.offset_scale) if k == 1 else state.origin.astype(np.float32)
+    query = leaving(state.origin, state.direction) if k == 1 else state.origin.astype(np.float32)
     hits = setup.scene.bvh.intersect(query, state.direction.astype(np.float32), ignore_prim=state.prev_prim,
                                      workers=1)
     if k == 1:
@@ -111,8 +111,10 @@ def shade(setup: TraceSetup, state: PathState, hits: Hits, k: int) -> tuple[Path
     # Area density at this vertex of having sampled it from the previous one (MIS with light vertices).
     area_pdf = (state.prev_pdf * dot(-state.direction, surf.geometric_normal) / segment**2
                 if setup.light_paths and k >= 2 else None)
+    corners = setup.table.vertices[setup.table.triangles[hits.prim]]      # (N, 3, 3) the hit triangles, for the offset
+    offset = spawn_offset(surf.position, surf.geometric_normal, corners)
     vertex = Vertex(k=k, surface=surf, prim=hits.prim, wo=surf.to_local(-state.direction),
-                    spawn=surf.position + surf.geometric_normal * setup.offset_scale, area_pdf=area_pdf)
+                    spawn=surf.position + surf.geometric_normal * offset[:, None], area_pdf=area_pdf)
     return state.replace(length=state.length + segment), vertex
 
 
@@ -158,8 +160,8 @@ def _to_led(setup: TraceSetup, state: PathState, vertex: Vertex, i: int, stats: 
         stats.skipped_shadow_rays += len(test)
     elif len(test):
         clock = time.perf_counter()
-        blocked = setup.scene.bvh.occluded(*shadow_ray(vertex.spawn[test], setup.led_positions[i],
-                                                       setup.offset_scale),
+        margin = point_offset(setup.led_positions[i][None])  # stop short of the LED (flush with a wall)
+        blocked = setup.scene.bvh.occluded(*shadow_ray(vertex.spawn[test], setup.led_positions[i], margin),
                                            ignore_prim=vertex.prim[test], workers=1)
         stats.shadow_rays += len(test)
         stats.shadow_seconds += time.perf_counter() - clock
