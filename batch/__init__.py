@@ -12,6 +12,8 @@ Modules, one concept each:
 * :mod:`batch.run` — executors (local spawn pool, Dask, in-process), resume logic, progress, summary
 * :mod:`batch.compare` — the sensor comparison report
 * :mod:`batch.cli` — ``tofcore-batch run | validate | verify | compare``
+* :mod:`batch.entry`, :mod:`batch.interrupt` — the installed commands' entry points (``tofcore``,
+  ``tofcore-batch``): Ctrl-C is one line from their first line, before NumPy loads
 * :mod:`batch/blender_entry.py` — ``blender -b file.blend --python batch/blender_entry.py -- …``
 
 Importing this package never imports bpy, and imports nothing else until a name below is used

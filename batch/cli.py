@@ -16,6 +16,8 @@ import sys
 import threading
 from pathlib import Path
 
+from .interrupt import exit_at_once as _exit_at_once
+
 HELP = """The tofcore dataset generator: scene-set files (TOML) to dataset folders.
 
 Examples:
@@ -48,10 +50,6 @@ kept, the lock released; rerun to continue).
 EXIT_OK, EXIT_FAILED, EXIT_USAGE = 0, 1, 2
 
 
-def _exit_at_once(signum: int, _frame) -> None:
-    """Before a command writes anything (imports, parsing, reading): say so and exit."""
-    os.write(2, f"\ninterrupted ({signal.Signals(signum).name}): nothing was written\n".encode())
-    os._exit(128 + signum)
 
 
 def _exit_quietly(signum: int, _frame) -> None:
@@ -421,6 +419,9 @@ def main(argv: list[str] | None = None) -> int:
     on return.
     """
     previous = hold_signals()
+    from tofcore.console import use_safe_output
+
+    use_safe_output()  # any locale: what the terminal cannot show is spelled in ASCII
     try:
         return _command(build_parser().parse_args(argv))
     finally:

@@ -35,7 +35,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .dataset import write_bytes_atomic, write_json_atomic
+from .dataset import utf8_text, write_bytes_atomic, write_json_atomic
 
 #: Width of one image cell in compare.png, pixels.
 CELL_WIDTH = 320
@@ -250,7 +250,7 @@ def compare(args: argparse.Namespace) -> int:
     write_bytes_atomic(out / "compare.png", encode_png(image))
     rows = table_rows(records, channels)
     title = f"Sensor comparison: {view.label}"
-    write_bytes_atomic(out / "compare.md", markdown_table(rows, title).encode())
+    write_bytes_atomic(out / "compare.md", utf8_text(markdown_table(rows, title)))
     write_json_atomic(out / "compare.json", {
         "title": title, "scene": view.scene, "view": view.view, "world_from_sensor": records[0]["world_from_sensor"],
         "quality": jobs[0].quality, "set_seed": spec.seed, "rows": rows, "image": "compare.png",

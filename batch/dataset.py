@@ -13,6 +13,12 @@ Layout
       index.jsonl.rejected   lines of the index that were not records, as they were (if any)
       .lock                  held (flock) while a run writes to the dataset
 
+A run writes nothing outside the dataset folder: each of these paths, when it
+exists, must be a real folder or file, never a symbolic link
+(:meth:`Dataset.check_paths`, :func:`_open_lock_file`); frame folders are made fresh (``mkdir``), files
+are written to temp names (``O_EXCL``) and renamed over, appended files are
+opened with ``O_NOFOLLOW``.
+
 Records
 -------
 A record is a flat JSON object: ``job_id``, ``status`` (``"ok"`` or
@@ -86,7 +92,8 @@ from collections.abc import Iterable
 from contextlib import contextmanager
 from pathlib import Path
 
-from tofcore.output.dataset import FRAMES, INDEX, RECORD, STATUSES
+from tofcore.output.dataset import FRAMES, INDEX, RECORD, STATUSES, read_regular
+from tofcore.output.dataset import differing_keys as reader_differing_keys
 
 CARD = "README.md"
 LOCK = ".lock"
@@ -102,6 +109,15 @@ _STRAY_TEMP = re.compile(r"\..+\.tmp-[0-9a-f]{8}")
 
 class DatasetLocked(RuntimeError):
     """Another run holds the dataset's lock."""
+
+
+class UnsafeDataset(RuntimeError):
+    """A folder or file that a run writes is a symbolic link (or not a folder/file): nothing is written."""
+
+
+#: What a run creates or writes in the dataset folder; each must be what it seems, never a symbolic link
+#: (the lock file has its own check: :func:`_open_lock_file`).
+WRITTEN = {FRAMES: "folder", INDEX: "file", CARD: "file", REJECTED: "file"}
 
 
 def _open_lock_file(path: Path):
@@ -203,6 +219,18 @@ def write_record(folder: Path, record: dict) -> dict:
     return {**record, "record_file": record_file_entry(data)}
 
 
+def differing_keys(line: dict, stored) -> list[str]:
+    """The top-level keys in which an index line and its frame's ``record.json`` differ (``record_file``,
+    the index's own entry, left out); ``["record.json"]`` when ``stored`` is not a JSON object.
+
+    The line is compared as JSON (NaN and inf as null, :func:`dumps`), so a line that is ``record.json``
+    plus ``record_file`` differs in nothing (:func:`tofcore.output.dataset.differing_keys`, the reader's).
+    """
+    if not isinstance(stored, dict):
+        return [RECORD]
+    return reader_differing_keys(json.loads(dumps(line)), stored)
+
+
 def publish(partial: Path, final: Path) -> bool:
     """Rename a finished frame folder into place unless one is there; True when this call published it.
 
@@ -302,7 +330,24 @@ class Dataset:
         self._appended: dict[str, str] = {}  # job id -> status of the line this object appended
 
     def create(self) -> None:
+        """Make the dataset and ``frames/`` folders, after :meth:`check_paths`."""
+        self.check_paths()
         self.frames.mkdir(parents=True, exist_ok=True)
+
+    def check_paths(self) -> None:
+        """:class:`UnsafeDataset` when a path of :data:`WRITTEN` exists as a symbolic link or as the wrong kind.
+
+        A run writes only inside the dataset folder: a ``frames`` link to a folder elsewhere would get
+        complete frame folders written there, so links are refused, not followed (the lock file's
+        own check, :func:`_open_lock_file`, also refuses FIFOs and devices).
+        """
+        for name, kind in WRITTEN.items():
+            path = self.root / name
+            if path.is_symlink():
+                raise UnsafeDataset(f"{path}: a symbolic link; a run writes only inside the dataset folder and "
+                                    f"never through links: remove it")
+            if path.exists() and (path.is_dir() != (kind == "folder")):
+                raise UnsafeDataset(f"{path}: must be a {kind}; remove it or choose another --out")
 
     @contextmanager
     def locked(self):
@@ -440,13 +485,13 @@ class Dataset:
     def published_record(self, job_id: str) -> dict | None:
         """The record of the published folder ``frames/<job_id>/`` with its ``record_file`` entry, or None.
 
-        None when there is no such folder, or its ``record.json`` is unreadable, not an ok record
-        (:func:`record_problem`), or names another job.
+        None when there is no such folder (or it is a symbolic link), or its ``record.json`` is unreadable,
+        not a regular file, not an ok record (:func:`record_problem`), or names another job.
         """
-        if not JOB_ID.fullmatch(job_id):
+        if not JOB_ID.fullmatch(job_id) or (self.frames / job_id).is_symlink():
             return None
         try:
-            data = (self.frames / job_id / RECORD).read_bytes()
+            data = read_regular(self.frames / job_id / RECORD)
             record = json.loads(data)
         except (OSError, ValueError, RecursionError):
             return None
@@ -476,24 +521,30 @@ class Dataset:
         if record.get("status") != "ok":
             return f"status {record.get('status')!r}"
         folder = self.frames / record["job_id"]
+        if folder.is_symlink():
+            return "the frame folder is a symbolic link (a run never publishes one)"
         try:
-            data = (folder / RECORD).read_bytes()
-        except OSError:
-            return f"no {RECORD} in the frame folder"
+            data = read_regular(folder / RECORD)
+        except OSError as exc:
+            return f"no {RECORD} in the frame folder" if isinstance(exc, FileNotFoundError) else \
+                f"{RECORD}: {exc.strerror}"
         expected = record.get("record_file")
-        if expected is None:
-            try:
-                same = json.loads(data) == json.loads(dumps(record))
-            except (ValueError, RecursionError):
-                same = False
-            if not same:
-                return f"{RECORD} differs from the index line"
-        elif len(data) != expected["bytes"]:
-            return f"{RECORD} has {len(data)} bytes, the index says {expected['bytes']}"
-        elif mode == "sha256" and hashlib.sha256(data).hexdigest() != expected["sha256"]:
-            return f"{RECORD} checksum differs from the index"
+        if expected is not None:
+            if len(data) != expected["bytes"]:
+                return f"{RECORD} has {len(data)} bytes, the index says {expected['bytes']}"
+            if mode == "sha256" and hashlib.sha256(data).hexdigest() != expected["sha256"]:
+                return f"{RECORD} checksum differs from the index"
+        try:
+            stored = json.loads(data)
+        except (ValueError, RecursionError):
+            stored = None
+        changed = differing_keys(record, stored)
+        if changed:
+            return f"the index line differs from {RECORD} in {', '.join(changed)}"
         for entry in record.get("files", []):
             path = folder / entry["name"]
+            if path.is_symlink():
+                return f"{entry['name']} is a symbolic link (a run never writes one)"
             try:
                 size = path.stat().st_size
             except OSError:
@@ -548,6 +599,9 @@ class Dataset:
         for job_id, record in records.items():
             if record["status"] != "ok":
                 counts["failed"] += 1
+                if (self.frames / job_id).exists() or (self.frames / job_id).is_symlink():
+                    problems.append(f"{FRAMES}/{job_id}: the index line says {record['status']!r} but the frame "
+                                    f"folder exists")
                 continue
             counts["ok"] += 1
             counts["record_files"] += 1
@@ -574,7 +628,13 @@ class Dataset:
         return {"problems": problems, "notes": notes, "counts": counts}
 
     def write_card(self, text: str) -> None:
-        write_bytes_atomic(self.root / CARD, text.encode())
+        write_bytes_atomic(self.root / CARD, utf8_text(text))
+
+
+def utf8_text(text: str) -> bytes:
+    """``text`` as UTF-8 for a Markdown file; bytes of a path that were not UTF-8 (kept by Python as lone
+    surrogates, PEP 383) are spelled ``\\xNN``, so the file stays valid UTF-8 and shows them."""
+    return re.sub("[\udc80-\udcff]", lambda m: f"\\x{ord(m.group()) - 0xDC00:02x}", text).encode()
 
 
 def _write_all(fd: int, data: bytes) -> None:

@@ -59,9 +59,10 @@ from typing import TextIO
 
 from tofcore.progress import tqdm_class, use_bar
 from tofcore.limits import usable_cpus
+from tofcore.tracer.workers import sigint_blocked
 
 from .card import dataset_card
-from .dataset import FRAMES, RECORD, Dataset
+from .dataset import FRAMES, RECORD, Dataset, differing_keys
 from .devices import VISIBLE_ENV, plan_devices
 from .jobs import Job, ViewTask, group_by_view
 from .worker import failed_record, init_worker, run_view
@@ -113,28 +114,6 @@ def signals_deferred():
     finally:
         for sig, handler in previous.items():
             signal.signal(sig, handler)
-
-
-@contextmanager
-def sigint_blocked():
-    """Block SIGINT in this thread for the duration (processes and threads started meanwhile inherit it).
-
-    Used around starting worker processes: a Ctrl-C in their first seconds (imports), before they
-    ignore SIGINT (:func:`batch.worker.init_worker`; a Dask worker keeps it blocked), would print a
-    KeyboardInterrupt traceback from the child, or stop a Dask nanny's start. This process gets it
-    when it is unblocked.
-    """
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    from multiprocessing import resource_tracker
-
-    resource_tracker.ensure_running()  # starting its process unblocks SIGINT here: start it first
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
-    try:
-        yield
-    finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
 
 
 # --------------------------------------------------------------------------- executors
@@ -503,6 +482,12 @@ def plan(jobs: list[Job], data: Dataset, records: dict[str, dict], *, retry_fail
             else:
                 result.skipped_failed += 1
         else:
+            published = data.published_record(job.job_id) if "record_file" in record else None
+            if published is not None and published["record_file"] == record["record_file"] \
+                    and differing_keys(record, published):
+                log(f"note: {job.job_id} ({job.label}): the index line differed from its {RECORD} in "
+                    f"{', '.join(differing_keys(record, published))}; taken from {RECORD}")
+                records[job.job_id] = record = published
             problem = data.verify(record, verify)
             if problem is None:
                 result.done_before += 1

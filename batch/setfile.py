@@ -582,7 +582,9 @@ def _pose(ctx: _Context, value: object, path: list, set_seed: int) -> PoseSpec:
         try:
             matrix = look_at(eye, target, up)
         except ConfigError as err:
-            raise ctx.error(path + ["presets"] if "presets" in table else ["presets"], str(err)) from None
+            # The pose's own keys: up when up is parallel to the view (if the pose sets it), else eye.
+            key = "up" if str(err).startswith("look_at: up") else "eye"
+            raise ctx.error(path + [key] if key in table else path, str(err)) from None
         return PoseSpec(kind=kind, where=where, world_from_sensor=tuple(map(tuple, matrix.tolist())),
                         target=target, up=up)
     box_min = _vector3(ctx, table["box_min"], path + ["box_min"])

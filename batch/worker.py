@@ -367,11 +367,17 @@ def failed_record(job: Job, task: ViewTask, exc: BaseException, seconds: float =
                   record: dict | None = None) -> dict:
     """The record of a job that raised ``exc``: the message, and the traceback's last lines.
 
-    A GPU failure (:func:`batch.devices.is_gpu_error`) gives one line naming the cause and no traceback.
+    A GPU failure (:func:`batch.devices.is_gpu_error`) gives one line naming the cause and no traceback;
+    so does a problem of the input or the disk (a :class:`tofcore.TofError` naming the file and key, an
+    ``OSError`` such as a full disk): the line says it all, a traceback would only bury it.
     """
+    from tofcore.errors import TofError
+
     record = dict(record or _base_record(job, task))
     if is_gpu_error(exc):
         error, tb = gpu_error_line(exc), None
+    elif isinstance(exc, (TofError, OSError)):
+        error, tb = f"{type(exc).__name__}: {exc}", None
     else:
         error = f"{type(exc).__name__}: {exc}"
         tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))[-4000:]

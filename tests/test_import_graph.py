@@ -22,11 +22,12 @@ PACKAGES = ("tofcore", "batch", "addon")
 
 #: Floors from the ground up; each floor lists its parts (a module or a package, by import name).
 LAYERS: tuple[tuple[str, ...], ...] = (
-    ("tofcore.constants", "tofcore.errors", "tofcore.progress", "tofcore.units", "tofcore.native"),
+    ("tofcore.constants", "tofcore.errors", "tofcore.progress", "tofcore.units", "tofcore.native", "tofcore.console",
+     "tofcore._interrupt"),
     ("tofcore.backend", "tofcore.limits"),
     ("tofcore.scene",),
     ("tofcore.tracer", "tofcore.sensor", "tofcore.plan"),
-    ("tofcore.output", "tofcore.gpu"),
+    ("tofcore.output", "tofcore.gpu", "tofcore.compiled"),
     ("tofcore.render",),
     ("tofcore", "tofcore.cli"),   # "tofcore": the package face (tofcore/__init__.py)
     ("tofcore.__main__",),

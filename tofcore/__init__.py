@@ -20,6 +20,14 @@ The public API, re-exported from one module per concept. The packages follow the
 * ``limits`` — resource limits checked before allocating (:class:`LimitError`)
 """
 
+import sys as _sys
+
+if _sys.argv[:1] == ["-m"] and "tofcore" in _sys.orig_argv[1:] \
+        and _sys.orig_argv[_sys.orig_argv.index("tofcore") - 1] == "-m":  # `python -m tofcore`: Ctrl-C is one line
+    from ._interrupt import hold_until_the_command_starts
+
+    hold_until_the_command_starts()
+
 from . import limits
 from .constants import SPEED_OF_LIGHT_M_S
 from .output import exr

@@ -24,6 +24,7 @@ from typing import Any
 import numpy as np
 
 from . import limits
+from .console import say, use_safe_output
 from .errors import ConfigError, TofError
 from .progress import PassProgress
 from .units import BARE_LENGTH_UNIT, implausible_error_warning, parse_length_m
@@ -273,30 +274,46 @@ def cmd_render(args: argparse.Namespace) -> int:
     pose = look_at(np.array(args.eye), np.array(args.target)) if args.eye is not None else file_pose
     ambient = Ambient(radiance_w_m2_sr=args.ambient) if args.ambient else file_ambient
     device = select_device(args.device)
+    device_line = f"device: {device.description}" + (f" (auto: {device.fallback_reason})"
+                                                     if device.fallback_reason else "")
     if args.verbose:
         from .plan import make_plan
         from .tracer.qmc import REPLICATES
 
-        print(f"scene {scene.name!r}: {scene.triangle_count:,} triangles, {len(scene.materials)} materials")
-        print(f"sensor {sensor.name!r}: {sensor.camera.width}x{sensor.camera.height}, {sensor.modulation.kind}, "
-              f"raw images {', '.join(sensor.modulation.raw_labels())}")
-        print(make_plan(scene, sensor, max_depth=args.max_depth, ambient=ambient).describe())
-        print(f"device: {device.description}" + (f" (auto: {device.fallback_reason})" if device.fallback_reason
-                                                  else ""))
-        print(f"estimator: sampler {args.sampler} in {REPLICATES} replicates, light vertices "
-              f"{'on' if args.light_paths and args.max_depth >= 2 else 'off'}, adaptive sampling "
-              f"{'on after 16 spp' if args.adaptive else 'off'}")
+        say(f"scene {scene.name!r}: {scene.triangle_count:,} triangles, {len(scene.materials)} materials")
+        say(f"sensor {sensor.name!r}: {sensor.camera.width}x{sensor.camera.height}, {sensor.modulation.kind}, "
+            f"raw images {', '.join(sensor.modulation.raw_labels())}")
+        say(make_plan(scene, sensor, max_depth=args.max_depth, ambient=ambient).describe())
+        say(device_line)
+        say(f"estimator: sampler {args.sampler} in {REPLICATES} replicates, light vertices "
+            f"{'on' if args.light_paths and args.max_depth >= 2 else 'off'}, adaptive sampling "
+            f"{'on after 16 spp' if args.adaptive else 'off'}")
+    elif device.fallback_reason and not args.quiet:
+        print(device_line, file=sys.stderr)  # --device auto fell back to the CPU: say which device ran and why
     with PassProgress(quiet=args.quiet, total=args.spp) as progress:   # a tqdm bar on a terminal, plain lines in logs
         frame = render(scene, sensor, pose, spp=args.spp, max_depth=args.max_depth, seed=args.seed,
                        time_budget_s=args.time_budget, target_error_m=args.target_error, ambient=ambient,
                        progress=progress, device=device, sampler=args.sampler,
                        adaptive=args.adaptive, light_paths=args.light_paths,
                        transient_bin_m=args.transient_bin, transient_max_m=transient_max)
-    files = write_frame(frame, args.out, formats=formats, exr_half=args.exr_half, exr_channels=args.exr_channels)
+    try:
+        files = write_frame(frame, args.out, formats=formats, exr_half=args.exr_half,
+                            exr_channels=args.exr_channels)
+    except OSError as exc:  # a full disk, a folder removed meanwhile
+        raise TofError(f"--out {args.out}: the frame was rendered but could not be written "
+                       f"({exc.strerror or exc}); files already in the folder are whole (each is written to a "
+                       f"temp name and renamed), the others were not written") from None
+    lines = []
+    if args.verbose:
+        tracer = frame.stats["transport"]
+        lines.append(f"tracer: {tracer['tracer']}" + (f" ({tracer['tracer_reason']})" if tracer["tracer_reason"]
+                                                      else ""))
     if not args.quiet:
-        print(_convergence_table(frame.stats["convergence"]))
-        print(summary(frame))
-        print(f"wrote {len(files)} files to {args.out}/: {', '.join(sorted(p.name for p in files.values()))}")
+        lines += [_convergence_table(frame.stats["convergence"]), summary(frame),
+                  f"wrote {len(files)} files to {args.out}/: {', '.join(sorted(p.name for p in files.values()))}"]
+    for line in lines:  # a stdout that fails (a full disk) is one note: the frame is written
+        if not say(line):
+            break
     return 0
 
 
@@ -338,8 +355,9 @@ def cmd_presets(args: argparse.Namespace) -> int:
         mod = s.modulation
         freqs = ", ".join(f"{f / 1e6:g}" for f in mod.frequencies_hz) + " MHz" if mod.frequencies_hz else \
             f"t0 {mod.pulse_width_s * 1e9:g} ns"
-        print(f"{name:<12} {s.camera.width}x{s.camera.height}  {mod.kind:<9} {freqs:<22} "
-              f"range {s.range_m[0]:g}-{s.range_m[1]:g} m  {len(s.leds)} LED(s)  {s.description}")
+        if not say(f"{name:<12} {s.camera.width}x{s.camera.height}  {mod.kind:<9} {freqs:<22} "
+                   f"range {s.range_m[0]:g}-{s.range_m[1]:g} m  {len(s.leds)} LED(s)  {s.description}"):
+            break
     return 0
 
 
@@ -410,7 +428,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "estimated depth error is largest)")
     r.add_argument("--no-light-paths", dest="light_paths", action="store_false",
                    help="next-event estimation only (default: also connect to LED-lit points, with MIS)")
-    r.add_argument("--verbose", action="store_true", help="print the scene, sensor, render plan and device")
+    r.add_argument("--verbose", action="store_true", help="print the scene, sensor, render plan, device and tracer (compiled or NumPy, and why)")
     r.add_argument("--quiet", action="store_true", help="no progress bar or summary")
     r.set_defaults(func=cmd_render)
     p = sub.add_parser("presets", help="list the sensor presets", formatter_class=_HelpFormatter,
@@ -420,13 +438,22 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 def main(argv: list[str] | None = None) -> int:
-    args = build_parser().parse_args(argv)
+    """Run the command ``argv`` (default: the program's arguments); the exit code.
+
+    Output any locale can show (:func:`tofcore.console.use_safe_output`). Ctrl-C (SIGINT) raises
+    KeyboardInterrupt here from the first line (the entry points hold it during the imports before):
+    one line, exit code 130; the tracer's worker processes ignore SIGINT and are stopped by this one.
+    SIGTERM exits with 143.
+    """
+    use_safe_output()
+    signal.signal(signal.SIGINT, signal.default_int_handler)
     signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
     try:
+        args = build_parser().parse_args(argv)
         return args.func(args)
     except (TofError, OSError) as exc:
         print(f"error: {exc}", file=sys.stderr)
         return 2
     except KeyboardInterrupt:
-        print("\ninterrupted (files are written atomically: none is left half-written)", file=sys.stderr)
+        print("\ninterrupted (SIGINT): files are written atomically: none is left half-written", file=sys.stderr)
         return 130

@@ -112,6 +112,9 @@ BAD_SCENES = {
                              "vertices: must be a numeric array, got dtype <U1"),
     "random_bytes": (_bytes(np.random.default_rng(21).bytes(2048)), "a file that is not a zip archive"),
     "empty_file": (_bytes(b""), "got an empty file"),
+    "pose_scaled": (_arrays(lambda a: dict(a, header=np.array(json.dumps(
+        {**json.loads(str(a["header"])), "metadata": {"world_from_sensor": (2 * np.eye(4)).tolist()}})))),
+        "header metadata.world_from_sensor must be a rigid transform"),
 }
 
 
@@ -133,7 +136,7 @@ def test_validate_names_the_bad_scene_file(tmp_path, case):
     assert line.startswith("error: ")
 
 
-@pytest.mark.parametrize("case", ["header_not_json", "truncated_zip", "empty_file"])
+@pytest.mark.parametrize("case", ["header_not_json", "truncated_zip", "empty_file", "pose_scaled"])
 def test_run_refuses_the_bad_scene_file_before_writing_anything(tmp_path, case):
     """Before: the set was accepted and every frame failed in the workers (exit 1, a dataset of failures)."""
     path = bad_scene(tmp_path, case)
@@ -330,3 +333,4 @@ def test_blender_entry_checks_its_flags(tmp_path):
                                str(tmp_path / "dataset"), *flags], cwd=tmp_path, env=env, capture_output=True,
                               text=True, timeout=240)
         assert_refused(proc, needle, out=tmp_path / "dataset")
+

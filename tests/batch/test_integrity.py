@@ -352,7 +352,7 @@ def _damage_same_size(data: bytes) -> bytes:
 
 
 @pytest.mark.parametrize("damage, size_sees_it", [
-    (_damage_same_size, False),
+    (_damage_same_size, True),  # size: record.json is also compared with the index line, key by key
     (lambda data: data + b" ", True),
     (lambda data: data[: len(data) // 2], True),
 ], ids=["digit-changed", "byte-added", "cut-in-half"])
@@ -384,7 +384,7 @@ def test_index_lines_without_the_record_checksum_are_compared_by_content_and_upg
     (dataset / "index.jsonl").write_text("".join(json.dumps(r) + "\n" for r in old))
     proc = batch("run", str(set_file), "--out", str(dataset), "--quiet")
     assert proc.returncode == 0, proc.stderr
-    assert f"redo {old[0]['job_id']}" in proc.stderr and "record.json differs from the index line" in proc.stderr
+    assert f"redo {old[0]['job_id']}" in proc.stderr and "the index line differs from record.json in preset" in proc.stderr
     assert "rendering 1 (1 view)" in proc.stderr
     _assert_true_index(dataset, len(records))
 
@@ -395,6 +395,8 @@ def _interpreter_start_up(returncode: int, stderr: str) -> bool:
     """A Ctrl-C that came while the Python interpreter itself was starting, before any line of batch ran:
     killed before Python handled SIGINT at all, or Python's own report (site, runpy, import machinery)."""
     if returncode == -signal.SIGINT and not stderr:
+        return True
+    if "Fatal Python error: init_import_site" in stderr:  # the site module, importing the standard library
         return True
     frames = [line for line in stderr.splitlines() if line.startswith('  File "')]
     return returncode != 0 and "KeyboardInterrupt" in stderr and all("<frozen" in f or "site-packages" in f
@@ -493,3 +495,71 @@ def test_verify_reports_unindexed_folders_and_leftovers_and_refuses_while_a_run_
     assert rerun.returncode == 0 and "nothing to render" in rerun.stderr, rerun.stderr
     _assert_true_index(dataset, len(records))
     assert batch("verify", str(dataset)).returncode == 0
+
+
+# --------------------------------------------------------------------------- issue 23: verified end to end, no links
+
+def _edit_line(dataset: Path, index: int, **changes) -> dict:
+    """Change keys of the ``index``-th index line (a person editing it); the edited record."""
+    records = read_index(dataset)
+    records[index] = {**records[index], **changes}
+    (dataset / "index.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+    return records[index]
+
+
+@pytest.mark.parametrize("changes, key", [
+    ({"scene": "room"}, "scene"),
+    ({"status": "failed"}, None),
+    ({"world_from_sensor": [[1, 0, 0, 1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, "world_from_sensor"),
+])
+def test_verify_names_an_index_line_that_contradicts_its_record_and_a_run_takes_the_record(tmp_path, changes, key):
+    set_file, dataset = _dataset(tmp_path)
+    before = read_index(dataset)
+    edited = _edit_line(dataset, 0, **changes)
+    proc = batch("verify", str(dataset))
+    assert proc.returncode == 1, proc.stdout
+    job = edited["job_id"]
+    if key is None:
+        assert f"frames/{job}: the index line says 'failed' but the frame folder exists" in proc.stdout
+    else:
+        assert f"frames/{job}: the index line differs from record.json in {key}" in proc.stdout
+    rerun = batch("run", str(set_file), "--out", str(dataset), "--quiet")
+    assert rerun.returncode == 0 and "nothing to render" in rerun.stderr, rerun.stderr
+    assert read_index(dataset) == before  # the line taken from record.json, nothing rendered again
+    assert batch("verify", str(dataset)).returncode == 0
+
+
+def test_verify_names_a_frame_exr_replaced_by_another_frames_and_a_symlinked_frame_folder(tmp_path):
+    _, dataset = _dataset(tmp_path)
+    first, second = read_index(dataset)[:2]
+    frames = dataset / "frames"
+    shutil.copyfile(frames / second["job_id"] / "frame.exr", frames / first["job_id"] / "frame.exr")
+    proc = batch("verify", str(dataset))
+    assert proc.returncode == 1 and f"frames/{first['job_id']}: frame.exr" in proc.stdout, proc.stdout
+    shutil.rmtree(frames / first["job_id"])
+    (frames / first["job_id"]).symlink_to(frames / second["job_id"])
+    proc = batch("verify", str(dataset))
+    assert proc.returncode == 1
+    assert f"frames/{first['job_id']}: the frame folder is a symbolic link" in proc.stdout, proc.stdout
+
+
+@pytest.mark.parametrize("name", ["frames", "index.jsonl", "README.md", "index.jsonl.rejected"])
+def test_a_path_of_the_dataset_planted_as_a_symlink_is_refused_and_nothing_written_through_it(tmp_path, name):
+    """DATASET/frames (or the index, the card) pointing elsewhere: one line, exit 2, the elsewhere untouched."""
+    set_file = write_set(tmp_path, SETS["corner-2-presets"])
+    dataset = tmp_path / "dataset"
+    dataset.mkdir()
+    elsewhere = tmp_path / "elsewhere"
+    if name == "frames":
+        elsewhere.mkdir()
+    else:
+        elsewhere.write_text("precious\n")
+    (dataset / name).symlink_to(elsewhere)
+    proc = batch("run", str(set_file), "--out", str(dataset), "--quiet")
+    assert proc.returncode == 2, proc.stderr
+    assert f"{dataset.resolve() / name}: a symbolic link; a run writes only inside the dataset folder" in proc.stderr
+    assert "Traceback" not in proc.stderr
+    if name == "frames":
+        assert list(elsewhere.iterdir()) == []
+    else:
+        assert elsewhere.read_text() == "precious\n"

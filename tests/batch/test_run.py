@@ -225,3 +225,72 @@ def test_a_lock_file_planted_as_a_symlink_is_refused_and_its_target_untouched(tm
     assert proc.returncode == 2, proc.stderr
     assert "the lock file is a symbolic link" in proc.stderr and "Traceback" not in proc.stderr
     assert precious.read_text() == "do not truncate me\n"
+
+
+#: What may differ between two runs of the same set: timings, the process, and the files that record timings.
+_RUN_DEPENDENT = {"render_seconds", "trace_seconds", "seconds", "rays_per_second", "finished", "pid", "host",
+                  "files", "record_file"}
+
+
+def test_one_or_two_workers_give_identical_index_lines_apart_from_timings(tmp_path):
+    """The README promises bit-identical datasets whatever the worker count: frames and every index value
+    that is not a timing (est_depth_error_m, convergence spp and errors, metrics) are equal (issue 23)."""
+    set_file = write_set(tmp_path, """
+seed = 3
+presets = ["kinect_v2"]
+resolution_scale = 0.0625
+[quality]
+spp = 40
+max_depth = 3
+[[scenes]]
+demo = "room"
+[[scenes.poses]]
+suggested = true
+[[scenes.poses]]
+eye = [1.0, -1.5, 1.4]
+target = [0.0, 1.0, 0.8]
+""")
+    for workers in ("1", "2"):
+        proc = batch("run", str(set_file), "--out", str(tmp_path / workers), "--workers", workers, "--quiet")
+        assert proc.returncode == 0, proc.stderr
+    assert assert_same_frames(tmp_path / "1", tmp_path / "2") == 2
+    for one, two in zip(read_index(tmp_path / "1"), read_index(tmp_path / "2")):
+        assert one["passes"] > 1  # adaptive passes ran
+        for key in sorted(one.keys() - _RUN_DEPENDENT):
+            value_1, value_2 = one[key], two[key]
+            if key == "convergence":
+                value_1, value_2 = ([{k: v for k, v in row.items() if k != "seconds"} for row in rows]
+                                    for rows in (value_1, value_2))
+            assert value_1 == value_2, (key, value_1, value_2)
+
+
+@pytest.mark.parametrize("formats", ['formats = ["png", "json"]', ""], ids=["previews", "every-format"])
+def test_a_set_file_and_a_dataset_in_folders_whose_names_are_not_utf8(tmp_path, formats):
+    """Bytes that are not UTF-8 in the set file's folder and in --out (issue 23, class 3): written, verified,
+    and the card names the paths with those bytes spelled \\xNN (before: UnicodeEncodeError writing README.md)."""
+    folder = Path(os.fsdecode(os.fsencode(tmp_path) + b"/sets\xff"))
+    folder.mkdir()
+    set_file = write_set(folder, f"""
+seed = 1
+presets = ["kinect_v2"]
+resolution_scale = 0.0625
+[quality]
+spp = 2
+max_depth = 1
+[output]
+{formats}
+[[scenes]]
+demo = "plane"
+[[scenes.poses]]
+suggested = true
+""".replace("[output]\n\n", ""))
+    dataset = Path(os.fsdecode(os.fsencode(tmp_path) + b"/out\xff\xfe"))
+    env = dict(os.environ, PYTHONPATH=str(REPO))
+    for argv in (["run", str(set_file), "--out", str(dataset), "--quiet"], ["verify", str(dataset)]):
+        proc = subprocess.run([sys.executable, "-m", "batch", *argv], cwd=REPO, env=env, capture_output=True,
+                              timeout=240)  # bytes: the paths are printed as the bytes they are
+        assert proc.returncode == 0 and b"Traceback" not in proc.stderr, proc.stderr
+    assert os.fsencode(dataset) in proc.stdout
+    card = (dataset / "README.md").read_bytes().decode("utf-8")  # valid UTF-8
+    assert "sets\\xff" in card
+    assert all(r["status"] == "ok" and r["error"] is None for r in read_index(dataset))

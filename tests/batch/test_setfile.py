@@ -178,3 +178,17 @@ def test_parse_frames():
             parse_frames(bad)
 
 
+@pytest.mark.parametrize("pose, line, key, needle", [
+    ("eye = [1.0, 1.0, 1.0]\ntarget = [1.0, 1.0, 1.0]", 6, "eye", "target must differ from eye"),
+    ("eye = [1.0, 1.0, 1.0]\ntarget = [1.0, 1.0, 0.0]\nup = [0.0, 0.0, 1.0]", 8, "up", "must not be parallel"),
+])
+def test_a_look_at_pose_error_names_the_pose_and_its_line_not_the_presets(tmp_path, pose, line, key, needle):
+    message = _error(tmp_path, f"""seed = 1
+presets = ["kinect_v2"]
+[[scenes]]
+demo = "corner"
+[[scenes.poses]]
+{pose}
+""")
+    assert message.startswith(f"{tmp_path / 'set.toml'}:{line}: scenes[0].poses[0].{key}: look_at: "), message
+    assert needle in message

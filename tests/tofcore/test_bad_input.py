@@ -157,6 +157,9 @@ BAD_SCENES = {
                                "array 'texture/5/roughness_texture' must be named texture/<material index < 1>"),
     "pose_not_a_matrix": (lambda a: dict(a, header=_header(metadata={"world_from_sensor": [[1, 2]]})),
                           "metadata.world_from_sensor must be a 4x4 matrix"),
+    "pose_scaled": (lambda a: dict(a, header=_header(metadata={"world_from_sensor": (2 * np.eye(4)).tolist()})),
+                    "header metadata.world_from_sensor must be a rigid transform: its rotation must be orthonormal "
+                    "(no scale or shear), got axis lengths [2.0, 2.0, 2.0]"),
 }
 
 
@@ -428,3 +431,28 @@ def test_preset_that_is_not_a_file(tmp_path, capsys):
             continue
         code, err = run(render_args(tmp_path, preset=str(path)), capsys)
         assert_refused(code, err, f"{path}: must be a preset .toml file", needle, out=tmp_path / "out")
+
+
+# --------------------------------------------------------------------------- issue 23, class 5
+
+@pytest.mark.parametrize("key", ["reflectance", "roughness", "metallic", "ior", "extinction"])
+@pytest.mark.parametrize("value", [True, np.bool_(False)])
+def test_a_material_refuses_booleans_as_numbers(key, value):
+    with pytest.raises(tofcore.ConfigError, match=rf"Material 'm': {key} must be a number in \[.*\], got "
+                                                  rf"{value!r}$"):
+        tofcore.Material(name="m", **{key: value})
+
+
+def test_an_aperture_wider_than_its_focus_distance_is_refused_naming_the_preset(tmp_path):
+    preset = tmp_path / "lens.toml"
+    preset.write_text(KINECT.replace("\nfx = ", "\naperture_radius_m = 1e6\nfocus_distance_m = 1e-9\nfx = ", 1))
+    code, err = run_subprocess(*render_args(tmp_path, preset=str(preset)))
+    assert_refused(code, err, f"{preset} [camera]: aperture_radius_m must be less than focus_distance_m",
+                   "got 1000000.0 with focus_distance_m 1e-09", out=tmp_path / "out")
+
+
+def test_an_extreme_focal_length_is_one_line_without_numpy_warnings(tmp_path):
+    preset = tiny_preset(tmp_path, fx="1e-300", k1="0.09")
+    code, err = run_subprocess(*render_args(tmp_path, preset=str(preset)))
+    line = assert_refused(code, err, f"{preset} [camera]: distortion", out=tmp_path / "out")
+    assert "RuntimeWarning" not in err and "fx=1e-300" in line

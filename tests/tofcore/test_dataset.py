@@ -260,11 +260,11 @@ def test_lines_that_are_not_records_are_skipped_with_a_warning(copy):
 def test_a_later_line_of_a_job_replaces_the_earlier_one(copy):
     index = copy / "index.jsonl"
     records = _index(copy)
-    again = dict(records[0], seed=123)
-    index.write_text("".join(json.dumps(r) + "\n" for r in [*records, again]))
+    earlier = dict(records[0], status="failed", error="an earlier attempt")
+    index.write_text("".join(json.dumps(r) + "\n" for r in [earlier, *records[1:], records[0]]))
     data = Dataset(copy)
-    assert len(data.frames(status=None)) == 6 and data.frame(again["job_id"]).seed == 123
-    assert data.frames(status=None)[-1].id == again["job_id"]
+    assert len(data.frames(status=None)) == 6 and data.frame(records[0]["job_id"]).status == "ok"
+    assert data.frames(status=None)[-1].id == records[0]["job_id"]
 
 
 def test_a_missing_frame_file_names_it(copy):
@@ -278,9 +278,10 @@ def test_a_missing_frame_file_names_it(copy):
     (other.folder / "frame.json").unlink()
     with pytest.raises(DatasetError, match="frame.json: frame file not found"):
         other.intrinsics
-    (data[3].folder / "frame.exr").write_bytes(b"not an EXR")
+    exr = data[3].folder / "frame.exr"
+    exr.write_bytes(b"not an EXR".ljust(exr.stat().st_size, b"!"))  # the size the record says: only read_exr sees it
     with pytest.raises(DatasetError, match=r"frame.exr: cannot be read as EXR") as exc:
-        data[3].load("depth")
+        Dataset(copy, checksum="size")[3].load("depth")
     assert str(data[3].folder) in _one_line(exc)
     shutil.rmtree(data[2].folder)
     with pytest.raises(DatasetError, match=f"{data[2].id}/frame.exr: frame file not found"):
@@ -293,11 +294,29 @@ def test_a_failed_frame_cannot_be_loaded_and_says_why(dataset):
         failed.load("depth")
 
 
+def _record_files_again(dataset: Path, job_id: str) -> None:
+    """Rewrite a frame's record.json and index line for its files as they are now (sizes, SHA-256)."""
+    import hashlib
+
+    folder = dataset / "frames" / job_id
+    record = json.loads((folder / "record.json").read_bytes())
+    for entry in record["files"]:
+        data = (folder / entry["name"]).read_bytes()
+        entry.update(bytes=len(data), sha256=hashlib.sha256(data).hexdigest())
+    data = (json.dumps(record, indent=1) + "\n").encode()
+    (folder / "record.json").write_bytes(data)
+    line = {**record, "record_file": {"kind": "record", "name": "record.json", "bytes": len(data),
+                                      "sha256": hashlib.sha256(data).hexdigest()}}
+    _write_index(dataset, [line if r["job_id"] == job_id else r for r in _index(dataset)])
+
+
 def test_a_channel_missing_from_the_file_names_file_and_channels(copy):
     ref = Dataset(copy)[0]
     stored = tofcore.read_exr(ref.folder / "frame.exr")
     del stored["render_error"]
     tofcore.exr.write(ref.folder / "frame.exr", stored)
+    _record_files_again(copy, ref.id)  # an older frame, as its record describes it
+    ref = Dataset(copy).frame(ref.id)
     with pytest.raises(DatasetError, match=r"frame.exr: channel 'render_error' not in the file; it holds \['ampl"):
         ref.load(["render_error"])
     assert "render_error" not in ref.load()
@@ -362,6 +381,75 @@ def test_the_torch_adapter_with_torch(dataset):
     assert batch["valid"].dtype == torch.bool and batch["raw"].shape == (2, 9, 13, 16)
     assert batch["intrinsics"].shape == (2, 3, 3) and batch["world_from_sensor"].shape == (2, 4, 4)
     assert batch["id"] == [data.refs[0].id, data.refs[1].id]
+
+
+# --------------------------------------------------------------------------- what the reader checks (issue 23)
+
+def _write_index(dataset: Path, records: list[dict]) -> None:
+    (dataset / "index.jsonl").write_text("".join(json.dumps(r) + "\n" for r in records))
+
+
+def test_a_frame_exr_replaced_by_another_frames_is_refused_when_loaded(copy):
+    data = Dataset(copy)
+    first, second = data[0], data[1]
+    shutil.copyfile(second.folder / "frame.exr", first.folder / "frame.exr")
+    with pytest.raises(DatasetError) as exc:
+        first.load("depth")
+    message = _one_line(exc)
+    assert message.startswith(f"{first.folder / 'frame.exr'}: ") and "frame's record" in message
+    assert second.load("depth")["depth"].shape == (second.intrinsics.height, second.intrinsics.width)
+
+
+def test_a_file_replaced_by_one_of_the_same_size_is_seen_by_its_checksum_unless_only_sizes_are_asked(copy):
+    ref = Dataset(copy)[0]
+    document = json.loads((ref.folder / "frame.json").read_bytes())
+    fx = document["metadata"]["intrinsics"]["fx"]
+    text = (ref.folder / "frame.json").read_text()
+    doubled = text.replace(f'"fx": {json.dumps(fx)}', f'"fx": {json.dumps(fx * 2)}', 1)
+    assert doubled != text
+    (ref.folder / "frame.json").write_text(doubled)
+    with pytest.raises(DatasetError, match=r"frame.json: (SHA-256 differs|\d+ bytes, the frame's record says)"):
+        ref.intrinsics
+
+
+def test_a_symlinked_frame_folder_is_refused_with_a_warning(copy):
+    records = [r for r in _index(copy) if r["status"] == "ok"]
+    target = copy / "frames" / records[0]["job_id"]
+    shutil.rmtree(target)
+    target.symlink_to(copy / "frames" / records[1]["job_id"])
+    with pytest.warns(UserWarning, match=r"1 frame\(s\) refused: .*a symbolic link, not a frame folder"):
+        data = Dataset(copy)
+    assert len(data) == 4 and records[0]["job_id"] in data.refused
+    with pytest.raises(DatasetError, match=f"frame {records[0]['job_id']}: refused"):
+        data.frame(records[0]["job_id"])
+
+
+@pytest.mark.parametrize("changes, key", [
+    ({"scene": "box_on_wall"}, "scene"),
+    ({"status": "failed"}, "status"),
+    ({"world_from_sensor": [[1, 0, 0, 1], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}, "world_from_sensor"),
+])
+def test_an_edited_index_line_is_replaced_by_the_frames_record_with_a_warning(copy, changes, key):
+    records = _index(copy)
+    truth = records[0]
+    records[0] = {**truth, **changes}
+    _write_index(copy, records)
+    with pytest.warns(UserWarning, match=rf"1 line\(s\) differ from their frame's record.json, which is used: "
+                                         rf"line 1 \({key}\)"):
+        data = Dataset(copy)
+    ref = data.frame(truth["job_id"])
+    assert (ref.scene, ref.status) == (truth["scene"], "ok")
+    assert ref.record["world_from_sensor"] == truth["world_from_sensor"]
+    assert [f.id for f in data.frames(scene="corner")][0] == truth["job_id"]
+
+
+@pytest.mark.parametrize("keep", [0, 3])
+def test_frame_folders_the_index_does_not_list_are_counted_in_a_warning(copy, keep):
+    records = [r for r in _index(copy) if r["status"] == "ok"]
+    _write_index(copy, records[:keep])
+    with pytest.warns(UserWarning, match=rf"{5 - keep} frame folder\(s\) in frames/ are not in index.jsonl"):
+        data = Dataset(copy)
+    assert len(data) == keep and len(data.unindexed) == 5 - keep
 
 
 def test_the_torch_adapter_refuses_mixed_presets_in_one_line(dataset, monkeypatch):

@@ -114,3 +114,81 @@ def test_a_bad_origin_in_a_scene_file_is_named(tmp_path, origin):
     assert zipfile.is_zipfile(tmp_path / "bad.npz")
     with pytest.raises(tofcore.errors.SceneError, match=r"bad\.npz.*origin_m must be 3 finite numbers"):
         Scene.load(tmp_path / "bad.npz")
+
+
+# --------------------------------------------------------------------------- issue 23, class 4
+
+@pytest.mark.parametrize("offset_m", [1e5, 1e6])
+def test_a_far_scene_file_stored_without_recentring_is_recentred_on_load(tmp_path, offset_m):
+    """A file made elsewhere: world coordinates 1e5-1e6 m out and origin_m 0 (or no key): recentred anyway."""
+    offset = np.array([offset_m, -0.5 * offset_m, 0.0])
+    far = Scene.from_arrays(ROOM.vertices.astype(np.float64) + offset, ROOM.triangles, ROOM.material_ids,
+                            ROOM.materials, origin_m=(0.0, 0.0, 0.0))
+    assert np.abs(np.asarray(far.origin_m) - offset).max() < 3.0 and np.abs(far.vertices).max() < 10.0
+    path = far.save(tmp_path / "far.npz")
+    again = Scene.load(path)
+    assert again.origin_m == far.origin_m and np.array_equal(again.vertices, far.vertices)
+
+
+@pytest.mark.parametrize("kwargs, needle", [
+    ({"origin_m": (1e300, 0.0, 0.0)}, "origin_m must be 3 finite numbers (metres) within float32 range"),
+    ({"vertex": 1e39}, "vertices must be within float32 range"),
+])
+def test_values_float32_cannot_hold_are_refused_naming_the_field(kwargs, needle):
+    vertices = ROOM.vertices.astype(np.float64).copy()
+    if "vertex" in kwargs:
+        vertices[3, 0] = kwargs.pop("vertex")
+    with pytest.raises(tofcore.SceneError) as exc:
+        Scene.from_arrays(vertices, ROOM.triangles, ROOM.material_ids, ROOM.materials, **kwargs)
+    assert needle in str(exc.value) and "\n" not in str(exc.value)
+
+
+def _quad(x: tuple[float, float], y: tuple[float, float], z: tuple[float, float]) -> tuple[np.ndarray, np.ndarray]:
+    """Two triangles spanning an axis-aligned rectangle (one of the three ranges is a single value)."""
+    if x[0] == x[1]:
+        corners = [(x[0], y[0], z[0]), (x[0], y[1], z[0]), (x[0], y[1], z[1]), (x[0], y[0], z[1])]
+    elif y[0] == y[1]:
+        corners = [(x[0], y[0], z[0]), (x[1], y[0], z[0]), (x[1], y[0], z[1]), (x[0], y[0], z[1])]
+    else:
+        corners = [(x[0], y[0], z[0]), (x[1], y[0], z[0]), (x[1], y[1], z[0]), (x[0], y[1], z[0])]
+    return np.array(corners, np.float64), np.array([[0, 1, 2], [0, 2, 3]])
+
+
+def _scene(*quads) -> Scene:
+    vertices, triangles = [], []
+    for v, t in quads:
+        triangles.append(t + sum(len(x) for x in vertices))
+        vertices.append(v)
+    return Scene.from_arrays(np.concatenate(vertices), np.concatenate(triangles), name="quads")
+
+
+@pytest.mark.parametrize("ground_m", [5e5, 2e6])
+def test_a_huge_ground_plane_does_not_hide_a_wall_in_front_of_the_camera(ground_m):
+    """A wall 2 m ahead and a ground plane 500-2000 km wide: the wall's first hits and direct light are those
+    of the wall alone (before, the ray offset was 2^-16 of the scene's extent: 8-30 m, and the wall vanished).
+
+    Within ~0.1 m of the ground the float32 triangle test of a 4000 km triangle cannot tell which of the two
+    is closer (its t is off by ~0.1 m): those grazing pixels, one row here, are left out.
+    """
+    wall = _quad((-2.0, 2.0), (2.0, 2.0), (0.0, 2.0))
+    ground = _quad((-ground_m, ground_m), (-ground_m, ground_m), (0.0, 0.0))
+    pose = look_at((0.0, 0.0, 1.0), (0.0, 2.0, 1.0))
+    alone, _ = per_bounce(_scene(wall), pose)
+    both, _ = per_bounce(_scene(wall, ground), pose)
+    on_wall = np.isfinite(alone.first_hit.distance_m) & (alone.first_hit.position_m[..., 2] > 0.25)
+    assert on_wall.mean() > 0.3
+    np.testing.assert_allclose(both.first_hit.distance_m[on_wall], alone.first_hit.distance_m[on_wall],
+                               rtol=0, atol=1e-6)
+    np.testing.assert_allclose(both.signal(max_k=1)[on_wall], alone.signal(max_k=1)[on_wall], rtol=1e-6)
+    below = both.first_hit.position_m[..., 2] < 1e-3  # the pixels that see the ground, near and far
+    assert below.sum() > 0 and np.isfinite(both.first_hit.distance_m[below]).all()
+
+
+def test_a_camera_a_micrometre_in_front_of_a_wall_sees_it_at_every_pixel():
+    """Lens and LED 1 µm from a wall 1 m from the scene frame's origin (the offset of rays leaving the lens
+    is 4 float32 ulps of its coordinates: 0.48 µm here): every pixel's first hit is that wall, 1-2 µm away."""
+    wall = _scene(_quad((-1.0, 1.0), (1.0, 1.0), (-1.0, 1.0)))
+    t, _ = per_bounce(wall, look_at((0.0, 1.0 - 1e-6, 0.0), (0.0, 2.0, 0.0)), leds=[LED(position_m=(0.0, 0.0, 0.0))])
+    distance = t.first_hit.distance_m
+    assert np.isfinite(distance).all()
+    assert distance.min() > 0.9e-6 and distance.max() < 2e-6

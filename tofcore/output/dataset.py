@@ -16,9 +16,30 @@ The fields of a record are listed in ``batch/dataset.py``; what the files hold
 in :mod:`tofcore.output.writers`. A frame is listed when its index line is a record
 (a JSON object with a ``job_id``); other lines (a line cut by a crash, a
 stray edit) are skipped with one warning naming the index and the line
-numbers. When a job has several lines, the last one wins. A frame folder
-without an index line (an index damaged by hand) is not listed: running the
-set again (``tofcore-batch run``) repairs the index without rendering it.
+numbers. When a job has several lines, the last one wins.
+
+What the reader checks
+----------------------
+The frame folders are the truth, the index a summary of them. When the
+dataset is opened, each indexed frame's ``record.json`` is read (a small file):
+
+* an ok frame whose folder, ``record.json`` or a listed file is a symbolic
+  link, whose ``record.json`` is missing, or does not match the size and
+  SHA-256 the index keeps for it (``record_file``), is refused: not listed,
+  one warning naming it and why (:attr:`Dataset.refused`);
+* an index line that differs from its frame's ``record.json`` (an edited
+  scene, status or pose) is replaced by ``record.json``, with one warning
+  naming the line and the keys;
+* frame folders that the index does not list (an emptied or shortened
+  index) are not listed, with one warning counting them: running the set
+  again (``tofcore-batch run``) repairs the index without rendering them.
+
+When a frame's file is opened (``frame.exr`` by :meth:`FrameRef.load`,
+``frame.json`` for metadata), its size is compared with the record every time
+and its SHA-256 the first time (``Dataset(root, checksum="size")`` skips the
+hash); a mismatch (a file replaced by another frame's) is a
+:class:`DatasetError` naming the file. ``tofcore-batch verify`` checks every
+file of every frame at once.
 
 Channels
 --------
@@ -71,8 +92,12 @@ Example
 
 from __future__ import annotations
 
+import errno
+import hashlib
 import json
 import os
+import re
+import stat
 import warnings
 from collections.abc import Iterable, Iterator, Sequence
 from dataclasses import dataclass
@@ -98,6 +123,9 @@ STACKED_CHANNELS = ("raw", "distance_per_k", "ray_directions")
 CHANNELS = IMAGE_CHANNELS + STACKED_CHANNELS
 #: Values of a record's ``status``.
 STATUSES = ("ok", "failed")
+#: What a frame's files are checked against when opened: ``"sha256"`` (size always, hash at first open) or ``"size"``.
+CHECKSUMS = ("sha256", "size")
+_JOB_ID = re.compile(r"[0-9a-f]{16}")
 
 
 class DatasetError(ConfigError):
@@ -178,9 +206,10 @@ class FrameRef:
         ``DATASET/frames/<id>``; None unless the status is ``"ok"``.
     """
 
-    __slots__ = ("id", "scene", "view", "preset", "seed", "status", "record", "folder", "_document")
+    __slots__ = ("id", "scene", "view", "preset", "seed", "status", "record", "folder", "checksum", "_document",
+                 "_checked")
 
-    def __init__(self, record: dict, root: Path):
+    def __init__(self, record: dict, root: Path, checksum: str = "sha256"):
         self.record = record
         self.id = str(record["job_id"])
         self.scene = record.get("scene")
@@ -190,7 +219,9 @@ class FrameRef:
         self.seed = record.get("seed")
         self.status = record.get("status")
         self.folder = root / FRAMES / self.id if self.status == "ok" else None
+        self.checksum = checksum
         self._document: dict | None = None
+        self._checked: set[str] = set()  # files whose SHA-256 matched the record
 
     def __repr__(self) -> str:
         return (f"FrameRef({self.id!r}, scene={self.scene!r}, view={self.view!r}, preset={self.preset!r}, "
@@ -210,10 +241,25 @@ class FrameRef:
             raise DatasetError(f"frame {self.id}: status {self.status!r}, no files "
                                f"(error: {self.record.get('error')})")
         path = self.folder / name
+        if self.folder.is_symlink() or path.is_symlink():
+            raise DatasetError(f"{path}: a symbolic link, not a frame file (a run never writes one); refused")
         if not path.is_file():
             formats = (self.record.get("settings") or {}).get("formats")
             hint = f" (the set's formats were {formats})" if name == FRAME_EXR and formats else ""
             raise DatasetError(f"{path}: frame file not found{hint}")
+        entry = next((e for e in self.record.get("files") or [] if isinstance(e, dict) and e.get("name") == name),
+                     None)
+        if entry is None:
+            raise DatasetError(f"{path}: not among the files of the frame's record")
+        size = path.stat().st_size
+        if size != entry.get("bytes"):
+            raise DatasetError(f"{path}: {size} bytes, the frame's record says {entry.get('bytes')} (replaced or "
+                               f"damaged; tofcore-batch verify checks the dataset)")
+        if self.checksum == "sha256" and name not in self._checked:
+            if _sha256_of(path) != entry.get("sha256"):
+                raise DatasetError(f"{path}: SHA-256 differs from the frame's record (replaced or damaged; "
+                                   f"tofcore-batch verify checks the dataset)")
+            self._checked.add(name)
         return path
 
     @property
@@ -389,6 +435,27 @@ class FrameRef:
         return sample
 
 
+def _sha256_of(path: Path) -> str:
+    with open(path, "rb") as fh:
+        return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+def read_regular(path: Path) -> bytes:
+    """The bytes of ``path``: a regular file, its last component not a symbolic link (else OSError)."""
+    fd = os.open(path, os.O_RDONLY | os.O_NOFOLLOW | os.O_CLOEXEC | os.O_NONBLOCK)
+    with os.fdopen(fd, "rb") as fh:
+        if not stat.S_ISREG(os.fstat(fd).st_mode):
+            raise OSError(errno.EINVAL, "not a regular file", str(path))
+        return fh.read()
+
+
+def differing_keys(line: dict, stored: dict) -> list[str]:
+    """Top-level keys in which an index line and its ``record.json`` differ (the index's ``record_file`` left out)."""
+    missing = object()
+    keys = (line.keys() | stored.keys()) - {"record_file"}
+    return sorted(k for k in keys if line.get(k, missing) != stored.get(k, missing))
+
+
 def _check_channels(channels, where: str) -> list[str] | None:
     """``channels`` as a list of known names (duplicates dropped), None for all; DatasetError listing valid names."""
     if channels is None:
@@ -425,12 +492,22 @@ class Dataset:
     ----------
     root : str or os.PathLike
         The dataset folder (holding ``index.jsonl`` and ``frames/``).
+    checksum : {"sha256", "size"}
+        How a frame's files are checked when opened: size every time and
+        SHA-256 the first time (default), or size only.
 
     Raises
     ------
     DatasetError
         ``root`` is missing, not a folder, or has no ``index.jsonl``/``frames/``
         (one line naming the path).
+
+    Warns
+    -----
+    UserWarning
+        Index lines that are not records, lines that differ from their
+        frame's ``record.json`` (which is used), frames refused (see the
+        module docstring) and frame folders the index does not list.
 
     Notes
     -----
@@ -446,7 +523,10 @@ class Dataset:
     ...     depth = frame.load("depth")["depth"]
     """
 
-    def __init__(self, root: str | os.PathLike):
+    def __init__(self, root: str | os.PathLike, checksum: str = "sha256"):
+        if checksum not in CHECKSUMS:
+            raise DatasetError(f"Dataset: checksum must be one of {list(CHECKSUMS)}, got {checksum!r}")
+        self.checksum = checksum
         self.root = Path(root).expanduser().resolve()
         if not self.root.exists():
             raise DatasetError(f"{self.root}: dataset folder not found")
@@ -456,11 +536,17 @@ class Dataset:
         if not self.index_path.is_file():
             raise DatasetError(f"{self.root}: not a dataset folder (no {INDEX}; "
                                f"`tofcore-batch run SET.toml --out FOLDER` writes one)")
-        if not (self.root / FRAMES).is_dir():
-            raise DatasetError(f"{self.root}: not a dataset folder (no {FRAMES}/ beside {INDEX})")
+        if (self.root / FRAMES).is_symlink() or not (self.root / FRAMES).is_dir():
+            raise DatasetError(f"{self.root}: not a dataset folder (no {FRAMES}/ beside {INDEX}, or a symbolic "
+                               f"link)")
         self._refs: dict[str, FrameRef] = {}
         self.skipped_lines: list[int] = []
+        #: Frames of the index that were not listed, by id: why (see the module docstring).
+        self.refused: dict[str, str] = {}
+        #: Frame folders that the index does not list.
+        self.unindexed: list[str] = []
         self._read_index()
+        self._check_against_folders()
 
     def _read_index(self) -> None:
         """Fill ``_refs`` in index order (a job's last line wins); skip and warn about lines that are not records."""
@@ -477,11 +563,65 @@ class Dataset:
                     self.skipped_lines.append(number)
                     continue
                 self._refs.pop(job_id, None)
-                self._refs[job_id] = FrameRef(record, self.root)
+                self._refs[job_id] = FrameRef({**record, "_line": number}, self.root, self.checksum)
         if self.skipped_lines:
             shown = ", ".join(map(str, self.skipped_lines[:10])) + (" …" if len(self.skipped_lines) > 10 else "")
             warnings.warn(f"{self.index_path}: skipped {len(self.skipped_lines)} line(s) that are not frame "
                           f"records (line {shown})", stacklevel=3)
+
+    def _check_against_folders(self) -> None:
+        """Each indexed frame against its ``record.json``, and the frame folders against the index (module
+        docstring): replace edited lines, refuse what cannot be trusted, count unindexed folders; one warning each."""
+        corrected: list[str] = []
+        for job_id, ref in list(self._refs.items()):
+            line = ref.record.pop("_line")
+            folder = self.root / FRAMES / job_id
+            if not (folder.exists() or folder.is_symlink()):
+                if ref.status == "ok":
+                    self._refuse(job_id, f"{folder}: frame folder not found")
+                continue
+            if folder.is_symlink():
+                self._refuse(job_id, f"{folder}: a symbolic link, not a frame folder (a run never publishes one)")
+                continue
+            try:
+                data = read_regular(folder / RECORD)
+                stored = json.loads(data)
+            except (OSError, ValueError, RecursionError) as exc:
+                if ref.status == "ok":
+                    self._refuse(job_id, f"{folder / RECORD}: cannot be read ({getattr(exc, 'strerror', None) or exc})")
+                continue
+            expected = ref.record.get("record_file")
+            if isinstance(expected, dict) and (len(data) != expected.get("bytes")
+                                               or hashlib.sha256(data).hexdigest() != expected.get("sha256")):
+                self._refuse(job_id, f"{folder / RECORD}: does not match the size and SHA-256 the index keeps for it")
+                continue
+            if not isinstance(stored, dict) or stored.get("job_id") != job_id or stored.get("status") not in STATUSES:
+                self._refuse(job_id, f"{folder / RECORD}: not the record of frame {job_id}")
+                continue
+            changed = differing_keys(ref.record, stored)
+            if changed:
+                corrected.append(f"line {line} ({', '.join(changed)})")
+                self._refs[job_id] = FrameRef({**stored, **({"record_file": expected} if expected else {})},
+                                              self.root, self.checksum)
+        if corrected:
+            shown = "; ".join(corrected[:5]) + (" …" if len(corrected) > 5 else "")
+            warnings.warn(f"{self.index_path}: {len(corrected)} line(s) differ from their frame's {RECORD}, "
+                          f"which is used: {shown}; tofcore-batch run repairs the index", stacklevel=3)
+        if self.refused:
+            shown = "; ".join(self.refused.values()) if len(self.refused) <= 3 else \
+                "; ".join(list(self.refused.values())[:3]) + " …"
+            warnings.warn(f"{self.root}: {len(self.refused)} frame(s) refused: {shown}", stacklevel=3)
+        known = self._refs.keys() | self.refused.keys()
+        self.unindexed = sorted(p.name for p in (self.root / FRAMES).iterdir()
+                                if _JOB_ID.fullmatch(p.name) and p.name not in known)
+        if self.unindexed:
+            warnings.warn(f"{self.root}: {len(self.unindexed)} frame folder(s) in {FRAMES}/ are not in {INDEX} and "
+                          f"not listed (e.g. {self.unindexed[0]}); running the set again (tofcore-batch run) "
+                          f"repairs the index", stacklevel=3)
+
+    def _refuse(self, job_id: str, why: str) -> None:
+        self._refs.pop(job_id)
+        self.refused[job_id] = why
 
     def __repr__(self) -> str:
         return f"Dataset({str(self.root)!r}: {len(self)} ok of {len(self._refs)} frames)"
@@ -535,6 +675,8 @@ class Dataset:
 
     def frame(self, frame_id: str) -> FrameRef:
         """The frame with job id ``frame_id`` (any status); DatasetError if the index has none."""
+        if frame_id in self.refused:
+            raise DatasetError(f"frame {frame_id}: refused ({self.refused[frame_id]})")
         try:
             return self._refs[frame_id]
         except KeyError:

@@ -121,8 +121,15 @@ class Camera:
             raise ConfigError(f"Camera: aperture_radius_m must be >= 0, got {self.aperture_radius_m!r}")
         if not self.focus_distance_m > 0:  # also rejects NaN; +inf is focus at infinity
             raise ConfigError(f"Camera: focus_distance_m must be > 0 (inf allowed), got {self.focus_distance_m!r}")
+        if 0 < self.aperture_radius_m and not self.aperture_radius_m < self.focus_distance_m:
+            raise ConfigError(f"Camera: aperture_radius_m must be less than focus_distance_m (a thin lens focuses "
+                              f"at a distance beyond its own radius), got {self.aperture_radius_m!r} with "
+                              f"focus_distance_m {self.focus_distance_m!r}")
         if self.has_distortion:
-            self._check_invertible()
+            # An extreme focal length (fx = 1e-300) overflows the distortion polynomial: the NaN it gives
+            # fails the check, which is the one line to say; NumPy's warnings about it are not.
+            with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+                self._check_invertible()
 
     @classmethod
     def from_fov(cls, width: int, height: int, hfov_deg: float, vfov_deg: float | None = None,

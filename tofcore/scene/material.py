@@ -131,7 +131,8 @@ class Material:
     def __post_init__(self) -> None:
         for key, (lo, hi) in _RANGES.items():
             value = getattr(self, key)
-            if not isinstance(value, (int, float, np.floating, np.integer)) or not np.isfinite(value) \
+            if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.floating, np.integer)) \
+                    or not np.isfinite(value) \
                     or not lo <= float(value) <= hi:
                 raise ConfigError(f"Material {self.name!r}: {key} must be a number in [{lo:g}, {hi:g}], got {value!r}")
             object.__setattr__(self, key, float(value))

@@ -40,3 +40,20 @@ def look_at(eye, target, up=(0.0, 0.0, 1.0)) -> np.ndarray:
 def from_blender_matrix_world(matrix_world) -> np.ndarray:
     """``world_from_sensor`` of a Blender camera from its ``matrix_world`` (4×4)."""
     return np.asarray(matrix_world, dtype=np.float64) @ BLENDER_FROM_OPENCV
+
+
+def rigid_problem(matrix: np.ndarray) -> str | None:
+    """None when a finite 4×4 ``world_from_sensor`` is a rigid transform, else what is wrong (one phrase).
+
+    Rigid: the 3×3 block R orthonormal with det R = +1 (|RRᵀ − I| ≤ 1e-6), last row 0 0 0 1 — a scale
+    or shear would stretch every ray's length and so every depth.
+    """
+    rot = matrix[:3, :3]
+    if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6):
+        scale = np.sqrt(np.abs(np.diag(rot @ rot.T)))
+        return f"its rotation must be orthonormal (no scale or shear), got axis lengths {np.round(scale, 6).tolist()}"
+    if np.linalg.det(rot) < 0:
+        return "its rotation must have determinant +1 (no mirroring)"
+    if not np.allclose(matrix[3], [0, 0, 0, 1]):
+        return f"its last row must be 0 0 0 1, got {matrix[3].tolist()}"
+    return None

@@ -40,13 +40,18 @@ import numpy as np
 from .. import limits
 from ..errors import ConfigError, SceneError, TofError
 from .material import Material, Texture
+from .pose import rigid_problem
 
 FORMAT_VERSION = 1
 """Version of the ``.npz`` layout written by :meth:`Scene.save`."""
 
 RECENTRE_BEYOND_M = 1000.0
 """Geometry whose bounding box reaches farther than this from the world origin is stored relative to
-``origin_m`` (float32 resolution at 1 km: 61 µm)."""
+``origin_m`` (float32 resolution at 1 km: 61 µm); also a saved scene whose stored vertices reach farther
+than this from its ``origin_m`` (made elsewhere, or before ``origin_m`` existed) is recentred on load."""
+
+FLOAT32_MAX_M = float(np.finfo(np.float32).max)
+"""Largest coordinate (metres) a float32 holds: larger vertices or ``origin_m`` are refused, not turned into inf."""
 
 
 def _first_bad(mask: np.ndarray) -> int:
@@ -125,8 +130,17 @@ class Scene:
         if needs_uv and uvs is None:
             raise SceneError(f"{where}: uvs are required by the textured materials {needs_uv}")
 
+        big = np.abs(vertices) > FLOAT32_MAX_M
+        if big.any():
+            i = _first_bad(big)
+            raise SceneError(f"{where}: vertices must be within float32 range (|x| <= {FLOAT32_MAX_M:.3g} m), "
+                             f"got {vertices[i].tolist()} at vertex {i}")
         origin = _origin(vertices, triangles, origin_m, where)
-        vertices = (vertices if origin_m is not None else vertices - origin).astype(np.float32)
+        vertices = vertices if origin_m is not None else vertices - origin
+        # Stored about origin_m but still far from it (a file made elsewhere, an older file without the
+        # header key, a header that says 0): recentre it too, whatever the header says.
+        shift = _origin(vertices, triangles, None, where)
+        origin, vertices = origin + shift, (vertices - shift).astype(np.float32)
         keep = ~_degenerate(vertices, triangles)
         dropped = int(n_tri - keep.sum())
         if not keep.any():
@@ -436,6 +450,9 @@ def _header(value: np.ndarray, where: str) -> dict:
         if matrix is None or matrix.shape != (4, 4) or not np.isfinite(matrix).all():
             raise SceneError(f"{where}: header metadata.world_from_sensor must be a 4x4 matrix of finite numbers, "
                              f"got {pose!r}")
+        problem = rigid_problem(matrix)
+        if problem is not None:
+            raise SceneError(f"{where}: header metadata.world_from_sensor must be a rigid transform: {problem}")
     return header
 
 
@@ -476,8 +493,9 @@ def _origin(vertices: np.ndarray, triangles: np.ndarray, origin_m, where: str) -
             origin = np.asarray(origin_m, dtype=np.float64)
         except (TypeError, ValueError):
             origin = np.full(1, np.nan)
-        if origin.shape != (3,) or not np.isfinite(origin).all():
-            raise SceneError(f"{where}: origin_m must be 3 finite numbers (metres), got {origin_m!r}")
+        if origin.shape != (3,) or not np.isfinite(origin).all() or np.abs(origin).max() > FLOAT32_MAX_M:
+            raise SceneError(f"{where}: origin_m must be 3 finite numbers (metres) within float32 range "
+                             f"(|x| <= {FLOAT32_MAX_M:.3g}: world-frame outputs are float32), got {origin_m!r}")
         return origin
     used = vertices[np.unique(triangles)]
     lo, hi = used.min(axis=0), used.max(axis=0)

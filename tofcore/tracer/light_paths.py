@@ -35,7 +35,7 @@ import numpy as np
 
 from ..scene.bsdf import eval_bsdf, eval_pdf_bsdf
 from . import qmc
-from .surface import Surface, dot, leaving, rotate, shadow_ray, surface_at
+from .surface import LEAVE_RELATIVE, Surface, dot, leaving, point_offset, rotate, shadow_ray, spawn_offset, surface_at
 
 DIM_LED_CHOICE = 1_000_000   # 1-D sample dimension: which LED emits the light vertex
 DIM_EMISSION = 1_000_001     # 2-D: its emission direction
@@ -78,7 +78,7 @@ def trace_light_vertices(ctx, stats, pixel, sample) -> LightVertices:
         pdf_dir[sel] = q[i] * led.emission_pdf(local[sel, 2])
     direction = rotate(local, ctx.rotation)
     origin = ctx.led_positions[led_index]
-    hits = ctx.scene.bvh.intersect(leaving(origin, direction, ctx.offset_scale), direction.astype(np.float32), workers=1)
+    hits = ctx.scene.bvh.intersect(leaving(origin, direction), direction.astype(np.float32), workers=1)
     stats.light_rays += n
     hit = xp.flatnonzero((hits.prim >= 0) & (pdf_dir > 0))
     row = xp.full(n, -1, np.int64)
@@ -93,7 +93,7 @@ def trace_light_vertices(ctx, stats, pixel, sample) -> LightVertices:
         emitted = np.where(cos_geo > 0, power / xp.asarray(np.where(q > 0, q, 1.0))[led_index[hit]]
                            * cos_shading / cos_geo, 0.0)
     # An LED on (or behind) the surface it lights has no light vertex there: nothing leaves it that way.
-    away = led_distance > ctx.offset_scale
+    away = led_distance > point_offset(origin[hit], LEAVE_RELATIVE)
     emitted = np.where(away, emitted, 0.0)
     pdf_area = np.where(away, pdf_dir[hit] * np.abs(cos_geo) / np.where(away, led_distance, 1.0)**2, 0.0)
     return LightVertices(row=row, surface=surf, prim=hits.prim[hit], to_led=to_led, led_distance=led_distance,
@@ -136,7 +136,9 @@ def connect(ctx, stats, light: LightVertices, slot, surf: Surface, spawn, wo, pr
     if len(test):
         clock = time.perf_counter()
         # Stop short of y by a few ray offsets, so y's own surface does not occlude it.
-        blocked = ctx.scene.bvh.occluded(*shadow_ray(spawn[sel[test]], y.position[test], 4.0 * ctx.offset_scale),
+        corners = ctx.table.vertices[ctx.table.triangles[light.prim[rows[test]]]]  # y's triangles
+        margin = 4.0 * spawn_offset(y.position[test], y.geometric_normal[test], corners)
+        blocked = ctx.scene.bvh.occluded(*shadow_ray(spawn[sel[test]], y.position[test], margin),
                                          ignore_prim=prim[sel[test]], workers=1)
         stats.shadow_rays += len(test)
         stats.shadow_seconds += time.perf_counter() - clock

@@ -73,19 +73,71 @@ def rotate(v: np.ndarray, rotation: np.ndarray) -> np.ndarray:
     return v[:, 0:1] * rotation[:, 0] + v[:, 1:2] * rotation[:, 1] + v[:, 2:3] * rotation[:, 2]
 
 
-def leaving(origin: np.ndarray, direction: np.ndarray, offset_m: float) -> np.ndarray:
-    """float32 ray origins moved ``offset_m`` along their rays, for rays that start at the lens or an LED
-    rather than on a surface: a camera or LED mounted flush with a wall does not hit that wall at t ≈ 0.
+SPAWN_RELATIVE = 2.0**-16
+"""Ray offsets from a surface, relative to the float32 error bound of the hit point (:func:`spawn_offset`).
+
+2⁻¹⁶ is 128 float32 ulps (2⁻²³) of a coordinate: far above the rounding of a float32 hit point and of
+the triangle test near it (so no self-hit on a neighbouring triangle), far below any feature a ToF pixel
+resolves (15 µm at 1 m from the scene frame's origin).
+"""
+
+LEAVE_RELATIVE = 2.0**-21
+"""Offsets of rays that start at the lens or an LED (:func:`leaving`), relative to that point's coordinates.
+
+4 float32 ulps: enough that a wall through the lens (a camera mounted flush with it) is not hit at
+t ≈ 0, small enough that a wall 1 µm in front of a lens 1.5 m from the origin is still seen (0.7 µm).
+"""
+
+OFFSET_FLOOR_M = 1e-3
+"""Coordinates below a millimetre count as a millimetre in the offsets (points at the scene frame's origin)."""
+
+
+def spawn_offset(position: np.ndarray, normal: np.ndarray, corners: np.ndarray) -> np.ndarray:
+    r"""(N,) distances to move hit points along their geometric normals before a ray leaves them.
+
+    After pbrt-v4 (``OffsetRayOrigin``, error bounds from the intersection) and Mitsuba 3 (ray epsilon
+    scaled by the point's magnitude), never from the scene's extent: a 2000 km ground plane does not
+    move the rays of a wall 2 m away.
+
+    .. math::
+
+        \delta = 2^{-16} \max\big(\lVert p \rVert_\infty,\; \textstyle\sum_k |n_k| \max_i |p_{i,k}|,
+        \; 1\,\mathrm{mm}\big)
+
+    The second term is pbrt's bound γ·Σᵢ|bᵢ pᵢ| of a point interpolated from the triangle's corners pᵢ,
+    projected on the normal (barycentrics bᵢ ≤ 1): a large triangle far from the origin needs a large
+    offset, an axis-aligned one (a ground plane z = 0) none along its normal.
+
+    Parameters
+    ----------
+    position : (N, 3) hit points, scene frame, metres.
+    normal : (N, 3) unit geometric normals.
+    corners : (N, 3, 3) the corners of each hit triangle (corner, axis), metres.
+    """
+    own = np.abs(position).max(axis=1)
+    local = dot(np.abs(normal), np.abs(corners).max(axis=1))
+    return SPAWN_RELATIVE * np.maximum(np.maximum(own, local), OFFSET_FLOOR_M)
+
+
+def point_offset(point: np.ndarray, relative: float = SPAWN_RELATIVE) -> np.ndarray:
+    """(N,) ``relative`` × the largest coordinate of each point (at least :data:`OFFSET_FLOOR_M`)."""
+    return relative * np.maximum(np.abs(point).max(axis=1), OFFSET_FLOOR_M)
+
+
+def leaving(origin: np.ndarray, direction: np.ndarray) -> np.ndarray:
+    """float32 ray origins moved along their rays by :data:`LEAVE_RELATIVE` of their coordinates, for rays
+    that start at the lens or an LED rather than on a surface: a camera or LED mounted flush with a wall
+    does not hit that wall at t ≈ 0.
 
     Only the intersection query starts there: path lengths are measured from the true point, and
     :func:`surface_at` gets the true origin.
     """
-    return (origin + offset_m * direction).astype(np.float32)
+    return (origin + point_offset(origin, LEAVE_RELATIVE)[:, None] * direction).astype(np.float32)
 
 
-def shadow_ray(spawn: np.ndarray, target: np.ndarray, margin_m: float):
-    """float32 (origins, unit directions, t_max) of shadow rays from ``spawn`` that stop ``margin_m`` short
-    of ``target`` (an LED, or a light vertex on a surface).
+def shadow_ray(spawn: np.ndarray, target: np.ndarray, margin_m: np.ndarray):
+    """float32 (origins, unit directions, t_max) of shadow rays from ``spawn`` that stop ``margin_m`` (per
+    ray) short of ``target`` (an LED, or a light vertex on a surface).
 
     Aimed and measured from the spawn point itself, not from the surface point it was offset from: the
     surface at the target (an LED mounted flush with a wall, the light vertex's own triangle) then lies

@@ -35,6 +35,7 @@ Memory is bounded by the chunk size (rays in flight), not by spp.
 from __future__ import annotations
 
 import functools
+import importlib
 import pickle
 import time
 import uuid
@@ -53,14 +54,20 @@ from ..scene.ambient import Ambient
 from ..scene.bsdf import eval_bsdf, sample_bsdf
 from ..scene.camera import Camera
 from ..scene.led import LED, leds_at_pinhole
+from ..scene.pose import rigid_problem
 from ..scene.scene import Scene
 from . import qmc, rng, workers
 from .light_paths import bsdf_strategy_weight, connect, led_probabilities, trace_light_vertices
-from .surface import MaterialTable, Surface, dot, leaving, rotate, shadow_ray, surface_at
+from .surface import MaterialTable, Surface, dot, leaving, point_offset, rotate, shadow_ray, spawn_offset, surface_at
 from .workers import process_support
 
 Correlation = Callable[[np.ndarray], np.ndarray]
 """g_j(τ): delay τ in seconds (float64 array) → correlation value per contribution (same shape)."""
+
+COMPILED_TRACER = "tofcore.compiled"
+"""The compiled per-path tracer. It stands above this module (it reuses the scene's, the tracer's and
+the sensor's functions), so :func:`trace_progressive` imports it by name, as
+:func:`tofcore.backend.twin` imports device kernels; it decides itself whether it can run a trace."""
 
 
 @dataclass(frozen=True)
@@ -126,6 +133,8 @@ class TraceStats:
     chunk_seconds: float = 0.0    # thread-seconds inside chunks (all tracing work, summed over workers)
     setup_seconds: float = 0.0    # wall time before the first pass: first-hit buffers, sharing, worker start
     parallel: str = ""            # how chunks ran: "processes", "threads: <why>" or "one"
+    tracer: str = "numpy"         # "compiled" (tofcore.compiled) or "numpy" (this module)
+    tracer_reason: str = ""       # why the NumPy tracer ran where numba is installed, or is not
 
     @property
     def rays(self) -> int:
@@ -145,6 +154,7 @@ class TraceStats:
                 "camera_seconds": self.camera_seconds, "bounce_seconds": self.bounce_seconds,
                 "shadow_seconds": self.shadow_seconds, "chunk_seconds": self.chunk_seconds,
                 "setup_seconds": self.setup_seconds, "parallel": self.parallel,
+                "tracer": self.tracer, "tracer_reason": self.tracer_reason,
                 "rays_per_second": self.rays / self.seconds if self.seconds > 0 else None}
 
 
@@ -290,7 +300,6 @@ class _Context:
     sampler: str                # "sobol" or "independent" (tofcore.tracer.qmc.SAMPLERS)
     light_paths: bool           # connect camera vertices to light vertices (tofcore.tracer.light_paths)
     led_probability: np.ndarray  # (L,) host: probability of each LED emitting the light vertex
-    offset_scale: float
     transient_bins: int
     transient_bin_m: float | None
 
@@ -376,9 +385,12 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     start = time.perf_counter()
     n_pix = camera.width * camera.height
     n_corr = ctx.n_channels
-    stats = TraceStats()
+    compiled = importlib.import_module(COMPILED_TRACER)
+    tracer = compiled.choose(ctx)  # the compiled per-path tracer where numba and the render's features allow
+    stats = TraceStats(tracer=tracer.tracer, tracer_reason=tracer.reason)
     # Start the worker processes first: they boot and import tofcore while this one traces the first hits.
-    why_not = _start_workers(workers) if workers > 1 and not dev.is_gpu else "one"
+    # The compiled tracer runs on numba's threads instead (they release the GIL).
+    why_not = _start_workers(workers) if workers > 1 and not dev.is_gpu and tracer.packed is None else "one"
     transport = Transport(
         width=camera.width, height=camera.height, max_depth=max_depth, n_correlations=n_corr,
         sample_count=xp.zeros(n_pix, np.int64),
@@ -390,6 +402,8 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     done = np.zeros(n_pix, np.int64)  # host copy of transport.sample_count
     shared, why_not = (None, why_not) if why_not else _share(ctx, transport)
     stats.parallel = "processes" if shared is not None else "one" if why_not == "one" else f"threads: {why_not}"
+    if tracer.packed is not None:
+        stats.parallel = f"numba threads: {compiled.thread_count(workers)}"
     stats.setup_seconds = time.perf_counter() - start
     try:
         with ThreadPoolExecutor(max_workers=workers) as threads:
@@ -397,7 +411,10 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                 counts = None if allocate is None else allocate(transport, n_samples)
                 counts = np.full(n_pix, n_samples, np.int64) if counts is None else _checked_counts(counts, n_pix)
                 chunks = _chunks(counts, _pass_chunk_paths(int(counts.sum()), chunk_size, workers))
-                if shared is not None and len(chunks) > 1:
+                if tracer.packed is not None:
+                    chunks = _chunks(counts, max(chunk_size, compiled.COMPILED_CHUNK_PATHS))
+                    results = compiled.trace_pass(tracer, transport, done, counts, chunks, workers, cancel)
+                elif shared is not None and len(chunks) > 1:
                     results = _run_in_processes(shared, workers, done, counts, chunks, cancel)
                 else:
                     run = functools.partial(_trace_chunk, ctx, transport, first=xp.asarray(done),
@@ -548,10 +565,9 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
     if pose.shape != (4, 4) or not np.isfinite(pose).all():
         raise ConfigError(f"trace: world_from_sensor must be a finite 4x4 matrix, got shape {pose.shape}")
     rot = pose[:3, :3]
-    if not np.allclose(rot @ rot.T, np.eye(3), atol=1e-6) or np.linalg.det(rot) < 0 \
-            or not np.allclose(pose[3], [0, 0, 0, 1]):
-        raise ConfigError("trace: world_from_sensor must be a rigid transform (rotation + translation, "
-                          "no scale or shear; last row 0 0 0 1)")
+    problem = rigid_problem(pose)
+    if problem is not None:
+        raise ConfigError(f"trace: world_from_sensor must be a rigid transform (rotation + translation): {problem}")
     if not callable(correlations):
         correlations = CorrelationList(tuple(correlations))
         for j, g in enumerate(correlations.functions):
@@ -569,8 +585,6 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
     positions = np.array([x.position_m for x in leds])
     lens_scene = pose[:3, 3] - np.asarray(scene.origin_m)  # the tracer works in the scene frame
     led_scene = positions @ rot.T + lens_scene
-    lo, hi = scene.bounds
-    extent = float(np.max(np.abs(np.concatenate([lo, hi, lens_scene]))))
     xp = device.xp
     return _Context(
         scene=scene, table=MaterialTable(scene, xp), camera=camera, device=device, world_from_sensor=pose,
@@ -582,7 +596,6 @@ def _context(scene, camera, leds, world_from_sensor, correlations, ambient, max_
         max_depth=int(max_depth), key=rng.seed_key(seed), sampler=sampler,
         light_paths=bool(light_paths) and max_depth >= 2 and led_probabilities(leds).sum() > 0,
         led_probability=led_probabilities(leds),
-        offset_scale=_OFFSET_RELATIVE * max(extent, 1e-3),
         transient_bins=bins, transient_bin_m=transient_bin_m)
 
 
@@ -612,17 +625,6 @@ def gpu_chunk_paths(xp, n_correlations: int) -> int:
     return int(min(GPU_MAX_CHUNK_PATHS, max(CPU_CHUNK_PATHS, free * GPU_MEMORY_FRACTION // per_path)))
 
 
-_OFFSET_RELATIVE = 2.0**-16
-"""Ray-origin offset along the geometric normal, relative to the scene's extent.
-
-~1.5e-5 m per metre of scene: about 250 float32 ulps of the largest coordinate,
-far above the rounding of a float32 hit point (so no self-hit on neighbouring
-triangles) and far below any feature a ToF pixel resolves (so the corner of
-two walls shows no gap — the fixed epsilon of the thesis did, §6.3). The
-triangle a ray leaves is excluded outright (``ignore_prim``).
-"""
-
-
 def _first_hit(ctx: _Context, stats: TraceStats) -> FirstHit:
     """Trace the pixel-centre rays on the tracing device; the buffers come back as NumPy arrays."""
     xp = ctx.device.xp
@@ -630,7 +632,7 @@ def _first_hit(ctx: _Context, stats: TraceStats) -> FirstHit:
     d = rotate(xp.asarray(cam.pixel_center_directions().reshape(-1, 3).astype(np.float64)), ctx.rotation)
     n = len(d)
     origin = xp.broadcast_to(ctx.lens_center, (n, 3))
-    hits = ctx.scene.bvh.intersect(leaving(origin, d, ctx.offset_scale), d.astype(np.float32))
+    hits = ctx.scene.bvh.intersect(leaving(origin, d), d.astype(np.float32))
     stats.camera_rays += n
     hit = hits.prim >= 0
     distance = xp.full(n, np.nan)
@@ -691,7 +693,7 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
 
     for depth in range(1, ctx.max_depth + 1):
         clock = time.perf_counter()
-        query = leaving(origin, direction, ctx.offset_scale) if depth == 1 else origin.astype(np.float32)
+        query = leaving(origin, direction) if depth == 1 else origin.astype(np.float32)
         hits = ctx.scene.bvh.intersect(query, direction.astype(np.float32), ignore_prim=prev_prim, workers=1)
         if depth == 1:
             stats.camera_rays += len(slot)
@@ -715,7 +717,9 @@ def _trace_chunk(ctx: _Context, out: Transport, p0: int, p1: int, *, first, coun
         segment = np.linalg.norm(surf.position - prev_point, axis=1)
         path_length = path_length + segment
         wo = surf.to_local(-direction)
-        spawn = surf.position + surf.geometric_normal * ctx.offset_scale
+        corners = ctx.table.vertices[ctx.table.triangles[prim]]      # (N, 3, 3) the hit triangles, for the offset
+        offset = spawn_offset(surf.position, surf.geometric_normal, corners)
+        spawn = surf.position + surf.geometric_normal * offset[:, None]
         # Area density at this vertex of having sampled it from the previous one (MIS with light vertices).
         bsdf_area_pdf = (prev_pdf * dot(-direction, surf.geometric_normal) / segment**2
                          if ctx.light_paths and depth >= 2 else None)
@@ -813,7 +817,8 @@ def _connect_led(ctx: _Context, stats: TraceStats, surf: Surface, spawn: np.ndar
         stats.skipped_shadow_rays += len(test)
     elif len(test):
         clock = time.perf_counter()
-        blocked = ctx.scene.bvh.occluded(*shadow_ray(spawn[test], ctx.led_positions[i], ctx.offset_scale),
+        margin = point_offset(ctx.led_positions[i][None])  # stop short of the LED (flush with a wall)
+        blocked = ctx.scene.bvh.occluded(*shadow_ray(spawn[test], ctx.led_positions[i], margin),
                                          ignore_prim=prim[test], workers=1)
         stats.shadow_rays += len(test)
         stats.shadow_seconds += time.perf_counter() - clock

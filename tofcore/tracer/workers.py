@@ -32,8 +32,10 @@ import multiprocessing as mp
 import os
 import pickle
 import shutil
+import signal
 import sys
 import threading
+from contextlib import contextmanager
 from multiprocessing import shared_memory
 from pathlib import Path
 
@@ -180,6 +182,10 @@ def _init_worker(warm_up: str) -> None:
         return None
 
     resource_tracker.register = no_register  # type: ignore[assignment]
+    # Ctrl-C reaches the whole process group: the parent stops the workers (terminate), a worker never
+    # prints a KeyboardInterrupt traceback. SIGINT was blocked since the worker started (sigint_blocked).
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     # Import the caller's module (the tracer) now, while the parent traces the first hits, not on the first
     # chunk. A failure here must not kill the worker (the pool would restart it forever): the first task
     # reports it.
@@ -213,6 +219,28 @@ def _run(task):
     return function(_load(key, ref), *args)
 
 
+@contextmanager
+def sigint_blocked():
+    """Block SIGINT in this thread while worker processes start (they inherit the mask through exec).
+
+    A Ctrl-C during a worker's start-up (its imports) would otherwise print a KeyboardInterrupt
+    traceback from the child; this process gets the signal when it is unblocked. Also used by
+    ``batch.run`` around starting its worker processes and Dask workers. The pool's own
+    threads, started meanwhile, keep it blocked, so workers it starts later are covered too.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    from multiprocessing import resource_tracker
+
+    resource_tracker.ensure_running()  # starting its process unblocks SIGINT here: start it first
+    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        yield
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+
+
 class _Pool:
     def __init__(self, n: int, warm_up: str):
         ctx = mp.get_context("spawn")
@@ -224,7 +252,8 @@ class _Pool:
             os.environ.update({k: "1" for k in _BLAS_ENV})
             if main_file is not None:  # children must not re-run the parent's script
                 del main.__file__
-            self.pool = ctx.Pool(n, initializer=_init_worker, initargs=(warm_up,))
+            with sigint_blocked():  # the workers start with it blocked and ignore it (_init_worker)
+                self.pool = ctx.Pool(n, initializer=_init_worker, initargs=(warm_up,))
         finally:
             if main_file is not None:
                 main.__file__ = main_file

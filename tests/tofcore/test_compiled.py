@@ -1,0 +1,262 @@
+"""The compiled tracer (tofcore.compiled) against the NumPy reference: same frame, same rays, honest fall-backs.
+
+Tolerance. The compiled kernels perform the reference's IEEE operations in the reference's order; what
+may differ is the last bit of a transcendental function (the compiler's libm against NumPy's vectorised
+loops), and such a bit can, rarely, move a path across a triangle edge or a lobe threshold, after which
+the two paths differ entirely. So each sum (per pixel, bucket and channel) must agree to 1e-9 relative
+on at least 99.5 % of the entries, and the frame totals to 1e-6. On the development machine (NumPy
+1.26, numba 0.68, glibc's libm) every sum measured equal bit for bit, and the ray counts too.
+
+Skipped where numba is not installed; the fall-back tests at the end run everywhere.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+import pytest
+
+import tofcore
+from tofcore import compiled
+from tofcore.limits import usable_cpus
+from tofcore.scene.camera import Camera
+from tofcore.errors import ConfigError
+from tofcore.scene.material import Material, Texture
+from tofcore.sensor.modulation import phasor_correlations
+from tofcore.tracer.transport import trace, trace_progressive
+
+needs_numba = pytest.mark.skipif(compiled.numba_version() is None, reason="numba is not installed")
+
+SUMS = ("signal_sum", "correlation_sum", "replicate_sum")
+RAYS = ("camera_rays", "bounce_rays", "shadow_rays", "light_rays", "skipped_shadow_rays")
+
+
+def assert_same_frame(a, b):
+    """The tolerance of the module docstring, on every accumulator and the ray counts."""
+    for name in SUMS:
+        x, y = getattr(a, name), getattr(b, name)
+        close = np.isclose(x, y, rtol=1e-9, atol=1e-12 * max(np.abs(x).max(), 1e-300))
+        assert close.mean() >= 0.995, f"{name}: {100 * (1 - close.mean()):.2f} % of the sums differ"
+        np.testing.assert_allclose(y.sum(axis=-1), x.sum(axis=-1), rtol=1e-6, atol=1e-9 * np.abs(x).max(),
+                                   err_msg=name)
+    for key in RAYS:
+        n_a, n_b = getattr(a.stats, key), getattr(b.stats, key)
+        assert abs(n_a - n_b) <= 1e-3 * max(n_a, 1), (key, n_a, n_b)
+    assert (a.sample_count == b.sample_count).all()
+
+
+def both(monkeypatch, *args, **kwargs):
+    """(NumPy transport, compiled transport) of the same trace."""
+    monkeypatch.setenv(compiled.TRACER_ENV, "numpy")
+    reference = trace(*args, **kwargs)
+    monkeypatch.setenv(compiled.TRACER_ENV, "compiled")
+    fast = trace(*args, **kwargs)
+    assert reference.stats.tracer == "numpy" and fast.stats.tracer == "compiled"
+    assert fast.stats.parallel == f"numba threads: {compiled.thread_count(kwargs.get('workers', usable_cpus()))}"
+    return reference, fast
+
+
+def small_preset(name: str, width: int = 40):
+    """A preset's sensor at ``width`` pixels, distortion and all (as tests/tofcore/test_render_error.py)."""
+    sensor = tofcore.load_preset(name)
+    cam = sensor.camera
+    s = width / cam.width
+    h = round(cam.height * s)
+    cam = dataclasses.replace(cam, width=width, height=h, fx=cam.fx * s, fy=cam.fy * h / cam.height,
+                              cx=cam.cx * s, cy=cam.cy * h / cam.height)
+    return sensor.replace(camera=cam, **{"noise.model": "none"})
+
+
+def odd_materials_room() -> tofcore.Scene:
+    """The demo room with a mirror, a half-metal, an η = 1 dielectric and interpolated vertex normals:
+    delta lobes, the blended Fresnel, shading normals apart from the geometric ones."""
+    room = tofcore.demo_scene("room", detail=2)
+    rng = np.random.default_rng(3)
+    normals = np.zeros_like(room.vertices, dtype=np.float64)
+    normals[room.triangles.ravel()] = np.repeat(room.face_normals, 3, axis=0)
+    normals += 0.15 * rng.normal(size=normals.shape)
+    materials = (Material(name="mirror", reflectance=0.2, roughness=0.0),
+                 Material(name="half metal", metallic=0.5, ior=1.4, extinction=3.0, roughness=0.3),
+                 Material(name="no fresnel", reflectance=0.9, roughness=0.8, ior=1.0),
+                 Material(name="metal", metallic=1.0, ior=1.35, extinction=9.6, roughness=0.15))
+    ids = room.material_ids % len(materials)
+    return tofcore.Scene.from_arrays(room.vertices, room.triangles, ids, materials, normals=normals,
+                                     name="odd room")
+
+
+def room_trace_args(**changes):
+    scene = tofcore.demo_scene("room", detail=3)
+    kwargs = dict(world_from_sensor=tofcore.suggested_pose(scene), correlations=phasor_correlations([80e6]),
+                  spp=4, max_depth=5, seed=3, workers=2)
+    kwargs.update(changes)
+    return (scene, Camera.from_fov(48, 40, 70.6, 60.0), [tofcore.LED(position_m=(0.025, 0.0, 0.0))]), kwargs
+
+
+@needs_numba
+@pytest.mark.parametrize("changes", [
+    {},                                                   # the bench frame's setting, small
+    {"light_paths": False, "sampler": "independent"},
+    {"max_depth": 1, "seed": 0},
+    {"max_depth": 2, "spp": 5},                           # 5 samples: replicates of unequal size
+], ids=["default", "no-light-paths-independent", "direct-only", "depth-2"])
+def test_room_frame_equals_numpy(monkeypatch, changes):
+    args, kwargs = room_trace_args(**changes)
+    assert_same_frame(*both(monkeypatch, *args, **kwargs))
+
+
+@needs_numba
+def test_mirrors_metals_and_shading_normals_equal_numpy(monkeypatch):
+    scene = tofcore.demo_scene("room", detail=2)
+    odd = odd_materials_room()
+    leds = [tofcore.LED(position_m=(0.0, 0.0, 0.0)),  # at the pinhole: first-hit shadow rays skipped
+            tofcore.LED(position_m=(-0.03, 0.01, 0.0), intensity_w_sr=2.0, kind="lambertian")]
+    reference, fast = both(monkeypatch, odd, Camera.from_fov(40, 30, 70.0, 56.0), leds,
+                           world_from_sensor=tofcore.suggested_pose(scene),
+                           correlations=phasor_correlations([20e6, 100e6]), spp=4, max_depth=4, seed=1)
+    assert reference.stats.skipped_shadow_rays > 0
+    assert_same_frame(reference, fast)
+
+
+@needs_numba
+def test_thin_lens_and_sine_bank_equal_numpy(monkeypatch):
+    sensor = small_preset("o3d303", 32)
+    camera = dataclasses.replace(sensor.camera, aperture_radius_m=0.004, focus_distance_m=1.5)
+    sine = dataclasses.replace(sensor.modulation, kind="cw_sine", duty_cycle=0.5)
+    scene = tofcore.demo_scene("box_on_wall", detail=2)
+    assert_same_frame(*both(monkeypatch, scene, camera, sensor.leds,
+                            world_from_sensor=tofcore.suggested_pose(scene),
+                            correlations=sine.correlation_bank(), spp=3, max_depth=3, seed=2))
+
+
+@needs_numba
+@pytest.mark.parametrize("preset", ["kinect_v2", "xtion2"])
+def test_rendered_depth_equals_numpy(monkeypatch, preset):
+    """Whole renders (distorted Kinect camera with its square-wave bank; the pulsed Xtion), decoded depth."""
+    sensor = small_preset(preset)
+    scene = tofcore.demo_scene("room", detail=2)
+    frames = {}
+    for tracer in ("numpy", "compiled"):
+        monkeypatch.setenv(compiled.TRACER_ENV, tracer)
+        frames[tracer] = tofcore.render(scene, sensor, spp=4, seed=5, max_depth=3)
+        assert frames[tracer].stats["transport"]["tracer"] == tracer
+    a, b = frames["numpy"], frames["compiled"]
+    same = (np.isclose(a.depth, b.depth, rtol=1e-9, atol=1e-9) | (np.isnan(a.depth) & np.isnan(b.depth)))
+    assert same.mean() >= 0.995
+    assert (a.valid == b.valid).mean() >= 0.995
+    np.testing.assert_allclose(b.raw, a.raw, rtol=1e-6, atol=1e-9 * np.abs(a.raw).max())
+
+
+@needs_numba
+def test_adaptive_allocation_and_thread_count_do_not_change_the_frame(monkeypatch):
+    """Uneven samples per pixel (adaptive sampling) and 1 or 2 threads: each pixel is one thread's sum."""
+    args, kwargs = room_trace_args(spp=6)
+    counts = np.random.default_rng(0).integers(0, 4, size=48 * 40)
+
+    def run(tracer: str, workers: int):
+        monkeypatch.setenv(compiled.TRACER_ENV, tracer)
+        return list(trace_progressive(*args, **{**kwargs, "workers": workers},
+                                      allocate=lambda transport, n: counts))[-1]
+
+    reference = run("numpy", 2)
+    one, two = run("compiled", 1), run("compiled", 2)
+    for name in SUMS:
+        assert np.array_equal(getattr(one, name), getattr(two, name)), name
+    assert_same_frame(reference, two)
+
+
+@needs_numba
+def test_kernels_match_their_numpy_twins():
+    """Sobol' samples and hashes bit for bit; BVH closest and any hits as BVH.intersect/occluded."""
+    import numba
+
+    from tofcore.compiled import kernels, setup
+    from tofcore.tracer import qmc, rng
+    from tofcore.tracer.surface import MaterialTable
+
+    key = rng.seed_key(7)
+    pixel = np.arange(500, dtype=np.int64) * 37
+    sample = np.arange(500, dtype=np.int64) % 23
+
+    @numba.njit
+    def samples(key, pixel, sample, dim, independent):
+        out = np.empty((len(pixel), 3))
+        for i in range(len(pixel)):
+            out[i, 0], out[i, 1] = kernels.sample_2d(key, pixel[i], sample[i], dim, independent)
+            out[i, 2] = kernels.sample_1d(key, pixel[i], sample[i], dim, independent)
+        return out
+
+    for sampler in qmc.SAMPLERS:
+        got = samples(key, pixel, sample, 5, sampler == "independent")
+        u, v = qmc.sample_2d(key, pixel, sample, 5, sampler)
+        assert np.array_equal(got[:, 0], u) and np.array_equal(got[:, 1], v)
+        assert np.array_equal(got[:, 2], qmc.sample_1d(key, pixel, sample, 5, sampler))
+
+    scene = tofcore.demo_scene("room", detail=4)
+    geo = setup.scene_arrays(scene, MaterialTable(scene))
+    r = np.random.default_rng(1)
+    lo, hi = scene.bounds
+    o = (lo + (hi - lo) * (0.1 + 0.8 * r.random((3000, 3)))).astype(np.float32)
+    d = r.normal(size=(3000, 3))
+    d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
+    t_max = (r.random(3000) * 3).astype(np.float32)
+
+    @numba.njit
+    def hits(geo, o, d, t_max, any_hit):
+        prim = np.empty(len(o), np.int64)
+        t = np.empty(len(o), np.float32)
+        stack, stack_t = np.empty(kernels.STACK_SIZE, np.int64), np.empty(kernels.STACK_SIZE, np.float32)
+        for i in range(len(o)):
+            h = kernels.intersect(geo, (o[i, 0], o[i, 1], o[i, 2]), (d[i, 0], d[i, 1], d[i, 2]), t_max[i], -1,
+                                  any_hit, stack, stack_t)
+            t[i], prim[i] = h[0], h[1]
+        return t, prim
+
+    t, prim = hits(geo, o, d, np.full(3000, np.inf, np.float32), False)
+    ref = scene.bvh.intersect(o, d, workers=1)
+    assert np.array_equal(prim, ref.prim) and np.array_equal(t[prim >= 0], ref.t[ref.prim >= 0])
+    _, blocked = hits(geo, o, d, t_max, True)
+    assert np.array_equal(blocked >= 0, scene.bvh.occluded(o, d, t_max, workers=1))
+
+
+# ------------------------------------------------------------------ fall-backs (run with or without numba)
+def test_unsupported_features_fall_back_to_numpy_and_say_why(monkeypatch):
+    monkeypatch.setenv(compiled.TRACER_ENV, "auto")
+    args, kwargs = room_trace_args(spp=1, max_depth=2)
+    cases = {
+        "ambient light": {"ambient": tofcore.Ambient(radiance_w_m2_sr=0.1)},
+        "transient": {"transient_bin_m": 0.1, "transient_max_m": 20.0},
+        "is not one of tofcore.modulation's functions": {"correlations": [lambda tau: np.cos(tau)]},
+    }
+    for words, change in cases.items():
+        t = trace(*args, **{**kwargs, **change})
+        assert t.stats.tracer == "numpy" and words in t.stats.tracer_reason, (words, t.stats.tracer_reason)
+        assert t.stats.as_dict()["tracer"] == "numpy"
+    scene = args[0]
+    textured = tofcore.Scene.from_arrays(
+        scene.vertices, scene.triangles, scene.material_ids,
+        [Material(name="tex", reflectance_texture=Texture(np.full((2, 2), 0.5)))] * len(scene.materials),
+        uvs=np.zeros((len(scene.vertices), 2)))
+    t = trace(textured, *args[1:], **kwargs)
+    assert t.stats.tracer == "numpy" and "textured" in t.stats.tracer_reason
+
+
+def test_numpy_forced_or_numba_missing(monkeypatch):
+    args, kwargs = room_trace_args(spp=1, max_depth=1)
+    monkeypatch.setenv(compiled.TRACER_ENV, "numpy")
+    t = trace(*args, **kwargs)
+    assert (t.stats.tracer, t.stats.tracer_reason) == ("numpy", "TOFCORE_TRACER=numpy")
+    monkeypatch.setenv(compiled.TRACER_ENV, "auto")
+    monkeypatch.setattr(compiled, "numba_version", lambda: None)
+    t = trace(*args, **kwargs)
+    assert t.stats.tracer == "numpy" and "numba is not installed" in t.stats.tracer_reason
+
+
+def test_forcing_the_compiled_tracer_where_it_cannot_run_is_an_error(monkeypatch):
+    args, kwargs = room_trace_args(spp=1, max_depth=1)
+    monkeypatch.setenv(compiled.TRACER_ENV, "compiled")
+    with pytest.raises(ConfigError, match="ambient light"):
+        trace(*args, **kwargs, ambient=tofcore.Ambient(radiance_w_m2_sr=0.1))
+    monkeypatch.setenv(compiled.TRACER_ENV, "fast")
+    with pytest.raises(ConfigError, match=r"TOFCORE_TRACER must be one of \['auto', 'numpy', 'compiled'\], got 'fast'"):
+        trace(*args, **kwargs)

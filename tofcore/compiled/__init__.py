@@ -1,0 +1,95 @@
+"""The compiled tracer: the NumPy tracer's paths as compiled scalar code (optional; needs numba).
+
+``pip install "tofcore[compiled]"`` adds numba; then :func:`tofcore.trace` and :func:`tofcore.render`
+trace on the CPU with :mod:`tofcore.compiled.kernels` — one loop per path over compiled functions, every
+pixel of a chunk on numba's threads — wherever the render uses only what those kernels implement, and
+fall back to the NumPy reference otherwise, saying why in ``stats["transport"]["tracer_reason"]`` of
+the frame (frame.json) and in ``tofcore render --verbose``. The frame is the NumPy frame up to the last
+bits of transcendental functions (tests/tofcore/test_compiled.py states and tests the tolerance).
+
+Environment: ``TOFCORE_TRACER=numpy`` forces the NumPy reference, ``compiled`` makes a render that
+cannot use the compiled tracer an error instead of a fall-back, ``auto`` (default) picks it when it
+can. The machine code is cached by numba beside the sources (``tofcore/compiled/__pycache__``; numba's
+user cache ``~/.cache/numba`` where that folder is not writable; ``NUMBA_CACHE_DIR`` overrides both):
+the first render of a fresh install compiles for 30–80 s (docs/benchmarks.md), later processes load
+the kernels in about a second.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..errors import ConfigError
+from ..tracer.transport import TraceStats
+from . import setup
+
+TRACER_ENV = "TOFCORE_TRACER"
+TRACERS = ("auto", "numpy", "compiled")
+
+COMPILED_CHUNK_PATHS = 1 << 18
+"""Paths per call of the compiled kernel: memory does not grow with it (no per-path arrays); it only
+sets how often a render polls ``cancel`` (~0.1 s of tracing on two cores)."""
+
+
+@dataclass(frozen=True)
+class Choice:
+    """Which tracer a render uses, and why."""
+
+    tracer: str                 # "compiled" or "numpy"
+    reason: str                 # why the NumPy tracer runs ("" for the compiled one)
+    packed: setup.Packed | None  # the compiled tracer's arrays, None for NumPy
+
+
+def numba_version() -> str | None:
+    """The installed numba's version, or None where it cannot be imported."""
+    try:
+        import numba
+    except Exception:  # ImportError, or a numba that does not work with this NumPy
+        return None
+    return numba.__version__
+
+
+def choose(ctx) -> Choice:
+    """The tracer for a trace context (tofcore.transport._Context): compiled wherever it can be, else NumPy."""
+    wanted = os.environ.get(TRACER_ENV, "auto").strip().lower() or "auto"
+    if wanted not in TRACERS:
+        raise ConfigError(f"{TRACER_ENV} must be one of {list(TRACERS)}, got {wanted!r}")
+    if wanted == "numpy":
+        return Choice("numpy", f"{TRACER_ENV}=numpy", None)
+    why = setup.unsupported(ctx)
+    if not why and numba_version() is None:
+        why = 'numba is not installed (pip install "tofcore[compiled]")'
+    if why:
+        if wanted == "compiled":
+            raise ConfigError(f"{TRACER_ENV}=compiled, but the compiled tracer cannot render this: {why}")
+        return Choice("numpy", why, None)
+    return Choice("compiled", "", setup.pack(ctx))
+
+
+def thread_count(workers: int) -> int:
+    """numba threads a render with ``workers`` uses: at most numba's pool (``NUMBA_NUM_THREADS``)."""
+    import numba
+
+    return max(1, min(int(workers), numba.config.NUMBA_NUM_THREADS))
+
+
+def trace_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, chunks, threads: int, cancel):
+    """Trace one pass's pixel ranges with the compiled kernel on ``threads`` threads; yields TraceStats per
+    range, or None where ``cancel`` asked to stop."""
+    import numba
+
+    from . import cpu
+
+    numba.set_num_threads(thread_count(threads))
+    for p0, p1 in chunks:
+        if cancel is not None and cancel():
+            yield None
+            return
+        start = time.perf_counter()
+        n = cpu.trace_chunk(choice.packed, out, p0, p1, done, counts)
+        yield TraceStats(camera_rays=int(n[0]), bounce_rays=int(n[1]), shadow_rays=int(n[2]), light_rays=int(n[3]),
+                         skipped_shadow_rays=int(n[4]), chunk_seconds=time.perf_counter() - start)

@@ -1,0 +1,27 @@
+"""The compiled tracer on the CPU: :func:`tofcore.compiled.kernels.trace_pixels` over a chunk's pixels on
+numba's threads, each path one call of :func:`tofcore.compiled.kernels.trace_path`.
+
+A pixel's samples are traced by one thread in sample order and its sums are added to the frame's
+accumulators in the order the NumPy reference adds them (per bounce bucket: the light-vertex
+connections of the previous vertex, then the next-event estimates; per replicate: the path totals in
+sample order), so the two tracers differ only where the compiled libm rounds a transcendental function
+differently from NumPy's (tests/tofcore/test_compiled.py).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from . import kernels
+from .layout import N_COUNTERS
+
+
+def trace_chunk(packed, out, p0: int, p1: int, first: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """Trace pixels [p0, p1) of a pass into the transport ``out``; returns the (N_COUNTERS,) ray counts."""
+    counters = np.zeros((p1 - p0, N_COUNTERS), np.int64)
+    kernels.trace_pixels(packed.geo, packed.cam, packed.cam_table, packed.frame, packed.leds, packed.corr_kinds,
+                         packed.corr_table, packed.key, packed.max_depth, packed.independent, packed.light_paths,
+                         p0, p1, np.ascontiguousarray(first, dtype=np.int64),
+                         np.ascontiguousarray(counts, dtype=np.int64), out.signal_sum, out.correlation_sum,
+                         out.replicate_sum, counters)
+    return counters.sum(axis=0)

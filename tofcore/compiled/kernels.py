@@ -1,0 +1,1008 @@
+r"""One path of the tracer as scalar functions: the source compiled for the CPU (and for CUDA).
+
+Every function here is a scalar twin of the NumPy reference (the module and function it mirrors are
+named in each docstring), written so that the compiled code performs the same IEEE operations in the
+same order: float32 where the reference traverses the BVH in float32, float64 elsewhere, the same
+counter-based random numbers and Sobol' dimensions, the same sums in sample order. What can still
+differ is the last bit of the transcendental functions (NumPy's vectorised ``exp``/``log``/``sin``/
+``cos``/``arccos``/``tan`` against the compiler's libm): tests/tofcore/test_compiled.py states the
+tolerance that follows from it. Vectors are tuples (x, y, z); nothing allocates.
+
+A surface point is the tuple ``(position, geometric_normal, tangent, bitangent, shading_normal,
+params)`` with ``params = (reflectance, roughness, metallic, ior, extinction)``, as
+:class:`tofcore.tracer.surface.Surface` and :class:`tofcore.scene.bsdf.SurfaceParams` hold them for N points.
+
+Decorated by :func:`tofcore.compiled._target.device_function`: ``numba.njit`` when imported normally,
+``numba.cuda.jit(device=True)`` when :mod:`tofcore.compiled.cuda` compiles this same file for CUDA.
+The CPU driver :func:`trace_pixels` (numba threads over pixels) is here too, because numba's cache checks
+only the stamp of a function's own file: everything the cached CPU code inlines must live in this file.
+Constants read from the reference modules (rng, qmc, bsdf, …) are frozen into the cache as well: after
+changing one, touch this file (or delete ``tofcore/compiled/__pycache__``).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+from numba import prange
+
+from ..constants import SPEED_OF_LIGHT_M_S
+from ..scene import bsdf as _bsdf
+from ..scene.camera import _NEWTON_MAX_ITER, _NEWTON_STEP_TOL
+from ..tracer import light_paths as _light_paths
+from ..tracer import qmc as _qmc
+from ..tracer import rng as _rng
+from ..tracer import surface as _surface
+from ..tracer import transport as _transport
+from ._target import cpu_parallel_function, device_function
+from .layout import LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE
+
+fn = device_function(__name__)
+cpu_parallel = cpu_parallel_function(__name__)
+
+# ------------------------------------------------------------------ constants, from the reference modules
+GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
+M1, M2 = _rng._M1, _rng._M2
+S11, S27, S30, S31 = _rng._S11, _rng._S27, _rng._S30, _rng._S31
+U1, U2, U4, U8, U16, U24, U32 = (np.uint64(k) for k in (1, 2, 4, 8, 16, 24, 32))
+MASK32 = np.uint64(0xFFFFFFFF)
+BYTE = np.uint64(0xFF)
+C55, C33, C0F, C00FF = (np.uint64(c) for c in (0x55555555, 0x33333333, 0x0F0F0F0F, 0x00FF00FF))
+LK0, LK1, LK2, LK3 = (np.uint64(c) for c in _qmc._LK)
+SOBOL = _qmc._SOBOL_DIM1_TABLES.astype(np.uint64)  # (4, 256) byte tables of Sobol' dimension 2
+TO_UNIT = _qmc._TO_UNIT
+INV_2_53 = 1.0 / 9007199254740992.0
+REPLICATES = _qmc.REPLICATES
+SEED_DIM_OFFSET = _qmc.SEED_DIM_OFFSET
+DIM_PIXEL, DIM_LENS = _transport._DIM_PIXEL, _transport._DIM_LENS
+DIM_LED_CHOICE, DIM_EMISSION = _light_paths.DIM_LED_CHOICE, _light_paths.DIM_EMISSION
+SMOOTH_ROUGHNESS_RAD = _bsdf.SMOOTH_ROUGHNESS_RAD
+MIN_LOBE_PROBABILITY = _bsdf.MIN_LOBE_PROBABILITY
+SPAWN_RELATIVE = _surface.SPAWN_RELATIVE
+LEAVE_RELATIVE = _surface.LEAVE_RELATIVE
+OFFSET_FLOOR_M = _surface.OFFSET_FLOOR_M
+ONE_BELOW_ONE = float(np.nextafter(1.0, 0.0))
+SQRT2 = float(np.sqrt(2.0))
+PI = np.pi
+PI_SQUARED = np.pi**2
+TWO_PI = 2.0 * np.pi
+QUARTER_PI = 0.25 * np.pi
+HALF_PI = 0.5 * np.pi
+INV_4PI = 1.0 / (4.0 * np.pi)
+NEWTON_TOL = _NEWTON_STEP_TOL
+NEWTON_MAX_ITER = _NEWTON_MAX_ITER
+TINY_DIR = np.float32(1e-30)
+F32_ZERO, F32_ONE = np.float32(0.0), np.float32(1.0)
+F32_INF = np.float32(np.inf)
+# Rows of the BVH records (tofcore.bvh): node = 6 plane rows + child row; leaf = 9 vertex rows + triangle row.
+CHILD_ROW, PRIM_ROW, WIDTH = 6, 9, 4
+
+
+# ------------------------------------------------------------------ vectors
+@fn
+def dot(a, b):
+    """Dot product summed x, y, z in that order (tofcore.surface.dot)."""
+    return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+
+
+@fn
+def norm(a):
+    """Euclidean length, ((x² + y²) + z²) then the square root (numpy.linalg.norm over 3 values)."""
+    return math.sqrt(a[0] * a[0] + a[1] * a[1] + a[2] * a[2])
+
+
+@fn
+def sub(a, b):
+    return (a[0] - b[0], a[1] - b[1], a[2] - b[2])
+
+
+@fn
+def scale(a, s):
+    return (a[0] * s, a[1] * s, a[2] * s)
+
+
+@fn
+def divide(a, s):
+    return (a[0] / s, a[1] / s, a[2] / s)
+
+
+@fn
+def neg(a):
+    return (-a[0], -a[1], -a[2])
+
+
+@fn
+def to_f32(a):
+    return (np.float32(a[0]), np.float32(a[1]), np.float32(a[2]))
+
+
+@fn
+def rotate(v, rot):
+    """``v @ R.T`` as tofcore.surface.rotate sums it: v_x R[:, 0] + v_y R[:, 1] + v_z R[:, 2].
+
+    ``rot``: any array whose rows 0–2 hold R (the ``frame`` array of :func:`trace_path`).
+    """
+    return (v[0] * rot[0, 0] + v[1] * rot[0, 1] + v[2] * rot[0, 2],
+            v[0] * rot[1, 0] + v[1] * rot[1, 1] + v[2] * rot[1, 2],
+            v[0] * rot[2, 0] + v[1] * rot[2, 1] + v[2] * rot[2, 2])
+
+
+# ------------------------------------------------------------------ random numbers (tofcore.rng, tofcore.qmc)
+@fn
+def splitmix(x):
+    """SplitMix64's finaliser on a uint64 (tofcore.rng._splitmix)."""
+    x = x + GOLDEN
+    x = (x ^ (x >> S30)) * M1
+    x = (x ^ (x >> S27)) * M2
+    return x ^ (x >> S31)
+
+
+@fn
+def hash_bits(key, pixel, sample, dim):
+    """64 random bits of (key, pixel, sample, dim) (tofcore.rng.bits)."""
+    x = key ^ (np.uint64(pixel) * MIX_PIXEL) ^ (np.uint64(sample) * MIX_SAMPLE) ^ (np.uint64(dim) * MIX_DIM)
+    return splitmix(splitmix(x))
+
+
+@fn
+def uniform(key, pixel, sample, dim):
+    """A uniform in [0, 1) with 53 random bits (tofcore.rng.uniform)."""
+    return np.float64(hash_bits(key, pixel, sample, dim) >> S11) * INV_2_53
+
+
+@fn
+def reverse_bits(x):
+    """The 32 low bits of a uint64 reversed (tofcore.qmc.reverse_bits)."""
+    x = ((x >> U1) & C55) | ((x & C55) << U1)
+    x = ((x >> U2) & C33) | ((x & C33) << U2)
+    x = ((x >> U4) & C0F) | ((x & C0F) << U4)
+    x = ((x >> U8) & C00FF) | ((x & C00FF) << U8)
+    return ((x >> U16) | (x << U16)) & MASK32
+
+
+@fn
+def owen_scramble(x, seed):
+    """Hash-based Owen scramble of a 32-bit value (tofcore.qmc.owen_scramble), uint32 arithmetic."""
+    x = (reverse_bits(x) + seed) & MASK32
+    x = (x ^ (x * LK0)) & MASK32
+    x = (x ^ (x * LK1)) & MASK32
+    x = (x ^ (x * LK2)) & MASK32
+    x = (x ^ (x * LK3)) & MASK32
+    return reverse_bits(x)
+
+
+@fn
+def sobol_dim1(index):
+    """Sobol' dimension 2 of a 32-bit index by four byte lookups (tofcore.qmc.sobol_2d)."""
+    return (SOBOL[0, np.int64(index & BYTE)] ^ SOBOL[1, np.int64((index >> U8) & BYTE)]
+            ^ SOBOL[2, np.int64((index >> U16) & BYTE)] ^ SOBOL[3, np.int64(index >> U24)])
+
+
+@fn
+def qmc_seeds(key, pixel, sample, dim):
+    """(index, x, y scramble seeds, point index j) of a sample (tofcore.qmc._seeds)."""
+    replicate = sample % REPLICATES
+    bits = hash_bits(key, pixel, replicate, dim)
+    more = hash_bits(key, pixel, replicate, dim + SEED_DIM_OFFSET)
+    return bits & MASK32, bits >> U32, more & MASK32, np.uint64(sample // REPLICATES)
+
+
+@fn
+def sample_2d(key, pixel, sample, dim, independent):
+    """Uniforms (u, v) of dimension pair ``dim`` (tofcore.qmc.sample_2d)."""
+    if independent:
+        return uniform(key, pixel, sample, 2 * dim), uniform(key, pixel, sample, 2 * dim + 1)
+    s_index, s_x, s_y, j = qmc_seeds(key, pixel, sample, dim)
+    i = owen_scramble(j, s_index)
+    u = np.float64(owen_scramble(reverse_bits(i), s_x)) * TO_UNIT
+    v = np.float64(owen_scramble(sobol_dim1(i), s_y)) * TO_UNIT
+    return u, v
+
+
+@fn
+def sample_1d(key, pixel, sample, dim, independent):
+    """A uniform of dimension ``dim`` (tofcore.qmc.sample_1d)."""
+    if independent:
+        return uniform(key, pixel, sample, 2 * dim)
+    s_index, s_x, s_y, j = qmc_seeds(key, pixel, sample, dim)
+    return np.float64(owen_scramble(reverse_bits(owen_scramble(j, s_index)), s_x)) * TO_UNIT
+
+
+# ------------------------------------------------------------------ sampling (tofcore.sampling)
+@fn
+def concentric_disk(u1, u2):
+    """Shirley–Chiu concentric map of the unit square onto the unit disk (sample_concentric_disk)."""
+    a = 2.0 * u1 - 1.0
+    b = 2.0 * u2 - 1.0
+    if abs(a) > abs(b):
+        radius = a
+        phi = QUARTER_PI * b / (1.0 if radius == 0.0 else radius)
+    else:
+        radius = b
+        phi = HALF_PI - QUARTER_PI * a / (1.0 if radius == 0.0 else radius)
+    return radius * math.cos(phi), radius * math.sin(phi)
+
+
+@fn
+def cosine_hemisphere(u1, u2):
+    """Cosine-weighted direction about +z (sample_cosine_hemisphere)."""
+    x, y = concentric_disk(u1, u2)
+    return (x, y, math.sqrt(max(1.0 - x * x - y * y, 0.0)))
+
+
+# ------------------------------------------------------------------ camera (tofcore.camera.Camera.generate_rays)
+@fn
+def distort_with_jacobian(cam, x, y):
+    """OpenCV distortion and its symmetric Jacobian (Camera._distort_with_jacobian); ``cam`` as in camera_ray."""
+    k1, k2, p1, p2, k3 = cam[5], cam[6], cam[7], cam[8], cam[9]
+    x2 = x * x
+    y2 = y * y
+    xy = x * y
+    r2 = x2 + y2
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    radial_d = k1 + r2 * (2.0 * k2 + 3.0 * k3 * r2)
+    xd = x * radial + 2.0 * p1 * xy + p2 * (r2 + 2.0 * x2)
+    yd = y * radial + p1 * (r2 + 2.0 * y2) + 2.0 * p2 * xy
+    j_xx = radial + 2.0 * x2 * radial_d + 2.0 * p1 * y + 6.0 * p2 * x
+    j_xy = 2.0 * xy * radial_d + 2.0 * p1 * x + 2.0 * p2 * y
+    j_yy = radial + 2.0 * y2 * radial_d + 6.0 * p1 * y + 2.0 * p2 * x
+    return xd, yd, j_xx, j_xy, j_yy
+
+
+@fn
+def undistort_near(cam, table, xd, yd, row, col):
+    """Newton's inverse of the distortion from the pixel's tabulated start (Camera._undistort_near)."""
+    width, fx, fy, cx, cy = cam[0], cam[1], cam[2], cam[3], cam[4]
+    i = np.int64(row * width + col)
+    dxd = xd - (col - cx) / fx
+    dyd = yd - (row - cy) / fy
+    x = table[0, i] + table[2, i] * dxd + table[3, i] * dyd
+    y = table[1, i] + table[3, i] * dxd + table[4, i] * dyd
+    for _ in range(NEWTON_MAX_ITER):
+        fxd, fyd, j_xx, j_xy, j_yy = distort_with_jacobian(cam, x, y)
+        rx = fxd - xd
+        ry = fyd - yd
+        inv_det = 1.0 / (j_xx * j_yy - j_xy * j_xy)
+        step_x = (j_yy * rx - j_xy * ry) * inv_det
+        step_y = (j_xx * ry - j_xy * rx) * inv_det
+        x = x - step_x
+        y = y - step_y
+        if max(abs(step_x), abs(step_y)) < NEWTON_TOL:
+            return x, y
+    return np.nan, np.nan
+
+
+@fn
+def camera_ray(cam, table, pixel, u_jitter, v_jitter, u_lens, v_lens):
+    """Sensor-frame origin and unit direction of one camera sample (Camera._ray_block).
+
+    ``cam`` = (width, fx, fy, cx, cy, k1, k2, p1, p2, k3, aperture_radius_m, focus_distance_m,
+    has_distortion); ``table`` the camera's (5, P) centre table (x, y, inverse Jacobian xx, xy, yy).
+    """
+    width = np.int64(cam[0])
+    row = pixel // width
+    col = pixel - row * width
+    xd = (col + (u_jitter - 0.5 - cam[3])) / cam[1]
+    yd = (row + (v_jitter - 0.5 - cam[4])) / cam[2]
+    x, y = xd, yd
+    if cam[12] != 0.0:
+        x, y = undistort_near(cam, table, xd, yd, row, col)
+    ox, oy = 0.0, 0.0
+    if cam[10] > 0.0:
+        lens_x, lens_y = concentric_disk(u_lens, v_lens)
+        ox = lens_x * cam[10]
+        oy = lens_y * cam[10]
+        x = x - ox / cam[11]
+        y = y - oy / cam[11]
+    inv_norm = 1.0 / math.sqrt(x * x + y * y + 1.0)
+    return (ox, oy, 0.0), (x * inv_norm, y * inv_norm, inv_norm)
+
+
+# ------------------------------------------------------------------ BVH traversal (tofcore.bvh)
+@fn
+def ray_frame(d):
+    """float32 frame (b1, b2) perpendicular to the unit direction d (tofcore.bvh._ray_frame)."""
+    x, y, z = d
+    sign = F32_ONE if z >= F32_ZERO else -F32_ONE
+    a = -F32_ONE / (sign + z)
+    b = x * y * a
+    return (F32_ONE + sign * x * x * a, sign * b, -sign * x), (b, sign + y * y * a, -y)
+
+
+@fn
+def leaf_hit(leaves_f, leaves_i, row, k, o, b1, b2, d, t_max, ignore):
+    """Watertight test of triangle ``k`` of the leaf at ``row`` (tofcore.bvh._watertight), float32.
+
+    Returns (hit, t, u, v, triangle index).
+    """
+    prim = leaves_i[row + PRIM_ROW, k]
+    if prim < 0 or prim == ignore:
+        return False, F32_ZERO, F32_ZERO, F32_ZERO, prim
+    ax, ay, az = leaves_f[row, k] - o[0], leaves_f[row + 1, k] - o[1], leaves_f[row + 2, k] - o[2]
+    px, py, pz = leaves_f[row + 3, k] - o[0], leaves_f[row + 4, k] - o[1], leaves_f[row + 5, k] - o[2]
+    cx, cy, cz = leaves_f[row + 6, k] - o[0], leaves_f[row + 7, k] - o[1], leaves_f[row + 8, k] - o[2]
+    a1 = ax * b1[0] + ay * b1[1] + az * b1[2]
+    a2 = ax * b2[0] + ay * b2[1] + az * b2[2]
+    a3 = ax * d[0] + ay * d[1] + az * d[2]
+    p1 = px * b1[0] + py * b1[1] + pz * b1[2]
+    p2 = px * b2[0] + py * b2[1] + pz * b2[2]
+    p3 = px * d[0] + py * d[1] + pz * d[2]
+    c1 = cx * b1[0] + cy * b1[1] + cz * b1[2]
+    c2 = cx * b2[0] + cy * b2[1] + cz * b2[2]
+    c3 = cx * d[0] + cy * d[1] + cz * d[2]
+    w_u = c1 * p2 - c2 * p1
+    w_v = a1 * c2 - a2 * c1
+    w_w = p1 * a2 - p2 * a1
+    lo = min(min(w_u, w_v), w_w)
+    hi = max(max(w_u, w_v), w_w)
+    det = w_u + w_v + w_w
+    t = (w_u * a3 + w_v * p3 + w_w * c3) / det
+    hit = (lo >= F32_ZERO or hi <= F32_ZERO) and t > F32_ZERO and t < t_max
+    return hit, t, w_v / det, w_w / det, prim
+
+
+@fn
+def traverse(nodes_f, nodes_i, leaves_f, leaves_i, o, d, t_max, ignore, any_hit, stack, stack_t):
+    """Closest hit (or any hit) of one float32 ray over the 4-wide BVH records, with a per-ray stack.
+
+    Same slab test as tofcore.bvh.BVH._trace (entry plane chosen by the sign of the direction, tiny
+    direction components replaced by ±1e-30, boxes clipped at the best t so far) and the same
+    triangle test; children are visited near to far. Returns (t, prim, u, v); prim −1 on a miss.
+    ``stack`` (int64) and ``stack_t`` (float32) are scratch arrays of STACK_SIZE entries: the first
+    row of a node record and its entry distance.
+    """
+    inv = (F32_ONE / (d[0] if abs(d[0]) >= TINY_DIR else (-TINY_DIR if d[0] < F32_ZERO else TINY_DIR)),
+           F32_ONE / (d[1] if abs(d[1]) >= TINY_DIR else (-TINY_DIR if d[1] < F32_ZERO else TINY_DIR)),
+           F32_ONE / (d[2] if abs(d[2]) >= TINY_DIR else (-TINY_DIR if d[2] < F32_ZERO else TINY_DIR)))
+    # Entry-plane rows per axis: the box minimum (row a) for a positive direction, else the maximum (3 + a).
+    ex = 3 if d[0] < F32_ZERO else 0
+    ey = 4 if d[1] < F32_ZERO else 1
+    ez = 5 if d[2] < F32_ZERO else 2
+    b1, b2 = ray_frame(d)
+    best_t = t_max
+    best_prim = -1
+    best_u = F32_ZERO
+    best_v = F32_ZERO
+    stack[0] = 0
+    stack_t[0] = F32_ZERO
+    top = 1
+    while top > 0:
+        top -= 1
+        if stack_t[top] > best_t:
+            continue
+        node = stack[top]
+        first = top  # the children entered go to stack[first:top], far (bottom) to near (top)
+        for c in range(WIDTH):
+            near_x = (nodes_f[node + ex, c] - o[0]) * inv[0]
+            far_x = (nodes_f[node + 3 - ex, c] - o[0]) * inv[0]
+            near_y = (nodes_f[node + ey, c] - o[1]) * inv[1]
+            far_y = (nodes_f[node + 5 - ey, c] - o[1]) * inv[1]
+            near_z = (nodes_f[node + ez, c] - o[2]) * inv[2]
+            far_z = (nodes_f[node + 7 - ez, c] - o[2]) * inv[2]
+            t_in = max(max(max(near_x, near_y), near_z), F32_ZERO)
+            t_out = min(min(min(far_x, far_y), far_z), best_t)
+            if not t_in <= t_out:
+                continue
+            child = nodes_i[node + CHILD_ROW, c]
+            if child < 0:  # a leaf: test its triangles now
+                row = ~child
+                for k in range(leaves_i.shape[1]):
+                    hit, t, u, v, prim = leaf_hit(leaves_f, leaves_i, row, k, o, b1, b2, d, best_t, ignore)
+                    if hit:
+                        if any_hit:
+                            return t, prim, u, v
+                        best_t, best_prim, best_u, best_v = t, prim, u, v
+                continue
+            j = top
+            while j > first and stack_t[j - 1] < t_in:
+                stack[j] = stack[j - 1]
+                stack_t[j] = stack_t[j - 1]
+                j -= 1
+            stack[j] = child
+            stack_t[j] = t_in
+            top += 1
+    return best_t, best_prim, best_u, best_v
+
+
+@fn
+def intersect(geo, o, d, t_max, ignore, any_hit, stack, stack_t):
+    """:func:`traverse` over the scene tuple ``geo`` (see tofcore.compiled.setup.scene_arrays)."""
+    return traverse(geo[0], geo[1], geo[2], geo[3], o, d, t_max, ignore, any_hit, stack, stack_t)
+
+
+@fn
+def point_offset(p, relative):
+    """``relative`` × the largest coordinate of p, at least OFFSET_FLOOR_M (tofcore.tracer.surface.point_offset)."""
+    return relative * max(max(abs(p[0]), abs(p[1]), abs(p[2])), OFFSET_FLOOR_M)
+
+
+@fn
+def spawn_offset(geo, prim, position, ng):
+    """The distance a ray leaving ``position`` on triangle ``prim`` starts off it along ``ng``
+    (tofcore.tracer.surface.spawn_offset: the point's coordinates or its triangle's, pbrt-v4's bound)."""
+    triangles, vertices = geo[4], geo[5]
+    i0, i1, i2 = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
+    own = max(abs(position[0]), abs(position[1]), abs(position[2]))
+    c0 = np.float64(max(abs(vertices[i0, 0]), abs(vertices[i1, 0]), abs(vertices[i2, 0])))
+    c1 = np.float64(max(abs(vertices[i0, 1]), abs(vertices[i1, 1]), abs(vertices[i2, 1])))
+    c2 = np.float64(max(abs(vertices[i0, 2]), abs(vertices[i1, 2]), abs(vertices[i2, 2])))
+    local = abs(ng[0]) * c0 + abs(ng[1]) * c1 + abs(ng[2]) * c2
+    return SPAWN_RELATIVE * max(max(own, local), OFFSET_FLOOR_M)
+
+
+@fn
+def shadow_ray(spawn, target, margin_m):
+    """float32 origin, unit direction and t_max of a ray stopping ``margin_m`` short of ``target``
+    (tofcore.surface.shadow_ray)."""
+    to_target = sub(target, spawn)
+    length = norm(to_target)
+    direction = divide(to_target, length if length > 0.0 else 1.0)
+    return to_f32(spawn), to_f32(direction), np.float32(length - margin_m)
+
+
+# ------------------------------------------------------------------ surfaces (tofcore.surface.surface_at)
+@fn
+def orthonormal_basis(n):
+    """Tangent and bitangent completing the unit normal n (Duff et al. 2017; surface.orthonormal_basis)."""
+    sign = 1.0 if n[2] >= 0 else -1.0
+    a = -1.0 / (sign + n[2])
+    b = n[0] * n[1] * a
+    return (1.0 + sign * (n[0] * n[0]) * a, sign * b, -sign * n[0]), (b, sign + (n[1] * n[1]) * a, -n[1])
+
+
+@fn
+def surface_at(geo, prim, u, v, ray_origin, ray_direction):
+    """The surface tuple where a float64 ray hits triangle ``prim`` at float32 barycentrics (u, v)."""
+    triangles, vertices, face_normals, normals, material_ids, materials = geo[4], geo[5], geo[6], geo[7], \
+        geo[8], geo[9]
+    i0, i1, i2 = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
+    w0 = np.float64(F32_ONE - u - v)
+    u64 = np.float64(u)
+    v64 = np.float64(v)
+    ng = (np.float64(face_normals[prim, 0]), np.float64(face_normals[prim, 1]), np.float64(face_normals[prim, 2]))
+    p0 = (np.float64(vertices[i0, 0]), np.float64(vertices[i0, 1]), np.float64(vertices[i0, 2]))
+    cos_ray = dot(ray_direction, ng)
+    if abs(cos_ray) > 1e-9:
+        t = dot(sub(p0, ray_origin), ng) / cos_ray
+        position = (ray_origin[0] + t * ray_direction[0], ray_origin[1] + t * ray_direction[1],
+                    ray_origin[2] + t * ray_direction[2])
+    else:
+        position = (w0 * p0[0] + u64 * vertices[i1, 0] + v64 * vertices[i2, 0],
+                    w0 * p0[1] + u64 * vertices[i1, 1] + v64 * vertices[i2, 1],
+                    w0 * p0[2] + u64 * vertices[i1, 2] + v64 * vertices[i2, 2])
+    if dot(ng, ray_direction) > 0:
+        ng = (ng[0] * -1.0, ng[1] * -1.0, ng[2] * -1.0)
+    else:
+        ng = (ng[0] * 1.0, ng[1] * 1.0, ng[2] * 1.0)
+    if normals.shape[0] > 0:
+        ns = (w0 * normals[i0, 0] + u64 * normals[i1, 0] + v64 * normals[i2, 0],
+              w0 * normals[i0, 1] + u64 * normals[i1, 1] + v64 * normals[i2, 1],
+              w0 * normals[i0, 2] + u64 * normals[i1, 2] + v64 * normals[i2, 2])
+        ns = divide(ns, norm(ns))
+    else:
+        ns = ng
+    ns = scale(ns, -1.0 if dot(ns, ng) < 0 else 1.0)
+    tangent, bitangent = orthonormal_basis(ns)
+    m = material_ids[prim]
+    params = (min(max(materials[m, 0], 0.0), 1.0), max(materials[m, 1], 0.0), min(max(materials[m, 2], 0.0), 1.0),
+              materials[m, 3], materials[m, 4])
+    return position, ng, tangent, bitangent, ns, params
+
+
+@fn
+def to_local(surf, w):
+    """World direction into the shading frame (Surface.to_local)."""
+    return dot(w, surf[2]), dot(w, surf[3]), dot(w, surf[4])
+
+
+@fn
+def to_world(surf, w):
+    """Shading-frame direction into the world frame (Surface.to_world)."""
+    t, b, n = surf[2], surf[3], surf[4]
+    return (w[0] * t[0] + w[1] * b[0] + w[2] * n[0], w[0] * t[1] + w[1] * b[1] + w[2] * n[1],
+            w[0] * t[2] + w[1] * b[2] + w[2] * n[2])
+
+
+# ------------------------------------------------------------------ reflection (tofcore.fresnel, tofcore.bsdf)
+@fn
+def fresnel_dielectric(cos_theta_i, eta):
+    """Unpolarised dielectric Fresnel reflectance seen from air (fresnel.fresnel_dielectric, eq. 2.19–2.21)."""
+    cos_1 = min(max(cos_theta_i, 0.0), 1.0)
+    sin2_2 = (1.0 - cos_1 * cos_1) / (eta * eta)
+    if sin2_2 >= 1.0:
+        return 1.0
+    cos_2 = math.sqrt(max(1.0 - sin2_2, 0.0))
+    r_parallel = (eta * cos_1 - cos_2) / (eta * cos_1 + cos_2)
+    r_perpendicular = (cos_1 - eta * cos_2) / (cos_1 + eta * cos_2)
+    return 0.5 * (r_parallel * r_parallel + r_perpendicular * r_perpendicular)
+
+
+@fn
+def fresnel_conductor(cos_theta_i, eta, k):
+    """Unpolarised conductor Fresnel reflectance (fresnel.fresnel_conductor, eq. 2.22–2.23)."""
+    cos_i = min(max(cos_theta_i, 0.0), 1.0)
+    eta2_k2 = eta * eta + k * k
+    two_eta_cos = 2.0 * eta * cos_i
+    cos2 = cos_i * cos_i
+    r_parallel2 = (eta2_k2 * cos2 - two_eta_cos + 1.0) / (eta2_k2 * cos2 + two_eta_cos + 1.0)
+    denominator = eta2_k2 + two_eta_cos + cos2
+    r_perpendicular2 = (eta2_k2 - two_eta_cos + cos2) / denominator if denominator > 0.0 else 1.0
+    return 0.5 * (r_parallel2 + r_perpendicular2)
+
+
+@fn
+def specular_fresnel(params, cos_theta):
+    """(1 − m) F_d + m F_c (bsdf.specular_fresnel); the pure cases are the reference's per-batch shortcuts."""
+    metallic, ior, extinction = params[2], params[3], params[4]
+    if metallic == 0.0:
+        return fresnel_dielectric(cos_theta, ior)
+    if metallic == 1.0:
+        return fresnel_conductor(cos_theta, ior, extinction)
+    return (1.0 - metallic) * fresnel_dielectric(cos_theta, ior) + metallic * fresnel_conductor(cos_theta, ior,
+                                                                                               extinction)
+
+
+@fn
+def outgoing(params, cos_o):
+    """(F_d(cos θ_o), P_s): the terms of ω_o alone (bsdf._outgoing)."""
+    reflectance, metallic, ior = params[0], params[2], params[3]
+    fresnel_o = fresnel_dielectric(cos_o, ior)
+    specular = specular_fresnel(params, cos_o) if metallic != 0.0 else fresnel_o
+    diffuse = (1.0 - metallic) * (1.0 - fresnel_o) * reflectance
+    total = specular + diffuse
+    share = specular / (total if total > 0.0 else 1.0)
+    has_specular = metallic > 0.0 or ior != 1.0
+    if has_specular and diffuse > 0.0:
+        probability = min(max(share, MIN_LOBE_PROBABILITY), 1.0 - MIN_LOBE_PROBABILITY)
+    else:
+        probability = 1.0 if has_specular else 0.0
+    return fresnel_o, probability
+
+
+@fn
+def rough_alpha(params):
+    """Beckmann α = √2 σ, or 0 for a mirror lobe (bsdf._rough_alpha)."""
+    return SQRT2 * params[1] if params[1] >= SMOOTH_ROUGHNESS_RAD else 0.0
+
+
+@fn
+def beckmann_distribution(cos_theta, alpha):
+    """Beckmann D(ω_h) (sampling.beckmann_distribution, eq. 2.26)."""
+    if not (cos_theta > 1e-12 and alpha > 1e-50):
+        return 0.0
+    cos2 = cos_theta * cos_theta
+    alpha2 = alpha * alpha
+    tan2_theta = (1.0 - cos2) / cos2
+    return math.exp(-tan2_theta / alpha2) / (PI * alpha2 * cos2 * cos2)
+
+
+@fn
+def half_vector(wo, wi):
+    """Normalised ω_o + ω_i, the normal where the sum vanishes (bsdf._half_vector)."""
+    total = (wo[0] + wi[0], wo[1] + wi[1], wo[2] + wi[2])
+    length = norm(total)
+    if length > 0.0:
+        return divide(total, length)
+    return (0.0, 0.0, 1.0)
+
+
+@fn
+def oren_nayar(reflectance, roughness, cos_theta_i, cos_theta_o, cos_phi):
+    """Oren–Nayar f_r without cosine (bsdf.oren_nayar, eq. 2.28–2.30)."""
+    s = roughness * roughness
+    theta_i = math.acos(min(max(cos_theta_i, 0.0), 1.0))
+    theta_o = math.acos(min(max(cos_theta_o, 0.0), 1.0))
+    theta_max = max(theta_i, theta_o)
+    theta_min = min(theta_i, theta_o)
+    scaled_min = 2.0 * theta_min / PI
+    c1 = 1.0 - 0.5 * s / (s + 0.33)
+    c2 = 0.45 * s / (s + 0.09) * (math.sin(theta_max) - (scaled_min ** 3.0 if cos_phi < 0.0 else 0.0))
+    root_c3 = 4.0 * theta_max * theta_min / PI_SQUARED
+    c3 = 0.125 * s / (s + 0.09) * (root_c3 * root_c3)
+    direct = (reflectance / PI) * (c1 + cos_phi * c2 * math.tan(theta_min)
+                                   + (1.0 - abs(cos_phi)) * c3 * math.tan(0.5 * (theta_max + theta_min)))
+    interreflection = 0.17 * reflectance * reflectance / PI * s / (s + 0.13) * (1.0 - cos_phi * (scaled_min * scaled_min))
+    return max(direct + interreflection, 0.0)
+
+
+@fn
+def cos_azimuth_difference(wo, wi):
+    """cos(φ_o − φ_i), 0 where a direction lies on the normal (bsdf.cos_azimuth_difference)."""
+    planar_dot = wo[0] * wi[0] + wo[1] * wi[1]
+    planar_norms = math.hypot(wo[0], wo[1]) * math.hypot(wi[0], wi[1])
+    if not planar_norms > 0.0:
+        return 0.0
+    return min(max(planar_dot / planar_norms, -1.0), 1.0)
+
+
+@fn
+def eval_terms(params, wo, wi, fresnel_o):
+    """f_r and the direction-pair terms (cos θ_i, valid, h, ω_o·ω_h, α, D) (bsdf._pair and bsdf._eval)."""
+    cos_o, cos_i = wo[2], wi[2]
+    h = half_vector(wo, wi)
+    cos_oh = wo[0] * h[0] + wo[1] * h[1] + wo[2] * h[2]
+    alpha = rough_alpha(params)
+    distribution = beckmann_distribution(h[2], alpha)
+    valid = cos_o > 0.0 and cos_i > 0.0
+    if not valid:
+        return 0.0, cos_i, valid, h, cos_oh, alpha, distribution
+    transmitted = (1.0 - fresnel_dielectric(cos_i, params[3])) * (1.0 - fresnel_o)
+    diffuse = (1.0 - params[2]) * transmitted * oren_nayar(params[0], params[1], cos_i, cos_o,
+                                                           cos_azimuth_difference(wo, wi))
+    # V-cavity G (eq. 2.27) and Torrance–Sparrow (eq. 2.24)
+    geometry = 0.0
+    if cos_oh > 0.0:
+        geometry = min(1.0, 2.0 * max(h[2], 0.0) / cos_oh * min(max(cos_o, 0.0), max(cos_i, 0.0)))
+    denominator = 4.0 * (cos_i * cos_o)
+    specular = 0.0
+    if denominator > 0.0:
+        specular = specular_fresnel(params, cos_oh) * distribution * geometry / denominator
+    return diffuse + specular, cos_i, valid, h, cos_oh, alpha, distribution
+
+
+@fn
+def pdf_terms(wo, probability, cos_i, valid, h, cos_oh, alpha, distribution):
+    """Solid-angle density of the non-delta lobes (bsdf._pdf with sampling.pdf_vcavity_visible_normal)."""
+    if not valid:
+        return 0.0
+    specular = 0.0
+    if cos_oh > 0.0 and alpha > 0.0:
+        reflect_jacobian = 1.0 / (4.0 * cos_oh)
+        visible = max(wo[0] * h[0] + wo[1] * h[1] + wo[2] * h[2], 0.0)
+        visible_other = max(wo[0] * -h[0] + wo[1] * -h[1] + wo[2] * h[2], 0.0)
+        total = visible + visible_other
+        share = visible / (total if total > 0.0 else 1.0)
+        specular = 2.0 * (distribution * max(h[2], 0.0)) * share * reflect_jacobian
+    return probability * specular + (1.0 - probability) * (max(cos_i, 0.0) / PI)
+
+
+@fn
+def eval_bsdf(params, wo, wi):
+    """f_r (1/sr) without the cosine (bsdf.eval_bsdf)."""
+    return eval_terms(params, wo, wi, fresnel_dielectric(wo[2], params[3]))[0]
+
+
+@fn
+def eval_pdf_bsdf(params, wo, wi):
+    """(f_r, pdf) of one direction pair (bsdf.eval_pdf_bsdf)."""
+    fresnel_o, probability = outgoing(params, wo[2])
+    f, cos_i, valid, h, cos_oh, alpha, distribution = eval_terms(params, wo, wi, fresnel_o)
+    return f, pdf_terms(wo, probability, cos_i, valid, h, cos_oh, alpha, distribution)
+
+
+@fn
+def sample_bsdf(params, wo, u_lobe, u1, u2):
+    """(wi, weight, pdf, is_delta) of one BSDF sample (bsdf.sample_bsdf); see its contract."""
+    cos_o = wo[2]
+    fresnel_o, probability = outgoing(params, cos_o)
+    pick_specular = u_lobe < probability
+    if pick_specular:
+        u_swap = u_lobe / (probability if probability > 0.0 else 1.0)
+    else:
+        u_swap = (u_lobe - probability) / (1.0 - probability if probability < 1.0 else 1.0)
+    u_swap = min(max(u_swap, 0.0), ONE_BELOW_ONE)
+    alpha = rough_alpha(params)
+    if pick_specular:
+        m = (0.0, 0.0, 1.0)
+        if alpha > 0.0:  # a V-cavity visible normal (sampling.sample_vcavity_visible_normal)
+            tan2_theta = -alpha * alpha * math.log1p(-u1)
+            cos_theta = 1.0 / math.sqrt(1.0 + tan2_theta)
+            sin_theta = math.sqrt(tan2_theta) * cos_theta
+            phi = TWO_PI * u2
+            m = (sin_theta * math.cos(phi), sin_theta * math.sin(phi), cos_theta)
+            visible = max(wo[0] * m[0] + wo[1] * m[1] + wo[2] * m[2], 0.0)
+            visible_other = max(wo[0] * -m[0] + wo[1] * -m[1] + wo[2] * m[2], 0.0)
+            if u_swap * (visible + visible_other) >= visible and visible_other > 0.0:
+                m = (-m[0], -m[1], m[2])
+        c = 2.0 * (wo[0] * m[0] + wo[1] * m[1] + wo[2] * m[2])
+        wi = (c * m[0] - wo[0], c * m[1] - wo[1], c * m[2] - wo[2])
+    else:
+        wi = cosine_hemisphere(u1, u2)
+    if pick_specular and alpha == 0.0 and cos_o > 0.0:  # the mirror: a delta lobe
+        mirror_fresnel = specular_fresnel(params, cos_o) if params[2] != 0.0 else fresnel_o
+        return wi, mirror_fresnel / (probability if probability > 0.0 else 1.0), probability, True
+    f, cos_i, valid, h, cos_oh, a, distribution = eval_terms(params, wo, wi, fresnel_o)
+    pdf = pdf_terms(wo, probability, cos_i, valid, h, cos_oh, a, distribution)
+    f_cos = f * max(cos_i, 0.0)
+    return wi, (f_cos / pdf if pdf > 0.0 else 0.0), pdf, False
+
+
+# ------------------------------------------------------------------ LEDs (tofcore.led) and correlations (tofcore.modulation)
+@fn
+def led_intensity(kind, intensity_w_sr, cos_axis):
+    """I(θ) in W/sr (LED.intensity, eq. 2.8–2.9)."""
+    if kind == POINT:
+        return intensity_w_sr
+    return intensity_w_sr * max(cos_axis, 0.0)
+
+
+@fn
+def emission_pdf(kind, cos_axis):
+    """Solid-angle density of the LED's emission sampling (LED.emission_pdf)."""
+    if kind == POINT:
+        return INV_4PI
+    return max(cos_axis, 0.0) / PI
+
+
+@fn
+def sample_emission(kind, u1, u2):
+    """An emission direction in the LED frame, ∝ I(θ) (LED.sample_emission)."""
+    if kind == LAMBERTIAN:
+        return cosine_hemisphere(u1, u2)
+    z = 1.0 - 2.0 * u1
+    r = math.sqrt(max(1.0 - z * z, 0.0))
+    phi = TWO_PI * u2
+    return (r * math.cos(phi), r * math.sin(phi), z)
+
+
+@fn
+def correlation(kind, par, tau):
+    """g_j(τ) of one channel; ``par`` is its row of tofcore.compiled.setup.correlation_table.
+
+    PHASOR cos(2πf τ − qπ/2) (modulation.phasor_component); SINE ½ + cos(2π(fτ − k/N))/π; SQUARE the
+    clipped triangle/trapezoid of modulation.square_correlation; PULSED clip(1 − |τ/t0 − b|, 0, 1).
+    """
+    if kind == PHASOR:  # par: 2πf, qπ/2
+        return math.cos(par[0] * tau - par[1])
+    if kind == SINE:  # par: f, k/N
+        return math.cos((par[0] * tau - par[1]) * TWO_PI) / PI + 0.5
+    if kind == SQUARE:  # par: f, k/N, duty D, lower clip, upper clip, ¼ + D/2
+        shifted = par[0] * tau - par[1] + 0.5
+        u = abs(shifted - math.floor(shifted) - 0.5)
+        return min(max(par[5] - u, par[3]), par[4]) / par[2]
+    return min(max(1.0 - abs(tau / par[0] - par[1]), 0.0), 1.0)  # PULSED, par: t0, bucket
+
+
+# ------------------------------------------------------------------ one path (tofcore.transport._trace_chunk)
+@fn
+def connect_led(geo, frame, leds, surf, spawn, wo, prim, throughput, i, depth, bsdf_area_pdf, prev_delta,
+                use_mis, counters, stack, stack_t):
+    """Next-event estimate to LED ``i``: (w, distance to the LED) (transport._connect_led)."""
+    led_positions, led_table = leds[0], leds[1]
+    position, ng, ns, params = surf[0], surf[1], surf[4], surf[5]
+    led = (led_positions[i, 0], led_positions[i, 1], led_positions[i, 2])
+    to_led = sub(led, position)
+    dist = norm(to_led)
+    wi_world = divide(to_led, dist)
+    cos_geo = dot(wi_world, ng)
+    cos_shading = dot(wi_world, ns)
+    cos_axis = -dot(wi_world, (frame[4, 0], frame[4, 1], frame[4, 2]))
+    kind = np.int64(led_table[i, 0])
+    f = eval_bsdf(params, wo, to_local(surf, wi_world))
+    w = throughput * f * max(cos_shading, 0.0) * led_intensity(kind, led_table[i, 1], cos_axis) / (dist * dist)
+    if not cos_geo > 0:
+        w = 0.0
+    if use_mis:  # strategy A's balance-heuristic weight (light_paths.bsdf_strategy_weight)
+        p_light = led_table[i, 3] * emission_pdf(kind, cos_axis) * max(cos_geo, 0.0) / (dist * dist)
+        share = bsdf_area_pdf / (bsdf_area_pdf + p_light) if bsdf_area_pdf + p_light > 0 else 1.0
+        w = w * (1.0 if prev_delta else share)
+    if w > 0:
+        if depth == 1 and led_table[i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
+            counters[4] += 1
+        else:
+            o, d, t_max = shadow_ray(spawn, led, point_offset(led, SPAWN_RELATIVE))
+            counters[2] += 1
+            if intersect(geo, o, d, t_max, prim, True, stack, stack_t)[1] >= 0:
+                w = 0.0
+    return w, dist
+
+
+@fn
+def light_vertex(geo, frame, leds, key, pixel, sample, independent, counters, stack, stack_t):
+    """The sample's light vertex y (light_paths.trace_light_vertices).
+
+    Returns (found, surface of y facing the LED, unit direction y → LED, |y − LED|, emitted, p_B, the margin
+    a shadow ray to y stops short of it: 4 × y's spawn offset).
+    """
+    led_positions, led_table, led_cdf = leds[0], leds[1], leds[2]
+    u_led = sample_1d(key, pixel, sample, DIM_LED_CHOICE, independent)
+    index = 0
+    for c in range(led_cdf.shape[0]):
+        if u_led >= led_cdf[c]:
+            index += 1
+    u1, u2 = sample_2d(key, pixel, sample, DIM_EMISSION, independent)
+    kind = np.int64(led_table[index, 0])
+    local = sample_emission(kind, u1, u2)
+    pdf_dir = led_table[index, 3] * emission_pdf(kind, local[2])
+    direction = rotate(local, frame)
+    origin = (led_positions[index, 0], led_positions[index, 1], led_positions[index, 2])
+    offset = point_offset(origin, LEAVE_RELATIVE)
+    query = to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
+                    origin[2] + offset * direction[2]))
+    counters[3] += 1
+    t, prim, u, v = intersect(geo, query, to_f32(direction), F32_INF, -1, False, stack, stack_t)
+    surf = surface_at(geo, max(prim, 0), u, v, origin, direction)
+    if prim < 0 or not pdf_dir > 0:
+        return False, surf, direction, 0.0, 0.0, 0.0, 0.0
+    to_led = neg(direction)
+    led_distance = norm(sub(surf[0], origin))
+    cos_geo = dot(to_led, surf[1])
+    cos_shading = max(dot(to_led, surf[4]), 0.0)
+    q = led_table[index, 3]
+    emitted = led_table[index, 2] / (q if q > 0 else 1.0) * cos_shading / cos_geo if cos_geo > 0 else 0.0
+    margin = 4.0 * spawn_offset(geo, prim, surf[0], surf[1])
+    if not led_distance > offset:  # an LED on (or behind) the surface it lights has no light vertex there
+        return True, surf, to_led, led_distance, 0.0, 0.0, margin
+    return True, surf, to_led, led_distance, emitted, pdf_dir * abs(cos_geo) / (led_distance * led_distance), margin
+
+
+@fn
+def connect_light(geo, x, spawn, wo, prim, throughput, y, y_to_led, y_led_distance, y_emitted,
+                  y_pdf_area, y_margin, counters, stack, stack_t):
+    """Strategy B at camera vertex x: (w_B, extra path length |x − y| + |y − LED|) (light_paths.connect)."""
+    to_y = sub(y[0], x[0])
+    dist = norm(to_y)
+    if not dist > 0:
+        dist = np.inf
+    w_xy = divide(to_y, dist)
+    cos_x = dot(w_xy, x[1])
+    cos_y = -dot(w_xy, y[1])
+    f_x, pdf_x = eval_pdf_bsdf(x[5], wo, to_local(x, w_xy))
+    f_y = eval_bsdf(y[5], to_local(y, neg(w_xy)), to_local(y, y_to_led))
+    g = max(dot(w_xy, x[4]), 0.0) * max(cos_y, 0.0) / (dist * dist)
+    w = throughput * f_x * g * f_y * y_emitted
+    p_bsdf = pdf_x * max(cos_y, 0.0) / (dist * dist)
+    if cos_x > 0 and cos_y > 0 and w > 0:
+        w = w * y_pdf_area / (p_bsdf + y_pdf_area)
+    else:
+        w = 0.0
+    if w > 0:
+        # Stop short of y by a few ray offsets, so y's own surface does not occlude it.
+        o, d, t_max = shadow_ray(spawn, y[0], y_margin)
+        counters[2] += 1
+        if intersect(geo, o, d, t_max, prim, True, stack, stack_t)[1] >= 0:
+            w = 0.0
+    return w, dist + y_led_distance
+
+
+
+@fn
+def trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, pixel, sample, max_depth,
+               independent, light_paths, nee_w, nee_wg, con_w, con_wg, total, wg, counters, stack, stack_t):
+    """Trace sample ``sample`` of pixel ``pixel`` and add its contributions (transport._trace_chunk for one path).
+
+    Adds to the pixel's sums of next-event contributions ``nee_w`` (K,) and ``nee_wg`` (K, J) and of
+    light-vertex connections ``con_w``, ``con_wg`` per bounce bucket, in the order the reference adds
+    them, and writes the path's channel totals (signal, J correlations, ambient) to ``total`` (J + 2,).
+    ``wg`` is a (J,) scratch array; ``counters`` (layout.N_COUNTERS,) int64 ray counts. ``frame`` holds the
+    world_from_sensor rotation (rows 0–2), the lens centre and the LED axis in the scene frame (rows 3,
+    4); ``leds`` = (positions (L, 3), table (L, 5): kind,
+    intensity, power, emission probability, first-hit shadow skipped; cdf (L − 1,)).
+    """
+    n_corr = corr_kinds.shape[0]
+    n_leds = leds[0].shape[0]
+    for c in range(total.shape[0]):
+        total[c] = 0.0
+    # Strategy B's light vertex of this sample (light_paths.trace_light_vertices).
+    has_light = False
+    y = surface_at(geo, 0, F32_ZERO, F32_ZERO, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+    y_to_led, y_led_distance, y_emitted, y_pdf_area, y_margin = (0.0, 0.0, 1.0), 0.0, 0.0, 0.0, 0.0
+    if light_paths:
+        has_light, y, y_to_led, y_led_distance, y_emitted, y_pdf_area, y_margin = light_vertex(
+            geo, frame, leds, key, pixel, sample, independent, counters, stack, stack_t)
+    # Camera ray (Camera.generate_rays), scene frame.
+    pixel_u, pixel_v = sample_2d(key, pixel, sample, DIM_PIXEL, independent)
+    lens_u, lens_v = sample_2d(key, pixel, sample, DIM_LENS, independent)
+    o_s, d_s = camera_ray(cam, cam_table, pixel, pixel_u, pixel_v, lens_u, lens_v)
+    o_w = rotate(o_s, frame)
+    origin = (o_w[0] + frame[3, 0], o_w[1] + frame[3, 1], o_w[2] + frame[3, 2])
+    direction = rotate(d_s, frame)
+    prev_point = origin
+    throughput = 1.0      # β
+    path_length = 0.0     # metres from the lens
+    prev_prim = -1        # triangle the ray leaves
+    prev_pdf = 0.0        # solid-angle pdf of the bounce that led here
+    prev_delta = False    # ... and whether it was a mirror lobe
+    for depth in range(1, max_depth + 1):
+        if depth == 1:
+            offset = point_offset(origin, LEAVE_RELATIVE)
+            query = to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
+                            origin[2] + offset * direction[2]))
+            counters[0] += 1
+        else:
+            query = to_f32(origin)
+            counters[1] += 1
+        t, prim, u, v = intersect(geo, query, to_f32(direction), F32_INF, prev_prim, False, stack, stack_t)
+        if prim < 0:
+            break
+        surf = surface_at(geo, prim, u, v, origin, direction)
+        position, ng = surf[0], surf[1]
+        segment = norm(sub(position, prev_point))
+        path_length = path_length + segment
+        wo = to_local(surf, neg(direction))
+        offset = spawn_offset(geo, prim, position, ng)
+        spawn = (position[0] + ng[0] * offset, position[1] + ng[1] * offset, position[2] + ng[2] * offset)
+        use_mis = light_paths and depth >= 2
+        bsdf_area_pdf = prev_pdf * dot(neg(direction), ng) / (segment * segment) if use_mis else 0.0
+
+        # Next-event estimation to every LED, summed in LED order.
+        w_sum = 0.0
+        for j in range(n_corr):
+            wg[j] = 0.0
+        for i in range(n_leds):
+            w, led_distance = connect_led(geo, frame, leds, surf, spawn, wo, prim, throughput, i, depth,
+                                          bsdf_area_pdf, prev_delta, use_mis, counters, stack, stack_t)
+            tau = (path_length + led_distance) / SPEED_OF_LIGHT_M_S
+            w_sum += w
+            for j in range(n_corr):
+                wg[j] += correlation(corr_kinds[j], corr_table[j], tau) * w
+        k = depth - 1
+        nee_w[k] += w_sum
+        total[0] += w_sum
+        for j in range(n_corr):
+            nee_wg[k, j] += wg[j]
+            total[1 + j] += wg[j]
+        if depth == max_depth:
+            break
+        if light_paths:  # this vertex → the light vertex → its LED: depth + 1 surface vertices
+            w = 0.0
+            extra = 0.0
+            if has_light:
+                w, extra = connect_light(geo, surf, spawn, wo, prim, throughput, y, y_to_led,
+                                         y_led_distance, y_emitted, y_pdf_area, y_margin, counters, stack, stack_t)
+            tau = (path_length + extra) / SPEED_OF_LIGHT_M_S
+            con_w[depth] += w
+            total[0] += w
+            for j in range(n_corr):
+                wg_j = correlation(corr_kinds[j], corr_table[j], tau) * w
+                con_wg[depth, j] += wg_j
+                total[1 + j] += wg_j
+        # Sample the BSDF for the next direction.
+        u1, u2 = sample_2d(key, pixel, sample, 2 * depth + 1, independent)
+        u_lobe = sample_1d(key, pixel, sample, 2 * depth, independent)
+        wi, weight, pdf, is_delta = sample_bsdf(surf[5], wo, u_lobe, u1, u2)
+        new_dir = to_world(surf, wi)
+        # A direction below the geometric surface would leak through it (shading normals): end the path.
+        if not (weight > 0 and dot(new_dir, ng) > 0):
+            break
+        throughput = throughput * weight
+        prev_pdf, prev_delta = pdf, is_delta
+        prev_prim = prim
+        prev_point = position
+        origin = spawn
+        direction = divide(new_dir, norm(new_dir))
+
+
+@cpu_parallel
+def trace_pixels(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, max_depth, independent,
+                 light_paths, p0, p1, first, counts, signal_sum, correlation_sum, replicate_sum, counters):
+    """Trace samples [first[p], first[p] + counts[p]) of pixels p0 ≤ p < p1 into the frame's sums.
+
+    ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P), ``replicate_sum`` (R, J + 2, P) as in
+    :class:`tofcore.transport.Transport`; ``counters`` (p1 − p0, N_COUNTERS) receives each pixel's ray counts.
+    """
+    n_depth = signal_sum.shape[0]
+    n_corr = corr_kinds.shape[0]
+    n_rep = replicate_sum.shape[0]
+    n_ch = n_corr + 2
+    for local in prange(p1 - p0):
+        p = p0 + local
+        nee_w = np.zeros(n_depth)
+        con_w = np.zeros(n_depth)
+        nee_wg = np.zeros((n_depth, n_corr))
+        con_wg = np.zeros((n_depth, n_corr))
+        total = np.zeros(n_ch)
+        wg = np.zeros(n_corr)
+        replicate = np.zeros((n_rep, n_ch))
+        count = np.zeros(N_COUNTERS, np.int64)
+        stack = np.empty(STACK_SIZE, np.int64)
+        stack_t = np.empty(STACK_SIZE, np.float32)
+        for sample in range(first[p], first[p] + counts[p]):
+            trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, p, sample,
+                               max_depth, independent, light_paths, nee_w, nee_wg, con_w, con_wg, total, wg,
+                               count, stack, stack_t)
+            r = sample % n_rep
+            for c in range(n_ch):
+                replicate[r, c] += total[c]
+        for k in range(n_depth):
+            signal_sum[k, p] += con_w[k]
+            signal_sum[k, p] += nee_w[k]
+            for j in range(n_corr):
+                correlation_sum[k, j, p] += con_wg[k, j]
+                correlation_sum[k, j, p] += nee_wg[k, j]
+        for r in range(n_rep):
+            for c in range(n_ch):
+                replicate_sum[r, c, p] += replicate[r, c]
+        for c in range(N_COUNTERS):
+            counters[local, c] = count[c]
