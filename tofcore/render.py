@@ -459,6 +459,8 @@ def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int
     full_well = sensor.readout.full_well_e
     raw = np.minimum(raw, full_well)
     decoded = decoding.decode(raw, mod, min_amplitude_e=sensor.invalid.min_amplitude_e,
+                              min_amplitude_snr=sensor.invalid.min_amplitude_snr,
+                              read_noise_e=sensor.noise.read_noise_e, gain_noise=sensor.noise.gain_noise,
                               saturation_e=full_well if sensor.invalid.invalidate_saturated else None,
                               range_m=tuple(sensor.range_m), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
                               unwrap_weights=sensor.processing.unwrap_weights,

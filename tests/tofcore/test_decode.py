@@ -408,3 +408,34 @@ def test_range_applies_to_the_scaled_distance():
     z = decode(raw, m, range_m=(0.5, 4.5), range_scale=scale)
     assert radial.valid.tolist() == [True, True]
     assert z.valid.tolist() == [True, False] and z.reason[1] == Reason.OUT_OF_RANGE
+
+
+# ------------------------------------------------------------------ noise-floor amplitude threshold
+from tofcore.sensor.decode import amplitude_noise_e, decode  # noqa: E402
+from tofcore.sensor.noise import add_raw_noise, keller_amplitude_noise  # noqa: E402
+
+
+@pytest.mark.parametrize("k", [2.0, 3.0])
+def test_unmodulated_pixels_pass_the_noise_floor_threshold_at_the_rayleigh_rate(k):
+    """Ambient light only (no LED return): with shot, read and gain noise on the 3 raw images, the amplitude
+    is Rayleigh(σ_A) with σ_A = √(2v/N), v = B + σ_read² + (βB)², so exp(−k²/2) of the pixels reach k σ_A.
+    Tolerance: 5 binomial standard deviations of the 200 000-pixel share."""
+    mod = Modulation(kind="cw_sine", frequencies_hz=(80e6,), phase_steps=(3,))
+    rng = np.random.default_rng(7)
+    n, ambient_e, read_e, beta = 200_000, 4000.0, 20.0, 0.012
+    raw = add_raw_noise(np.full((3, n), ambient_e), read_noise_e=read_e, rng=rng)
+    raw = keller_amplitude_noise(raw, alpha_e=0.0, beta=beta, rng=rng)
+    out = decode(raw, mod, min_amplitude_snr=k, read_noise_e=read_e, gain_noise=beta)
+    expected = np.exp(-k * k / 2.0)
+    passed = np.mean(out.reason != Reason.LOW_AMPLITUDE)
+    assert abs(passed - expected) < 5.0 * np.sqrt(expected * (1.0 - expected) / n), (passed, expected)
+    sigma = amplitude_noise_e(np.float64(ambient_e), 3, read_e, beta)
+    assert sigma == pytest.approx(np.sqrt(2.0 / 3.0 * (ambient_e + read_e ** 2 + (beta * ambient_e) ** 2)))
+    assert np.std(out.amplitude) == pytest.approx(np.sqrt(2.0 - np.pi / 2.0) * sigma, rel=0.02)  # Rayleigh σ
+
+
+def test_noise_floor_threshold_keeps_a_signal_well_above_it():
+    mod = Modulation(kind="cw_sine", frequencies_hz=(80e6,), phase_steps=(3,))
+    raw = ideal_raw(mod, np.array([1.0]), 3000.0, 4000.0)  # σ_A ≈ 75 e-
+    assert decode(raw, mod, min_amplitude_snr=3.0, read_noise_e=20.0, gain_noise=0.012).valid.all()
+    assert not decode(raw, mod, min_amplitude_snr=30.0, read_noise_e=20.0, gain_noise=0.012).valid.any()

@@ -238,3 +238,34 @@ def test_the_object_table_names_every_object_id():
     assert [o["name"] for o in table] == list(scene.object_names)
     assert {m for o in table for m in o["materials"]} == {m.name for m in scene.materials}
     assert set(np.unique(frame.object_id[frame.object_id >= 0]).tolist()) <= {o["id"] for o in table}
+
+
+def _lone_cube_kinect(snr: float | None = None):
+    """Blender's default scene as the add-on exports it: a 2 m cube at the origin, nothing behind it, the
+    default world's grey (0.0509) as ambient light; Kinect v2 at 128 × 106 from (2.6, −2.6, 2), 8 spp."""
+    from tofcore.scene.demo import _Builder
+    b = _Builder(1)
+    b.box((-1, -1, -1), (1, 1, 1), 0, "Cube")
+    scene = tofcore.Scene(vertices=np.concatenate(b.vertices), triangles=np.concatenate(b.triangles),
+                          material_ids=np.concatenate(b.materials), object_ids=np.concatenate(b.objects),
+                          materials=(tofcore.Material(),), object_names=tuple(b.object_names))
+    sensor = load_preset("kinect_v2").resized(128, 106)
+    if snr is not None:
+        sensor = sensor.replace(**{"invalid.min_amplitude_snr": snr})
+    pose = tofcore.look_at(np.array([2.6, -2.6, 2.0]), np.zeros(3))
+    return sensor, render(scene, sensor, pose, spp=8, max_depth=3, seed=0, workers=1,
+                          ambient=Ambient(radiance_w_m2_sr=0.0509))
+
+
+def test_no_valid_speckles_where_no_surface_is():
+    """Pixels whose rays hit nothing see only ambient light: their amplitude is noise, Rayleigh(σ_A), and
+    the Kinect v2's 3 σ_A threshold passes exp(−4.5) = 1.1 % of them before the unwrapping and range
+    tests, which only remove more — so at most that share may be valid. The cube stays valid (92 % here;
+    93 % without the threshold, the rest unwrapping failures from the ambient's shot noise)."""
+    sensor, frame = _lone_cube_kinect()
+    empty = ~np.isfinite(frame.gt_distance)
+    assert 5000 < empty.sum() < 12000 and sensor.invalid.min_amplitude_snr == 3.0
+    assert frame.valid[empty].mean() <= np.exp(-4.5)
+    assert frame.valid[~empty].mean() >= 0.9
+    _, fixed_only = _lone_cube_kinect(snr=0.0)  # the fixed 50 e- threshold alone lets the speckles through
+    assert fixed_only.valid[empty].mean() > 0.02

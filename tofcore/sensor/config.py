@@ -72,6 +72,10 @@ name                    unit    default     meaning
 ``[invalid]`` (:class:`InvalidRules`)
 =========================  ====  =======  ===================================================================
 ``min_amplitude_e``        e⁻    0.0      pixels with a smaller amplitude A (eq. 2.40) are invalid
+``min_amplitude_snr``      1     0.0      CW: pixels with A below this many σ_A, the amplitude noise of their
+                                          offset under ``[noise]`` read_noise_e and gain_noise, are invalid; a
+                                          pixel with no return passes with probability exp(−k²/2)
+                                          (:func:`tofcore.sensor.decode.amplitude_noise_e`)
 ``invalidate_saturated``   –     true     pixels with a raw image at full well are invalid
 ``unwrap_tolerance_m``     m     None     largest disagreement between frequencies; None: the decoder's default
 =========================  ====  =======  ===================================================================
@@ -348,6 +352,7 @@ class InvalidRules(_Table):
     """When a pixel has no depth; see the module docstring."""
 
     min_amplitude_e: float = 0.0
+    min_amplitude_snr: float = 0.0
     invalidate_saturated: bool = True
     unwrap_tolerance_m: float | None = None
 
@@ -357,6 +362,8 @@ class InvalidRules(_Table):
         return {
             "min_amplitude_e": _scale(values["min_amplitude_e"], where, "min_amplitude_e",
                                       "a finite number >= 0 (electrons)", _finite_non_negative, "electrons"),
+            "min_amplitude_snr": _number(values["min_amplitude_snr"], where, "min_amplitude_snr",
+                                         "a finite number >= 0", _finite_non_negative),
             "invalidate_saturated": _typed(values["invalidate_saturated"], where, "invalidate_saturated", bool,
                                            "true or false"),
             "unwrap_tolerance_m": None if tolerance is None else _number(

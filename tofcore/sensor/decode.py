@@ -10,6 +10,10 @@ name                        unit  default    meaning
 ==========================  ====  =========  ==================================================================
 ``min_amplitude_e``         e⁻    0          LOW_AMPLITUDE below this amplitude (A of the highest frequency;
                                              pulsed: Q1 + Q2)
+``min_amplitude_snr``       1     0          LOW_AMPLITUDE also below this many σ_A, the amplitude noise of the
+                                             pixel's own offset (:func:`amplitude_noise_e`); CW only
+``read_noise_e``            e⁻    0          σ_read of :func:`amplitude_noise_e`
+``gain_noise``              1     0          Keller's β of :func:`amplitude_noise_e`
 ``saturation_e``            e⁻    None       SATURATED where any raw image reaches it (None: never)
 ``range_m``                 m     (0, inf)   OUT_OF_RANGE outside [min, max]
 ``range_scale``             1     None       the range test applies to distance × this (per pixel; e.g. the
@@ -312,7 +316,26 @@ def decode_pulsed(raw: np.ndarray, modulation: Modulation) -> np.ndarray:
 
 
 # ------------------------------------------------------------------ full decoding
+def amplitude_noise_e(offset: np.ndarray, steps: int, read_noise_e: float = 0.0,
+                      gain_noise: float = 0.0) -> np.ndarray:
+    r"""σ_A, e⁻: the standard deviation of each Cartesian component of the amplitude A of a pixel whose
+    ``steps`` raw images have mean ``offset`` B and no modulation (only unmodulated light: ambient, dark).
+
+    Notes
+    -----
+    Each raw image has variance :math:`v = B + \sigma_{read}^2 + (\beta B)^2` (Poisson shot noise, read
+    noise, Keller's gain noise, thesis eq. 3.1; :mod:`tofcore.sensor.noise`). The DFT of
+    :func:`phase_amplitude_offset`, :math:`A e^{i\varphi} = \frac2N \sum_k Q_k e^{i\theta_k}`, gives each
+    component the variance :math:`\frac{4}{N^2} \cdot \frac N2 v`, so :math:`\sigma_A = \sqrt{2v/N}`.
+    Without a signal A is then Rayleigh-distributed: :math:`P(A \ge k\sigma_A) = e^{-k^2/2}` — the share
+    of empty pixels that pass an amplitude threshold of k σ_A (``min_amplitude_snr`` of :func:`decode`).
+    """
+    b = np.maximum(offset, 0.0)
+    return np.sqrt(2.0 / steps * (b + read_noise_e ** 2 + (gain_noise * b) ** 2))
+
+
 def decode(raw: np.ndarray, modulation: Modulation, *, min_amplitude_e: float = 0.0,
+           min_amplitude_snr: float = 0.0, read_noise_e: float = 0.0, gain_noise: float = 0.0,
            saturation_e: float | None = None, range_m: tuple[float, float] = (0.0, math.inf),
            unwrap_tolerance_m: float | None = None, unwrap_weights: str = "inverse_variance",
            phasor_filter: str = "none", range_scale: np.ndarray | None = None) -> Decoded:
@@ -322,8 +345,8 @@ def decode(raw: np.ndarray, modulation: Modulation, *, min_amplitude_e: float = 
     ----------
     raw : (R, *shape) raw images in electrons, ordered as ``modulation.raw_labels()``.
     modulation : the sensor's :class:`Modulation`.
-    min_amplitude_e, saturation_e, range_m, unwrap_tolerance_m, unwrap_weights, phasor_filter, range_scale : see the
-        module docstring table; the filter works on the last two axes (an image) of a CW sensor, its
+    min_amplitude_e, min_amplitude_snr, read_noise_e, gain_noise, saturation_e, range_m, unwrap_tolerance_m,
+        unwrap_weights, phasor_filter, range_scale : see the module docstring table; the filter works on the last two axes (an image) of a CW sensor, its
         amplitude threshold is ``min_amplitude_e``.
 
     Returns
@@ -344,11 +367,14 @@ def decode(raw: np.ndarray, modulation: Modulation, *, min_amplitude_e: float = 
         distance, amplitude, offset = result.distance, cw.amplitude[h], cw.offset[h]
         confidence, unwrap_failed = result.confidence, result.failed
         no_return = np.any(cw.amplitude <= NO_RETURN_RELATIVE_AMPLITUDE * cw.offset, axis=0)
+        noise_floor = min_amplitude_snr * amplitude_noise_e(offset, modulation.phase_steps[h], read_noise_e, gain_noise)
+        low_amplitude = (amplitude < min_amplitude_e) | (amplitude < noise_floor)
     else:
         distance = decode_pulsed(raw, modulation)
         amplitude = raw[0] + raw[1]
         offset = 0.5 * amplitude
         no_return = ~(amplitude > 0)
+        low_amplitude = amplitude < min_amplitude_e
         confidence = namespace(raw).ones(amplitude.shape)
         unwrap_failed = namespace(raw).zeros(amplitude.shape, dtype=bool)
     saturated = (np.any(raw >= saturation_e, axis=0) if saturation_e is not None
@@ -357,7 +383,7 @@ def decode(raw: np.ndarray, modulation: Modulation, *, min_amplitude_e: float = 
     with np.errstate(invalid="ignore"):  # NaN distances of no-return pixels compare False
         out_of_range = ~((ranged >= range_min) & (ranged <= range_max))
     reason = _first_reason([(saturated, Reason.SATURATED), (no_return, Reason.NO_RETURN),
-                            (amplitude < min_amplitude_e, Reason.LOW_AMPLITUDE),
+                            (low_amplitude, Reason.LOW_AMPLITUDE),
                             (unwrap_failed, Reason.UNWRAPPING_FAILED), (out_of_range, Reason.OUT_OF_RANGE)])
     valid = reason == int(Reason.VALID)
     return Decoded(distance=np.where(valid, distance, np.nan).astype(np.float32),
