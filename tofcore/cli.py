@@ -223,14 +223,8 @@ def _convergence_table(log: list[dict]) -> str:
     return "\n".join(lines)
 
 
-def cmd_render(args: argparse.Namespace) -> int:
-    from .render import render
-    from .output.writers import write_frame
-    from .scene.ambient import Ambient
-    from .backend import select_device
-    from .scene.pose import look_at
-
-    # Everything that can be checked is checked before the scene is loaded or a ray traced.
+def _checked_render_settings(args: argparse.Namespace):
+    """The render's formats, sensor and transient range, every flag checked before the scene is loaded."""
     formats = args.formats
     if args.transient_bin is not None and "transient" not in formats:
         formats = (*formats, "transient")
@@ -267,13 +261,11 @@ def cmd_render(args: argparse.Namespace) -> int:
             raise ConfigError(f"--exr-channels: must be a comma list of {', '.join(names)}, got unknown "
                               f"{', '.join(unknown) or '(none given)'}")
     check_output_folder(args.out)
-    scene, file_pose, file_ambient = _scene(args.scene)
-    if args.scene.lower().endswith(".blend") and file_pose is None and args.eye is None:
-        raise ConfigError(f"--scene {args.scene}: the file has no active camera; set one in Blender, or give "
-                          f"--eye X,Y,Z --target X,Y,Z")
-    pose = look_at(np.array(args.eye), np.array(args.target)) if args.eye is not None else file_pose
-    ambient = Ambient(radiance_w_m2_sr=args.ambient) if args.ambient else file_ambient
-    device = select_device(args.device)
+    return formats, sensor, transient_max
+
+
+def _say_setup(args: argparse.Namespace, scene, sensor, ambient, device) -> None:
+    """What will run (scene, sensor, plan, device, estimator) with --verbose; else why --device auto fell back."""
     device_line = f"device: {device.description}" + (f" (auto: {device.fallback_reason})"
                                                      if device.fallback_reason else "")
     if args.verbose:
@@ -290,6 +282,24 @@ def cmd_render(args: argparse.Namespace) -> int:
             f"{'on after 16 spp' if args.adaptive else 'off'}")
     elif device.fallback_reason and not args.quiet:
         print(device_line, file=sys.stderr)  # --device auto fell back to the CPU: say which device ran and why
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from .render import render
+    from .output.writers import write_frame
+    from .scene.ambient import Ambient
+    from .backend import select_device
+    from .scene.pose import look_at
+
+    formats, sensor, transient_max = _checked_render_settings(args)
+    scene, file_pose, file_ambient = _scene(args.scene)
+    if args.scene.lower().endswith(".blend") and file_pose is None and args.eye is None:
+        raise ConfigError(f"--scene {args.scene}: the file has no active camera; set one in Blender, or give "
+                          f"--eye X,Y,Z --target X,Y,Z")
+    pose = look_at(np.array(args.eye), np.array(args.target)) if args.eye is not None else file_pose
+    ambient = Ambient(radiance_w_m2_sr=args.ambient) if args.ambient else file_ambient
+    device = select_device(args.device)
+    _say_setup(args, scene, sensor, ambient, device)
     with PassProgress(quiet=args.quiet, total=args.spp) as progress:   # a tqdm bar on a terminal, plain lines in logs
         frame = render(scene, sensor, pose, spp=args.spp, max_depth=args.max_depth, seed=args.seed,
                        time_budget_s=args.time_budget, target_error_m=args.target_error, ambient=ambient,
