@@ -282,28 +282,30 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
                                chunk_size=s.chunk_size, cancel=s.cancel, device=device, progressive=progressive,
                                sampler=s.sampler, light_paths=s.light_paths, allocate=allocate if s.adaptive else None,
                                transient_bin_m=s.transient_bin_m, transient_max_m=s.transient_max_m)
-    for transport in passes:
-        elapsed = time.perf_counter() - start
-        sigma = backend.to_host(depth_standard_error(transport, sensor, n_raw))
-        row = _convergence_row(transport, sensor, n_raw, sigma, reference, elapsed)
-        log.append(row)
-        if s.progress is not None:
-            s.progress(dict(row, spp_max=s.spp))
-        done = _stop(transport.stats.passes >= n_passes, row, s)
-        if not (done or s.every_pass):
-            continue
-        frame = _frame(transport, sensor, pose, plan, s.seed, n_raw)
-        frame.metadata["objects"] = object_table(scene)
-        if transport.transient_sum is not None:
-            frame.transient = backend.to_host(transport.transient()).astype(np.float32)
-            frame.transient_bin_m = float(transport.transient_bin_m)
-        _add_render_stats(frame, transport, sigma, dict(s.__dict__, final=done, trace_seconds=elapsed,
-                                                        seconds=time.perf_counter() - start, plan=plan.as_dict(),
-                                                        convergence=list(log), device=device.as_dict()))
-        yield frame
-        if done:
-            passes.close()
-            return
+    try:
+        for transport in passes:
+            elapsed = time.perf_counter() - start
+            sigma = backend.to_host(depth_standard_error(transport, sensor, n_raw))
+            row = _convergence_row(transport, sensor, n_raw, sigma, reference, elapsed)
+            log.append(row)
+            if s.progress is not None:
+                s.progress(dict(row, spp_max=s.spp))
+            done = _stop(transport.stats.passes >= n_passes, row, s)
+            if not (done or s.every_pass):
+                continue
+            frame = _frame(transport, sensor, pose, plan, s.seed, n_raw)
+            frame.metadata["objects"] = object_table(scene)
+            if transport.transient_sum is not None:
+                frame.transient = backend.to_host(transport.transient()).astype(np.float32)
+                frame.transient_bin_m = float(transport.transient_bin_m)
+            _add_render_stats(frame, transport, sigma, dict(s.__dict__, final=done, trace_seconds=elapsed,
+                                                            seconds=time.perf_counter() - start, plan=plan.as_dict(),
+                                                            convergence=list(log), device=device.as_dict()))
+            yield frame
+            if done:
+                return
+    finally:  # also on an exception or Ctrl-C between passes: the workers' shared memory is released now
+        passes.close()
 
 
 def _checked_reference(reference_distance, sensor) -> np.ndarray | None:

@@ -36,8 +36,12 @@ def trace(scene: Scene, camera: Camera, leds: Sequence[LED], **kwargs) -> Transp
     """
     transport = None
     kwargs.setdefault("progressive", False)
-    for transport in trace_progressive(scene, camera, leds, **kwargs):
-        pass
+    passes = trace_progressive(scene, camera, leds, **kwargs)
+    try:
+        for transport in passes:
+            pass
+    finally:  # an interrupt releases the workers' shared memory at once, not when the generator is collected
+        passes.close()
     return transport
 
 
