@@ -46,28 +46,24 @@ def load_kernels():
 
 def _build(k):
     @cuda.jit
-    def trace_pixels(nodes_f, nodes_i, leaves_f, leaves_i, triangles, vertices, face_normals, normals, material_ids,
-                     materials, cam, cam_table, frame, led_positions, led_table, led_cdf, corr_kinds, corr_table,
-                     key, max_depth, independent, light_paths, first, counts, nee_w, nee_wg, con_w, con_wg,
-                     replicate, counters):
+    def trace_pixels(scene, settings, pixels, sums):
+        """Trace pixel p's samples: ``scene`` and ``settings`` as in kernels.trace_path, ``pixels`` =
+        (first, counts), ``sums`` = per-pixel (nee_w, nee_wg, con_w, con_wg, replicate, counters)."""
         p = cuda.grid(1)
+        first, counts = pixels
         if p >= first.shape[0]:
             return
-        geo = (nodes_f, nodes_i, leaves_f, leaves_i, triangles, vertices, face_normals, normals, material_ids,
-               materials)
-        leds = (led_positions, led_table, led_cdf)
-        n_ch = corr_kinds.shape[0] + 2
+        nee_w, nee_wg, con_w, con_wg, replicate, counters = sums
+        n_ch = scene[5].shape[0] + 2
         total = cuda.local.array(MAX_CHANNELS, float64)
-        wg = cuda.local.array(MAX_CHANNELS, float64)
         count = cuda.local.array(N_COUNTERS, int64)
-        stack = cuda.local.array(STACK_SIZE, int64)
-        stack_t = cuda.local.array(STACK_SIZE, float32)
+        work = (count, cuda.local.array(STACK_SIZE, int64), cuda.local.array(STACK_SIZE, float32),
+                cuda.local.array(MAX_CHANNELS, float64))
+        path_sums = (nee_w[p], nee_wg[p], con_w[p], con_wg[p], total)
         for c in range(N_COUNTERS):
             count[c] = 0
         for sample in range(first[p], first[p] + counts[p]):
-            k.trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, p, sample, max_depth,
-                         independent, light_paths, nee_w[p], nee_wg[p], con_w[p], con_wg[p], total, wg, count,
-                         stack, stack_t)
+            k.trace_path(scene, settings, p, sample, path_sums, work)
             r = sample % replicate.shape[1]
             for c in range(n_ch):
                 replicate[p, r, c] += total[c]
@@ -93,19 +89,20 @@ def trace_frame(packed, n_pix: int, spp: int, threads_per_block: int = 128) -> d
         raise ValueError(f"cuda.trace_frame: at most {MAX_CHANNELS - 2} correlation channels, got {n_corr}")
     k_max = packed.max_depth
     dev = cuda.to_device
-    args = [dev(np.ascontiguousarray(a)) for a in packed.geo]
-    args += [dev(packed.cam), dev(packed.cam_table), dev(packed.frame)]
-    args += [dev(np.ascontiguousarray(a)) for a in packed.leds]
     # an empty channel table still needs a row for numba's typing
     corr_table = packed.corr_table if n_corr else np.zeros((1, 6))
-    args += [dev(packed.corr_kinds), dev(corr_table), packed.key, packed.max_depth, packed.independent,
-             packed.light_paths, dev(np.zeros(n_pix, np.int64)), dev(np.full(n_pix, spp, np.int64))]
+    scene = (tuple(dev(np.ascontiguousarray(a)) for a in packed.geo), dev(packed.cam), dev(packed.cam_table),
+             dev(packed.frame), tuple(dev(np.ascontiguousarray(a)) for a in packed.leds), dev(packed.corr_kinds),
+             dev(corr_table))
+    settings = (packed.key, packed.max_depth, packed.independent, packed.light_paths)
+    pixels = (dev(np.zeros(n_pix, np.int64)), dev(np.full(n_pix, spp, np.int64)))
     sums = [dev(np.zeros(shape)) for shape in ((n_pix, k_max), (n_pix, k_max, max(n_corr, 1)), (n_pix, k_max),
                                                (n_pix, k_max, max(n_corr, 1)), (n_pix, qmc.REPLICATES, n_corr + 2))]
     counters = cuda.device_array((n_pix, N_COUNTERS), np.int64)
     cuda.synchronize()
     launch = time.perf_counter()
-    kernel[(n_pix + threads_per_block - 1) // threads_per_block, threads_per_block](*args, *sums, counters)
+    kernel[(n_pix + threads_per_block - 1) // threads_per_block, threads_per_block](scene, settings, pixels,
+                                                                                    (*sums, counters))
     cuda.synchronize()
     kernel_s = time.perf_counter() - launch
     nee_w, nee_wg, con_w, con_wg, replicate = (s.copy_to_host() for s in sums)

@@ -310,11 +310,12 @@ def ray_frame(d):
 
 
 @fn
-def leaf_hit(leaves_f, leaves_i, row, k, o, b1, b2, d, t_max, ignore):
+def leaf_hit(leaves_f, leaves_i, row, k, ray, t_max, ignore):
     """Watertight test of triangle ``k`` of the leaf at ``row`` (tofcore.bvh._watertight), float32.
 
-    Returns (hit, t, u, v, triangle index).
+    ``ray`` = (origin o, frame vectors b1, b2, direction d). Returns (hit, t, u, v, triangle index).
     """
+    o, b1, b2, d = ray
     prim = leaves_i[row + PRIM_ROW, k]
     if prim < 0 or prim == ignore:
         return False, F32_ZERO, F32_ZERO, F32_ZERO, prim
@@ -342,15 +343,19 @@ def leaf_hit(leaves_f, leaves_i, row, k, o, b1, b2, d, t_max, ignore):
 
 
 @fn
-def traverse(nodes_f, nodes_i, leaves_f, leaves_i, o, d, t_max, ignore, any_hit, stack, stack_t):
+def traverse(geo, o, d, t_max, ignore, any_hit, work):
     """Closest hit (or any hit) of one float32 ray over the 4-wide BVH records, with a per-ray stack.
 
     Same slab test as tofcore.bvh.BVH._trace (entry plane chosen by the sign of the direction, tiny
     direction components replaced by ±1e-30, boxes clipped at the best t so far) and the same
     triangle test; children are visited near to far. Returns (t, prim, u, v); prim −1 on a miss.
-    ``stack`` (int64) and ``stack_t`` (float32) are scratch arrays of STACK_SIZE entries: the first
-    row of a node record and its entry distance.
+    ``geo``: the scene tuple (its first four arrays: node and leaf records, see
+    tofcore.compiled.setup.scene_arrays); ``work`` = (counters, stack, stack_t, wg) as in :func:`trace_path`:
+    ``stack`` (int64) and ``stack_t`` (float32) are scratch arrays of STACK_SIZE entries, the first row of a
+    node record and its entry distance.
     """
+    nodes_f, nodes_i, leaves_f, leaves_i = geo[0], geo[1], geo[2], geo[3]
+    stack, stack_t = work[1], work[2]
     inv = (F32_ONE / (d[0] if abs(d[0]) >= TINY_DIR else (-TINY_DIR if d[0] < F32_ZERO else TINY_DIR)),
            F32_ONE / (d[1] if abs(d[1]) >= TINY_DIR else (-TINY_DIR if d[1] < F32_ZERO else TINY_DIR)),
            F32_ONE / (d[2] if abs(d[2]) >= TINY_DIR else (-TINY_DIR if d[2] < F32_ZERO else TINY_DIR)))
@@ -359,6 +364,7 @@ def traverse(nodes_f, nodes_i, leaves_f, leaves_i, o, d, t_max, ignore, any_hit,
     ey = 4 if d[1] < F32_ZERO else 1
     ez = 5 if d[2] < F32_ZERO else 2
     b1, b2 = ray_frame(d)
+    ray = (o, b1, b2, d)
     best_t = t_max
     best_prim = -1
     best_u = F32_ZERO
@@ -387,7 +393,7 @@ def traverse(nodes_f, nodes_i, leaves_f, leaves_i, o, d, t_max, ignore, any_hit,
             if child < 0:  # a leaf: test its triangles now
                 row = ~child
                 for k in range(leaves_i.shape[1]):
-                    hit, t, u, v, prim = leaf_hit(leaves_f, leaves_i, row, k, o, b1, b2, d, best_t, ignore)
+                    hit, t, u, v, prim = leaf_hit(leaves_f, leaves_i, row, k, ray, best_t, ignore)
                     if hit:
                         if any_hit:
                             return t, prim, u, v
@@ -405,9 +411,9 @@ def traverse(nodes_f, nodes_i, leaves_f, leaves_i, o, d, t_max, ignore, any_hit,
 
 
 @fn
-def intersect(geo, o, d, t_max, ignore, any_hit, stack, stack_t):
+def intersect(geo, o, d, t_max, ignore, any_hit, work):
     """:func:`traverse` over the scene tuple ``geo`` (see tofcore.compiled.setup.scene_arrays)."""
-    return traverse(geo[0], geo[1], geo[2], geo[3], o, d, t_max, ignore, any_hit, stack, stack_t)
+    return traverse(geo, o, d, t_max, ignore, any_hit, work)
 
 
 @fn
@@ -754,10 +760,22 @@ def correlation(kind, par, tau):
 
 
 # ------------------------------------------------------------------ one path (tofcore.transport._trace_chunk)
+#
+# The path's arguments travel in tuples (numba compiles heterogeneous tuples of arrays and scalars):
+#   scene    = (geo, cam, cam_table, frame, leds, corr_kinds, corr_table)      the render's arrays
+#   settings = (key, max_depth, independent, light_paths)                      the render's switches
+#   rng      = (key, pixel, sample, independent)                               one sample's random numbers
+#   vertex   = (surface, spawn point, wo in the local frame, triangle index)  a camera vertex x
+#   state    = (throughput β, depth, bsdf_area_pdf, prev_delta, use_mis)      the path at x
+#   light    = (found, surface of y, y → LED, |y − LED|, emitted, p_B, margin) the light vertex (light_vertex)
+#   sums     = (nee_w, nee_wg, con_w, con_wg, total)                           a pixel's sums (trace_path)
+#   work     = (counters, stack, stack_t, wg)                                  scratch (traverse, trace_path)
 @fn
-def connect_led(geo, frame, leds, surf, spawn, wo, prim, throughput, i, depth, bsdf_area_pdf, prev_delta,
-                use_mis, counters, stack, stack_t):
+def connect_led(geo, frame, leds, vertex, state, i, work):
     """Next-event estimate to LED ``i``: (w, distance to the LED) (transport._connect_led)."""
+    surf, spawn, wo, prim = vertex
+    throughput, depth, bsdf_area_pdf, prev_delta, use_mis = state
+    counters = work[0]
     led_positions, led_table = leds[0], leds[1]
     position, ng, ns, params = surf[0], surf[1], surf[4], surf[5]
     led = (led_positions[i, 0], led_positions[i, 1], led_positions[i, 2])
@@ -782,18 +800,19 @@ def connect_led(geo, frame, leds, surf, spawn, wo, prim, throughput, i, depth, b
         else:
             o, d, t_max = shadow_ray(spawn, led, point_offset(led, SPAWN_RELATIVE))
             counters[2] += 1
-            if intersect(geo, o, d, t_max, prim, True, stack, stack_t)[1] >= 0:
+            if intersect(geo, o, d, t_max, prim, True, work)[1] >= 0:
                 w = 0.0
     return w, dist
 
 
 @fn
-def light_vertex(geo, frame, leds, key, pixel, sample, independent, counters, stack, stack_t):
-    """The sample's light vertex y (light_paths.trace_light_vertices).
+def light_vertex(geo, frame, leds, rng, work):
+    """The sample's light vertex y (light_paths.trace_light_vertices): the ``light`` tuple.
 
-    Returns (found, surface of y facing the LED, unit direction y → LED, |y − LED|, emitted, p_B, the margin
+    (found, surface of y facing the LED, unit direction y → LED, |y − LED|, emitted, p_B, the margin
     a shadow ray to y stops short of it: 4 × y's spawn offset).
     """
+    key, pixel, sample, independent = rng
     led_positions, led_table, led_cdf = leds[0], leds[1], leds[2]
     u_led = sample_1d(key, pixel, sample, DIM_LED_CHOICE, independent)
     index = 0
@@ -809,8 +828,8 @@ def light_vertex(geo, frame, leds, key, pixel, sample, independent, counters, st
     offset = point_offset(origin, LEAVE_RELATIVE)
     query = to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
                     origin[2] + offset * direction[2]))
-    counters[3] += 1
-    t, prim, u, v = intersect(geo, query, to_f32(direction), F32_INF, -1, False, stack, stack_t)
+    work[0][3] += 1
+    t, prim, u, v = intersect(geo, query, to_f32(direction), F32_INF, -1, False, work)
     surf = surface_at(geo, max(prim, 0), u, v, origin, direction)
     if prim < 0 or not pdf_dir > 0:
         return False, surf, direction, 0.0, 0.0, 0.0, 0.0
@@ -827,9 +846,11 @@ def light_vertex(geo, frame, leds, key, pixel, sample, independent, counters, st
 
 
 @fn
-def connect_light(geo, x, spawn, wo, prim, throughput, y, y_to_led, y_led_distance, y_emitted,
-                  y_pdf_area, y_margin, counters, stack, stack_t):
+def connect_light(geo, vertex, throughput, light, work):
     """Strategy B at camera vertex x: (w_B, extra path length |x − y| + |y − LED|) (light_paths.connect)."""
+    x, spawn, wo, prim = vertex
+    y, y_to_led, y_led_distance, y_emitted, y_pdf_area, y_margin = light[1], light[2], light[3], light[4], \
+        light[5], light[6]
     to_y = sub(y[0], x[0])
     dist = norm(to_y)
     if not dist > 0:
@@ -849,44 +870,131 @@ def connect_light(geo, x, spawn, wo, prim, throughput, y, y_to_led, y_led_distan
     if w > 0:
         # Stop short of y by a few ray offsets, so y's own surface does not occlude it.
         o, d, t_max = shadow_ray(spawn, y[0], y_margin)
-        counters[2] += 1
-        if intersect(geo, o, d, t_max, prim, True, stack, stack_t)[1] >= 0:
+        work[0][2] += 1
+        if intersect(geo, o, d, t_max, prim, True, work)[1] >= 0:
             w = 0.0
     return w, dist + y_led_distance
 
 
-
 @fn
-def trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, pixel, sample, max_depth,
-               independent, light_paths, nee_w, nee_wg, con_w, con_wg, total, wg, counters, stack, stack_t):
-    """Trace sample ``sample`` of pixel ``pixel`` and add its contributions (transport._trace_chunk for one path).
-
-    Adds to the pixel's sums of next-event contributions ``nee_w`` (K,) and ``nee_wg`` (K, J) and of
-    light-vertex connections ``con_w``, ``con_wg`` per bounce bucket, in the order the reference adds
-    them, and writes the path's channel totals (signal, J correlations, ambient) to ``total`` (J + 2,).
-    ``wg`` is a (J,) scratch array; ``counters`` (layout.N_COUNTERS,) int64 ray counts. ``frame`` holds the
-    world_from_sensor rotation (rows 0–2), the lens centre and the LED axis in the scene frame (rows 3,
-    4); ``leds`` = (positions (L, 3), table (L, 5): kind,
-    intensity, power, emission probability, first-hit shadow skipped; cdf (L − 1,)).
-    """
-    n_corr = corr_kinds.shape[0]
-    n_leds = leds[0].shape[0]
-    for c in range(total.shape[0]):
-        total[c] = 0.0
-    # Strategy B's light vertex of this sample (light_paths.trace_light_vertices).
-    has_light = False
-    y = surface_at(geo, 0, F32_ZERO, F32_ZERO, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
-    y_to_led, y_led_distance, y_emitted, y_pdf_area, y_margin = (0.0, 0.0, 1.0), 0.0, 0.0, 0.0, 0.0
-    if light_paths:
-        has_light, y, y_to_led, y_led_distance, y_emitted, y_pdf_area, y_margin = light_vertex(
-            geo, frame, leds, key, pixel, sample, independent, counters, stack, stack_t)
-    # Camera ray (Camera.generate_rays), scene frame.
+def camera_start(scene, rng):
+    """Scene-frame origin and unit direction of the sample's camera ray (Camera.generate_rays)."""
+    cam, cam_table, frame = scene[1], scene[2], scene[3]
+    key, pixel, sample, independent = rng
     pixel_u, pixel_v = sample_2d(key, pixel, sample, DIM_PIXEL, independent)
     lens_u, lens_v = sample_2d(key, pixel, sample, DIM_LENS, independent)
     o_s, d_s = camera_ray(cam, cam_table, pixel, pixel_u, pixel_v, lens_u, lens_v)
     o_w = rotate(o_s, frame)
     origin = (o_w[0] + frame[3, 0], o_w[1] + frame[3, 1], o_w[2] + frame[3, 2])
-    direction = rotate(d_s, frame)
+    return origin, rotate(d_s, frame)
+
+
+@fn
+def next_hit(geo, origin, direction, depth, prev_prim, work):
+    """(prim, u, v) where the path's ray from ``origin`` hits (prim −1 on a miss); the camera ray
+    (depth 1) leaves the lens by LEAVE_RELATIVE of its coordinates, the others from their spawn point."""
+    if depth == 1:
+        offset = point_offset(origin, LEAVE_RELATIVE)
+        query = to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
+                        origin[2] + offset * direction[2]))
+        work[0][0] += 1
+    else:
+        query = to_f32(origin)
+        work[0][1] += 1
+    t, prim, u, v = intersect(geo, query, to_f32(direction), F32_INF, prev_prim, False, work)
+    return prim, u, v
+
+
+@fn
+def camera_vertex(geo, prim, surf, direction):
+    """The ``vertex`` tuple of a hit: its surface, the point a ray leaving it starts from, wo, prim."""
+    position, ng = surf[0], surf[1]
+    offset = spawn_offset(geo, prim, position, ng)
+    spawn = (position[0] + ng[0] * offset, position[1] + ng[1] * offset, position[2] + ng[2] * offset)
+    return surf, spawn, to_local(surf, neg(direction)), prim
+
+
+@fn
+def add_next_events(scene, vertex, state, path_length, sums, work):
+    """Next-event estimation to every LED at the vertex, summed in LED order, added to bucket depth − 1
+    of ``nee_w``/``nee_wg`` and to the path's ``total`` (transport._trace_chunk)."""
+    geo, frame, leds, corr_kinds, corr_table = scene[0], scene[3], scene[4], scene[5], scene[6]
+    nee_w, nee_wg, total = sums[0], sums[1], sums[4]
+    wg = work[3]
+    n_corr = corr_kinds.shape[0]
+    w_sum = 0.0
+    for j in range(n_corr):
+        wg[j] = 0.0
+    for i in range(leds[0].shape[0]):
+        w, led_distance = connect_led(geo, frame, leds, vertex, state, i, work)
+        tau = (path_length + led_distance) / SPEED_OF_LIGHT_M_S
+        w_sum += w
+        for j in range(n_corr):
+            wg[j] += correlation(corr_kinds[j], corr_table[j], tau) * w
+    k = state[1] - 1
+    nee_w[k] += w_sum
+    total[0] += w_sum
+    for j in range(n_corr):
+        nee_wg[k, j] += wg[j]
+        total[1 + j] += wg[j]
+
+
+@fn
+def add_connection(scene, vertex, state, path_length, light, sums, work):
+    """The connection vertex → light vertex → its LED (depth + 1 surface vertices), added to bucket
+    ``depth`` of ``con_w``/``con_wg`` and to the path's ``total`` (light_paths.connect)."""
+    corr_kinds, corr_table = scene[5], scene[6]
+    con_w, con_wg, total = sums[2], sums[3], sums[4]
+    depth = state[1]
+    w = 0.0
+    extra = 0.0
+    if light[0]:
+        w, extra = connect_light(scene[0], vertex, state[0], light, work)
+    tau = (path_length + extra) / SPEED_OF_LIGHT_M_S
+    con_w[depth] += w
+    total[0] += w
+    for j in range(corr_kinds.shape[0]):
+        wg_j = correlation(corr_kinds[j], corr_table[j], tau) * w
+        con_wg[depth, j] += wg_j
+        total[1 + j] += wg_j
+
+
+@fn
+def next_direction(surf, wo, rng, depth):
+    """The BSDF-sampled world direction leaving the vertex at ``depth``, its weight, pdf and whether it
+    is a mirror lobe (tofcore.scene.bsdf.sample)."""
+    key, pixel, sample, independent = rng
+    u1, u2 = sample_2d(key, pixel, sample, 2 * depth + 1, independent)
+    u_lobe = sample_1d(key, pixel, sample, 2 * depth, independent)
+    wi, weight, pdf, is_delta = sample_bsdf(surf[5], wo, u_lobe, u1, u2)
+    return to_world(surf, wi), weight, pdf, is_delta
+
+
+@fn
+def trace_path(scene, settings, pixel, sample, sums, work):
+    """Trace sample ``sample`` of pixel ``pixel`` and add its contributions (transport._trace_chunk for one path).
+
+    ``scene`` = (geo, cam, cam_table, frame, leds, corr_kinds, corr_table); ``settings`` = (key, max_depth,
+    independent, light_paths). Adds to the pixel's ``sums`` of next-event contributions ``nee_w`` (K,) and
+    ``nee_wg`` (K, J) and of light-vertex connections ``con_w``, ``con_wg`` per bounce bucket, in the order
+    the reference adds them, and writes the path's channel totals (signal, J correlations, ambient) to
+    ``total`` (J + 2,). ``work`` = (counters (layout.N_COUNTERS,) int64 ray counts, stack, stack_t, wg (J,)
+    scratch). ``frame`` holds the world_from_sensor rotation (rows 0–2), the lens centre and the LED axis
+    in the scene frame (rows 3, 4); ``leds`` = (positions (L, 3), table (L, 5): kind, intensity, power,
+    emission probability, first-hit shadow skipped; cdf (L − 1,)).
+    """
+    geo = scene[0]
+    key, max_depth, independent, light_paths = settings
+    rng = (key, pixel, sample, independent)
+    total = sums[4]
+    for c in range(total.shape[0]):
+        total[c] = 0.0
+    # Strategy B's light vertex of this sample (light_paths.trace_light_vertices).
+    y = surface_at(geo, 0, F32_ZERO, F32_ZERO, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+    light = (False, y, (0.0, 0.0, 1.0), 0.0, 0.0, 0.0, 0.0)
+    if light_paths:
+        light = light_vertex(geo, scene[3], scene[4], rng, work)
+    origin, direction = camera_start(scene, rng)
     prev_point = origin
     throughput = 1.0      # β
     path_length = 0.0     # metres from the lens
@@ -894,64 +1002,23 @@ def trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, pi
     prev_pdf = 0.0        # solid-angle pdf of the bounce that led here
     prev_delta = False    # ... and whether it was a mirror lobe
     for depth in range(1, max_depth + 1):
-        if depth == 1:
-            offset = point_offset(origin, LEAVE_RELATIVE)
-            query = to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
-                            origin[2] + offset * direction[2]))
-            counters[0] += 1
-        else:
-            query = to_f32(origin)
-            counters[1] += 1
-        t, prim, u, v = intersect(geo, query, to_f32(direction), F32_INF, prev_prim, False, stack, stack_t)
+        prim, u, v = next_hit(geo, origin, direction, depth, prev_prim, work)
         if prim < 0:
             break
         surf = surface_at(geo, prim, u, v, origin, direction)
         position, ng = surf[0], surf[1]
         segment = norm(sub(position, prev_point))
         path_length = path_length + segment
-        wo = to_local(surf, neg(direction))
-        offset = spawn_offset(geo, prim, position, ng)
-        spawn = (position[0] + ng[0] * offset, position[1] + ng[1] * offset, position[2] + ng[2] * offset)
+        vertex = camera_vertex(geo, prim, surf, direction)
         use_mis = light_paths and depth >= 2
         bsdf_area_pdf = prev_pdf * dot(neg(direction), ng) / (segment * segment) if use_mis else 0.0
-
-        # Next-event estimation to every LED, summed in LED order.
-        w_sum = 0.0
-        for j in range(n_corr):
-            wg[j] = 0.0
-        for i in range(n_leds):
-            w, led_distance = connect_led(geo, frame, leds, surf, spawn, wo, prim, throughput, i, depth,
-                                          bsdf_area_pdf, prev_delta, use_mis, counters, stack, stack_t)
-            tau = (path_length + led_distance) / SPEED_OF_LIGHT_M_S
-            w_sum += w
-            for j in range(n_corr):
-                wg[j] += correlation(corr_kinds[j], corr_table[j], tau) * w
-        k = depth - 1
-        nee_w[k] += w_sum
-        total[0] += w_sum
-        for j in range(n_corr):
-            nee_wg[k, j] += wg[j]
-            total[1 + j] += wg[j]
+        state = (throughput, depth, bsdf_area_pdf, prev_delta, use_mis)
+        add_next_events(scene, vertex, state, path_length, sums, work)
         if depth == max_depth:
             break
-        if light_paths:  # this vertex → the light vertex → its LED: depth + 1 surface vertices
-            w = 0.0
-            extra = 0.0
-            if has_light:
-                w, extra = connect_light(geo, surf, spawn, wo, prim, throughput, y, y_to_led,
-                                         y_led_distance, y_emitted, y_pdf_area, y_margin, counters, stack, stack_t)
-            tau = (path_length + extra) / SPEED_OF_LIGHT_M_S
-            con_w[depth] += w
-            total[0] += w
-            for j in range(n_corr):
-                wg_j = correlation(corr_kinds[j], corr_table[j], tau) * w
-                con_wg[depth, j] += wg_j
-                total[1 + j] += wg_j
-        # Sample the BSDF for the next direction.
-        u1, u2 = sample_2d(key, pixel, sample, 2 * depth + 1, independent)
-        u_lobe = sample_1d(key, pixel, sample, 2 * depth, independent)
-        wi, weight, pdf, is_delta = sample_bsdf(surf[5], wo, u_lobe, u1, u2)
-        new_dir = to_world(surf, wi)
+        if light_paths:
+            add_connection(scene, vertex, state, path_length, light, sums, work)
+        new_dir, weight, pdf, is_delta = next_direction(surf, vertex[2], rng, depth)
         # A direction below the geometric surface would leak through it (shading normals): end the path.
         if not (weight > 0 and dot(new_dir, ng) > 0):
             break
@@ -959,18 +1026,24 @@ def trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, pi
         prev_pdf, prev_delta = pdf, is_delta
         prev_prim = prim
         prev_point = position
-        origin = spawn
+        origin = vertex[1]
         direction = divide(new_dir, norm(new_dir))
 
 
 @cpu_parallel
-def trace_pixels(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, max_depth, independent,
-                 light_paths, p0, p1, first, counts, signal_sum, correlation_sum, replicate_sum, counters):
+def trace_pixels(scene, settings, pixels, out):
     """Trace samples [first[p], first[p] + counts[p]) of pixels p0 ≤ p < p1 into the frame's sums.
 
-    ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P), ``replicate_sum`` (R, J + 2, P) as in
-    :class:`tofcore.transport.Transport`; ``counters`` (p1 − p0, N_COUNTERS) receives each pixel's ray counts.
+    ``scene`` and ``settings`` as in :func:`trace_path`; ``pixels`` = (p0, p1, first, counts); ``out`` =
+    (signal_sum (K, P), correlation_sum (K, J, P), replicate_sum (R, J + 2, P) as in
+    :class:`tofcore.transport.Transport`, counters (p1 − p0, N_COUNTERS) receiving each pixel's ray counts).
     """
+    # numba's parallel loop takes arrays, scalars and flat tuples of arrays, not a tuple of tuples:
+    # the scene is unpacked here and packed again inside the loop.
+    geo, cam, cam_table, frame, leds, corr_kinds, corr_table = scene
+    key, max_depth, independent, light_paths = settings
+    p0, p1, first, counts = pixels
+    signal_sum, correlation_sum, replicate_sum, counters = out
     n_depth = signal_sum.shape[0]
     n_corr = corr_kinds.shape[0]
     n_rep = replicate_sum.shape[0]
@@ -982,15 +1055,13 @@ def trace_pixels(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, 
         nee_wg = np.zeros((n_depth, n_corr))
         con_wg = np.zeros((n_depth, n_corr))
         total = np.zeros(n_ch)
-        wg = np.zeros(n_corr)
         replicate = np.zeros((n_rep, n_ch))
         count = np.zeros(N_COUNTERS, np.int64)
-        stack = np.empty(STACK_SIZE, np.int64)
-        stack_t = np.empty(STACK_SIZE, np.float32)
+        work = (count, np.empty(STACK_SIZE, np.int64), np.empty(STACK_SIZE, np.float32), np.zeros(n_corr))
+        sums = (nee_w, nee_wg, con_w, con_wg, total)
         for sample in range(first[p], first[p] + counts[p]):
-            trace_path(geo, cam, cam_table, frame, leds, corr_kinds, corr_table, key, p, sample,
-                               max_depth, independent, light_paths, nee_w, nee_wg, con_w, con_wg, total, wg,
-                               count, stack, stack_t)
+            trace_path((geo, cam, cam_table, frame, leds, corr_kinds, corr_table),
+                       (key, max_depth, independent, light_paths), p, sample, sums, work)
             r = sample % n_rep
             for c in range(n_ch):
                 replicate[r, c] += total[c]
