@@ -100,10 +100,11 @@ def kernel_costs(n: int = 200_000) -> dict:
     @numba.njit
     def traverse(geo, o, d):
         hits = 0
-        stack, stack_t = np.empty(k.STACK_SIZE, np.int64), np.empty(k.STACK_SIZE, np.float32)
+        work = (np.zeros(k.N_COUNTERS, np.int64), np.empty(k.STACK_SIZE, np.int64), np.empty(k.STACK_SIZE, np.float32),
+                np.zeros(1))
         for i in range(o.shape[0]):
             h = k.intersect(geo, (o[i, 0], o[i, 1], o[i, 2]), (d[i, 0], d[i, 1], d[i, 2]), np.float32(np.inf), -1,
-                            False, stack, stack_t)
+                            False, work)
             hits += h[1] >= 0
         return hits
 
