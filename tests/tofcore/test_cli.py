@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import os
 import re
 import subprocess
 import sys
@@ -91,8 +92,9 @@ def test_help_has_no_raw_markup_and_no_repository_paths():
 
 
 def test_make_demo_installs_the_runtime_only():
-    proc = subprocess.run(["make", "-n", "demo", "VENV=/nonexistent/venv"], cwd=REPO, capture_output=True, text=True,
-                          timeout=60)
+    env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MAKELEVEL", "MFLAGS")}  # `make test` runs us
+    proc = subprocess.run(["make", "--no-print-directory", "-n", "demo", "VENV=/nonexistent/venv"], cwd=REPO,
+                          capture_output=True, text=True, timeout=60, env=env)
     assert proc.returncode == 0, proc.stderr
     steps = proc.stdout
     assert "requirements-dev.txt" not in steps and "bpy" not in steps and "pytest" not in steps
