@@ -65,7 +65,7 @@ from mathutils import Matrix
 
 import tofcore
 
-from . import export, gpu, images, mapping, preferences, sensors
+from . import compiled, export, gpu, images, mapping, preferences, sensors
 
 #: Custom property that marks an LED empty; its value is the LED number (1-based).
 LED_KEY = "tof_led"
@@ -319,6 +319,8 @@ def _apply_pass(frame) -> None:
     device = frame.stats.get("device") or {}
     last_result.update(device=device.get("description", ""), device_name=device.get("name", ""),
                        fallback_reason=device.get("fallback_reason"))
+    transport = frame.stats.get("transport") or {}
+    last_result["transport"] = {key: transport.get(key) for key in ("tracer", "tracer_reason", "parallel")}
 
 
 def device_report(frame, report) -> None:
@@ -326,6 +328,7 @@ def device_report(frame, report) -> None:
     is a WARNING naming why."""
     device = frame.stats.get("device") or {}
     gpu.note_device(device)
+    compiled.note_tracer(frame.stats.get("transport"))
     if device.get("fallback_reason"):
         report({'WARNING'}, gpu.fallback_warning(device["fallback_reason"]))
     parallel = (frame.stats.get("transport") or {}).get("parallel", "")
@@ -373,8 +376,9 @@ def _summary(frame, written: dict, job: RenderJob) -> str:
     where = f"{len(written)} files written to {job.out_dir}" if written else "no files written (no formats)"
     device = (frame.stats.get("device") or {}).get("description")
     on = f" on {device}" if device else ""
+    tracer = compiled.tracer_text(frame.stats.get("transport"))
     return (f"ToF render of {job.camera!r}: {where}; {frame.stats['spp']} spp, "
-            f"est. depth error {error_text}, {frame.stats['seconds']:.1f} s{on}")
+            f"est. depth error {error_text}, {frame.stats['seconds']:.1f} s{on}" + (f"; {tracer}" if tracer else ""))
 
 
 def _redraw(context) -> None:

@@ -302,8 +302,6 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
             next_n = next_pass_size(nominal, s.spp, progressive) if nominal < s.spp else 0
             if budget is not None and next_n:
                 now, mean_spp = _clock(), float(backend.to_host(transport.sample_count).mean())
-                if transport.stats.passes == 1:  # the first cycle without the scene's set-up and first hits
-                    cycle_start = min(now, cycle_start + transport.stats.setup_seconds)
                 budget.record(mean_spp - traced, now - cycle_start)
                 cycle_start, traced = now, mean_spp
                 next_n = budget.next_pass(next_n, now - start)

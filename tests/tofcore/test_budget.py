@@ -40,9 +40,9 @@ def test_budgeted_pass_is_the_schedule_when_it_fits_else_the_largest_that_fits()
 @pytest.mark.parametrize("a, b", [(0.3, 1.5), (0.3, 0.06), (2.0, 0.5)])
 def test_simulated_renders_use_the_budget(budget_s, a, b):
     """Passes that cost exactly a + b·n after a 3 s set-up, the first one 5 s more (warm-up), and a final
-    frame of 1 s (3 error estimates of 1/3 s): the render ends inside the budget and less than the
-    smallest pass short of it, so within 10 % wherever a + b is at most a tenth of the budget. Only a
-    first pass that alone overruns the budget may exceed it."""
+    frame of 1 s (3 error estimates of 1/3 s): the render ends less than the smallest pass short of the
+    budget, so within 10 % wherever a + b is at most a tenth of it, and past it by at most one small pass
+    (the second, run before any pass but the warm-up is measured)."""
     clock, spp, budget = 3.0, 0, TimeBudget(budget_s)
     budget.estimate_s = 1.0 / 3.0
     n = next_pass_size(0, 100_000)
@@ -52,10 +52,12 @@ def test_simulated_renders_use_the_budget(budget_s, a, b):
         budget.record(n, cost)
         n = budget.next_pass(next_pass_size(spp, 100_000), clock)
     used = clock + 1.0
-    if 3.0 + 5.0 + a + b + 1.0 > budget_s:
+    if 3.0 + 5.0 + a + b + 1.0 >= budget_s:   # the first pass alone uses the budget up: it stops there
         assert spp == 1
         return
-    assert budget_s - (a + b) < used <= budget_s
+    assert budget_s - (a + b) < used <= budget_s + a + b
+    if spp > 2:
+        assert used <= budget_s
     if a + b <= 0.1 * budget_s:
         assert used >= 0.9 * budget_s
 

@@ -8,16 +8,19 @@ one pass cycle (tracing, the error estimate, the adaptive allocation, an interme
 
 n the mean samples per pixel the pass actually traced (the adaptive sampler's allocation included),
 a the fixed cost of a pass and b the seconds per sample per pixel, fitted by least squares to the
-passes so far (the first pass left out once there are others: it pays for warm-up, e.g. compiling).
-The next pass gets the scheduled size if it fits in what is left, else the largest size that fits,
+passes so far but the first.
+The first pass's cost is mostly warm-up (the compiled tracer loads its kernels then), so it is left out
+of the fit; until a second pass is measured, the next pass (the schedule's second, 1 sample per pixel)
+runs whenever any time is left. Then the next pass gets the scheduled size if it fits in what is left,
+else the largest size that fits,
 
 .. math:: n = \lfloor (T - t_\text{elapsed} - t_\text{frame} - a) / b \rfloor,
 
 T the budget and :math:`t_\text{frame}` the cost of building the final frame: the latest frame's
 measured build where the render built one after every pass, else :data:`FRAME_PER_ESTIMATE` times the
 measured cost of the latest error estimate (both decode the frame's raw images). 0 ends the render. So the budget is used up to about one sample per pixel (plus the model's error), and it is
-exceeded by at most the error of one pass's prediction. The first pass (1 sample per pixel) always runs:
-nothing is known before it.
+exceeded by at most one small pass (the first two, of 1 sample per pixel each, run unmeasured) or the
+error of one pass's prediction.
 
 Pass sizes only change which pass a sample belongs to, never the sample: each pixel's samples keep their
 indices 0, 1, 2, … (:mod:`tofcore.tracer.qmc`), so the replicate structure of the error estimate
@@ -84,9 +87,9 @@ class TimeBudget:
     def next_pass(self, scheduled: int, elapsed_s: float) -> int:
         """Samples per pixel for the next pass (≤ ``scheduled``; 0 ends the render), ``elapsed_s`` since
         the render's start."""
-        if not self.samples:
-            return scheduled
-        first = 1 if len(self.samples) > 1 else 0
-        a, b = pass_cost_model(self.samples[first:], self.seconds[first:])
         frame_s = FRAME_PER_ESTIMATE * self.estimate_s if self.frame_s is None else self.frame_s
-        return budgeted_pass(scheduled, self.budget_s - elapsed_s - frame_s, a, b)
+        remaining_s = self.budget_s - elapsed_s - frame_s
+        if len(self.samples) < 2:  # nothing measured yet, or only the warm-up: one more small pass if time is left
+            return scheduled if remaining_s > 0 else 0
+        a, b = pass_cost_model(self.samples[1:], self.seconds[1:])
+        return budgeted_pass(scheduled, remaining_s, a, b)

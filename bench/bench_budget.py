@@ -1,0 +1,42 @@
+"""How much of a time budget a render uses: the demo room (Kinect v2, 512 × 424) with ``time_budget_s``.
+
+Prints, per budget, the render's whole time (set-up to final frame), its tracing time, the samples per
+pixel it reached and the pass sizes. Run the same command under two checkouts' interpreters to compare
+(before/after), in one shell command so that both see the same load::
+
+    /work/main/.venv/bin/python bench/bench_budget.py --budgets 20 50
+    .venv/bin/python bench/bench_budget.py --budgets 20 50
+"""
+
+from __future__ import annotations
+
+import argparse
+import time
+
+import numpy as np
+
+import tofcore
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--budgets", type=float, nargs="+", default=[20.0, 50.0], help="seconds (default 20 50)")
+    parser.add_argument("--scene", default="room", help="demo scene (default room)")
+    parser.add_argument("--preset", default="kinect_v2", help="sensor preset (default kinect_v2)")
+    args = parser.parse_args()
+    sensor = tofcore.load_preset(args.preset)
+    scene = tofcore.demo_scene(args.scene)
+    for budget in args.budgets:
+        start = time.perf_counter()
+        frame = tofcore.render(scene, sensor, spp=65536, seed=0, time_budget_s=budget)
+        wall = time.perf_counter() - start
+        rows = frame.stats["convergence"]
+        spp = [0] + [r["spp"] for r in rows]
+        sizes = list(np.diff(spp))
+        print(f"budget {budget:5.1f} s: used {wall:6.2f} s ({wall / budget:6.1%}), tracing {frame.stats['trace_seconds']:6.2f} s, "
+              f"{frame.stats['spp']} spp, est. error {1e3 * (rows[-1]['est_depth_error_m'] or np.nan):.2f} mm, "
+              f"tracer {frame.stats['transport'].get('tracer', 'numpy')}, passes {sizes}", flush=True)
+
+
+if __name__ == "__main__":
+    main()
