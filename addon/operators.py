@@ -39,7 +39,8 @@ While a camera's ``live_preview`` is on, a ``depsgraph_update_post`` handler
 and the settings' update callbacks call :func:`schedule_live_preview`: a
 debounced ``bpy.app.timers`` callback (``preview_delay_s`` of the preferences,
 0.5 s by default) starts a low-resolution job (``preview_scale`` ×
-resolution, ``preview_spp``), cancelling the previous one; a second timer
+resolution, ``preview_spp``, the depth denoised with ``preview_denoise``:
+:mod:`tofcore.sensor.denoise`), cancelling the previous one; a second timer
 drains its queue into the same images. Nothing is written.
 
 Every failure the user can cause is reported: no active camera, a camera
@@ -250,7 +251,8 @@ def prepare_render(context, report, *, preview: bool = False, numbered: bool = F
     quality = sensors.render_settings(settings)
     out_dir, formats = None, ()
     if preview:
-        quality.update(spp=int(settings.preview_spp), time_budget_s=None, target_error_m=None)
+        quality.update(spp=int(settings.preview_spp), time_budget_s=None, target_error_m=None,
+                       preview_denoise=bool(settings.preview_denoise))
     else:
         out_dir = (output_folder(settings.output_dir, context.scene.frame_current, numbered=numbered)
                    if settings.output_dir.strip() else None)

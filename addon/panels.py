@@ -182,6 +182,7 @@ class TOF_PT_camera_preview(_CameraPanel, Panel):
         layout.active = settings.enabled and settings.live_preview
         layout.prop(settings, "preview_scale")
         layout.prop(settings, "preview_spp")
+        layout.prop(settings, "preview_denoise")
 
 
 class TOF_PT_material(Panel):

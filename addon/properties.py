@@ -28,6 +28,7 @@ property               unit    default     meaning
 ``live_preview``       –       False       re-render at low resolution whenever the scene or sensor changes
 ``preview_scale``      1       0.25        preview resolution as a fraction of the sensor's
 ``preview_spp``        –       8           most samples per pixel of a preview
+``preview_denoise``    –       True        amplitude-guided bilateral filter on the preview's depth
 =====================  ======  ==========  ===================================================================
 
 Property names follow the ``tofcore`` field names (``range_m``, ``depth_output``,
@@ -154,6 +155,10 @@ class TofCameraSettings(PropertyGroup):
     preview_spp: IntProperty(
         name="Preview Samples", default=8, min=1, soft_max=64, update=updates.settings_changed,
         description="Most samples (paths) per pixel of a live preview")
+    preview_denoise: BoolProperty(
+        name="Denoise Preview", default=True, update=updates.settings_changed,
+        description="Smooth the live preview's depth with a joint bilateral filter guided by the amplitude "
+                    "image: less render noise, a small bias at depth edges. Never applied to Render ToF")
 
 
 class TofMaterialSettings(PropertyGroup):

@@ -33,9 +33,12 @@ def main() -> None:
         rows = frame.stats["convergence"]
         spp = [0] + [r["spp"] for r in rows]
         sizes = list(np.diff(spp))
+        passes = ", ".join(f"{n}@{row['seconds']:.1f}" for n, row in zip(sizes, rows))
         print(f"budget {budget:5.1f} s: used {wall:6.2f} s ({wall / budget:6.1%}), tracing {frame.stats['trace_seconds']:6.2f} s, "
               f"{frame.stats['spp']} spp, est. error {1e3 * (rows[-1]['est_depth_error_m'] or np.nan):.2f} mm, "
-              f"tracer {frame.stats['transport'].get('tracer', 'numpy')}, passes {sizes}", flush=True)
+              f"tracer {frame.stats['transport'].get('tracer', 'numpy')}, set-up "
+              f"{frame.stats['transport'].get('setup_seconds', float('nan')):.1f} s, passes (spp@s) "
+              f"{passes}", flush=True)
 
 
 if __name__ == "__main__":

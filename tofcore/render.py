@@ -48,6 +48,7 @@ from .plan import Plan, make_plan
 from .scene.ambient import Ambient
 from .scene.scene import Scene
 from .sensor import decode as decoding
+from .sensor import denoise
 from .sensor import noise as noise_models
 from .sensor import optics
 from .sensor import processing
@@ -169,7 +170,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                        workers: int | None = None, chunk_size: int | None = None,
                        every_pass: bool = True, device: str | backend.Device = "cpu",
                        adaptive: bool = True, sampler: str = "sobol", light_paths: bool = True,
-                       transient_bin_m: float | None = None, transient_max_m: float | None = None) -> Iterator[Frame]:
+                       transient_bin_m: float | None = None, transient_max_m: float | None = None,
+                       preview_denoise: bool = False) -> Iterator[Frame]:
     """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
 
     The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
@@ -202,6 +204,10 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     transient_bin_m, transient_max_m : also keep the transient (time-resolved) histogram, bins of this
         width (m of optical path length LED → … → lens) up to this length; ``frame.transient`` is then
         (H, W, B) mean radiance per bin, bin b centred at (b + ½)·width (:meth:`Transport.transient`).
+    preview_denoise : for interactive previews only: smooth ``depth`` and ``distance`` with a joint bilateral
+        filter guided by the amplitude (:mod:`tofcore.sensor.denoise`), which removes render noise at the
+        price of a bias at depth edges (``studies/preview_denoise.py`` measures it). Never for datasets
+        unless wanted; ``frame.stats["preview_denoise"]`` records the filter's parameters (None: off).
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering and decoding on the GPU;
         the random sensor noise is drawn on the CPU so that both devices give the same frame) or
         ``"auto"`` (the GPU when usable, else the CPU). The frame's arrays are NumPy either way;
@@ -217,7 +223,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                               target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,
                               progress=progress, cancel=cancel, workers=workers, chunk_size=chunk_size,
                               every_pass=every_pass, adaptive=adaptive, sampler=sampler, light_paths=light_paths,
-                              transient_bin_m=transient_bin_m, transient_max_m=transient_max_m)
+                              transient_bin_m=transient_bin_m, transient_max_m=transient_max_m,
+                              preview_denoise=preview_denoise)
     if not dev.is_gpu:
         yield from _render_passes(scene, sensor, pose, settings, dev)
         return
@@ -255,6 +262,7 @@ class RenderSettings:
     light_paths: bool
     transient_bin_m: float | None
     transient_max_m: float | None
+    preview_denoise: bool = False
 
 
 def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device: backend.Device) -> Iterator[Frame]:
@@ -317,6 +325,8 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
             _add_render_stats(frame, transport, sigma, dict(s.__dict__, final=done, trace_seconds=elapsed,
                                                             seconds=_clock() - start, plan=plan.as_dict(),
                                                             convergence=list(log), device=device.as_dict()))
+            if s.preview_denoise:
+                _denoise(frame)
             if budget is not None:
                 budget.frame_s = _clock() - frame_start
             yield frame
@@ -327,6 +337,19 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
 
 
 _clock = time.perf_counter  # the render's clock (seconds); tests replace it to check the budgeted passes
+
+
+def _denoise(frame: Frame) -> None:
+    """The preview filter on the frame's output depth (:mod:`tofcore.sensor.denoise`); the radial distance
+    follows it (distance = z / ω_z for a z-depth camera)."""
+    frame.depth = denoise.preview_denoise(frame.depth, frame.amplitude, frame.render_error)
+    if frame.depth_output == "z":
+        with np.errstate(invalid="ignore", divide="ignore"):
+            frame.distance = (frame.depth / np.abs(frame.ray_directions[..., 2])).astype(np.float32)
+    else:
+        frame.distance = frame.depth.copy()
+    frame.stats["preview_denoise"] = {"filter": "joint bilateral, amplitude-guided", "radius_px": denoise.RADIUS_PX,
+                                      "amplitude_sigma": denoise.AMPLITUDE_SIGMA, "depth_sigmas": denoise.DEPTH_SIGMAS}
 
 
 def _checked_reference(reference_distance, sensor) -> np.ndarray | None:
@@ -371,6 +394,7 @@ def _add_render_stats(frame: Frame, transport: Transport, sigma: np.ndarray, run
         "time_budget_s": run["time_budget_s"], "target_error_m": run["target_error_m"], "plan": run["plan"],
         "convergence": run["convergence"], "transport": transport.stats.as_dict(), "device": run["device"],
         "sampler": run["sampler"], "adaptive": run["adaptive"], "light_paths": run["light_paths"],
+        "preview_denoise": None,
         "samples_per_pixel": {"min": int(counts.min()), "median": float(np.median(counts)),
                               "max": int(counts.max())},
     })
