@@ -488,6 +488,8 @@ def test_live_preview_handler_and_render(tof, tmp_path):
     job = operators.start_live_preview(bpy.context)
     assert job is not None and job.kind == "preview" and job.out_dir is None
     assert (job.sensor.camera.width, job.sensor.camera.height) == (32, 24)
+    assert job.settings["preview_denoise"] is True                    # the preview filter (Denoise Preview)
+    assert "preview_denoise" not in operators.prepare_render(bpy.context, Reports()).settings   # never Render ToF
     job.join(60.0)
     assert operators.poll_live_preview() is False and operators.active_preview_job() is None
     assert tuple(bpy.data.images["ToF Depth"].size) == (32, 24)

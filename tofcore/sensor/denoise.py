@@ -57,32 +57,34 @@ def preview_denoise(depth: np.ndarray, amplitude: np.ndarray, sigma_m: np.ndarra
     for name, value in (("amplitude_sigma", amplitude_sigma), ("depth_sigmas", depth_sigmas)):
         if not value > 0:
             raise ValueError(f"preview_denoise: {name} must be > 0, got {value!r}")
-    d = np.asarray(depth, np.float64)
-    amp = np.asarray(amplitude, np.float64)
-    sigma = np.asarray(sigma_m, np.float64)
+    d = np.asarray(depth, np.float32)
+    amp = np.asarray(amplitude, np.float32)
+    sigma = np.asarray(sigma_m, np.float32)
     if not d.shape == amp.shape == sigma.shape or d.ndim != 2:
         raise ValueError(f"preview_denoise: depth, amplitude and sigma_m must be one (H, W) shape, got "
                          f"{d.shape}, {amp.shape}, {sigma.shape}")
     usable = np.isfinite(d) & (amp > 0)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        log_amp = np.where(usable, np.log(np.where(usable, amp, 1.0)), 0.0)
+    log_amp = np.log(np.where(usable, amp, 1.0)) * np.float32(np.sqrt(0.5) / amplitude_sigma)  # scaled: Δ² is the term
     filtered = usable & np.isfinite(sigma) & (sigma > 0)
-    inv_amp = 1.0 / (2.0 * amplitude_sigma**2)
-    inv_depth = np.where(filtered, 1.0 / (2.0 * depth_sigmas**2 * np.where(filtered, sigma, 1.0)**2), 0.0)
+    depth_scale = np.where(filtered, np.float32(np.sqrt(0.5) / depth_sigmas) / np.where(filtered, sigma, 1.0), 0.0)
+    d = np.where(usable, d, 0.0).astype(np.float32)
     r = int(radius_px)
     h, w = d.shape
-    pad = lambda a, fill: np.pad(a, r, constant_values=fill)  # noqa: E731
-    d = np.where(usable, d, 0.0)
-    d_pad, la_pad, ok_pad = pad(d, 0.0), pad(log_amp, 0.0), pad(usable, False)
-    total = np.zeros((h, w))
-    weight = np.zeros((h, w))
+    d_pad, la_pad = np.pad(d, r), np.pad(log_amp, r)
+    ok_pad = np.pad(usable, r).astype(np.float32)
+    total = np.zeros((h, w), np.float32)
+    weight = np.zeros((h, w), np.float32)
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
             window = (slice(r + dy, r + dy + h), slice(r + dx, r + dx + w))
-            d_q, la_q = d_pad[window], la_pad[window]
-            exponent = (dy * dy + dx * dx) / (2.0 * r * r) + inv_amp * (la_q - log_amp)**2 \
-                + inv_depth * (d_q - d)**2
-            w_q = np.where(ok_pad[window], np.exp(-exponent), 0.0)
+            d_q = d_pad[window]
+            t_amp = la_pad[window] - log_amp
+            t_depth = (d_q - d) * depth_scale
+            exponent = t_amp * t_amp
+            exponent += t_depth * t_depth
+            exponent += np.float32((dy * dy + dx * dx) / (2.0 * r * r))
+            w_q = np.exp(-exponent, out=exponent)
+            w_q *= ok_pad[window]
             total += w_q * d_q
             weight += w_q
     with np.errstate(invalid="ignore", divide="ignore"):
