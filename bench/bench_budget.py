@@ -23,8 +23,9 @@ def main() -> None:
     parser.add_argument("--budgets", type=float, nargs="+", default=[20.0, 50.0], help="seconds (default 20 50)")
     parser.add_argument("--scene", default="room", help="demo scene (default room)")
     parser.add_argument("--preset", default="kinect_v2", help="sensor preset (default kinect_v2)")
+    parser.add_argument("--scale", type=float, default=1.0, help="resolution scale (default 1: 512 x 424)")
     args = parser.parse_args()
-    sensor = tofcore.load_preset(args.preset)
+    sensor = tofcore.load_preset(args.preset).scaled(args.scale)
     scene = tofcore.demo_scene(args.scene)
     for budget in args.budgets:
         start = time.perf_counter()
@@ -34,7 +35,7 @@ def main() -> None:
         spp = [0] + [r["spp"] for r in rows]
         sizes = list(np.diff(spp))
         passes = ", ".join(f"{n}@{row['seconds']:.1f}" for n, row in zip(sizes, rows))
-        print(f"budget {budget:5.1f} s: used {wall:6.2f} s ({wall / budget:6.1%}), tracing {frame.stats['trace_seconds']:6.2f} s, "
+        print(f"{sensor.camera.width}x{sensor.camera.height}, budget {budget:5.1f} s: used {wall:6.2f} s ({wall / budget:6.1%}), tracing {frame.stats['trace_seconds']:6.2f} s, "
               f"{frame.stats['spp']} spp, est. error {1e3 * (rows[-1]['est_depth_error_m'] or np.nan):.2f} mm, "
               f"tracer {frame.stats['transport'].get('tracer', 'numpy')}, set-up "
               f"{frame.stats['transport'].get('setup_seconds', float('nan')):.1f} s, passes (spp@s) "
