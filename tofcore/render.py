@@ -218,6 +218,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     """
     _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor,
                     transient_bins=transient_bins(transient_bin_m, transient_max_m))
+    if not isinstance(preview_denoise, bool):
+        raise ConfigError(f"render: preview_denoise must be True or False, got {preview_denoise!r}")
     dev = backend.select_device(device)
     settings = RenderSettings(spp=spp, max_depth=max_depth, seed=seed, time_budget_s=time_budget_s,
                               target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,

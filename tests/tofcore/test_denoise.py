@@ -93,3 +93,5 @@ def test_render_filters_only_when_asked(depth_output):
     np.testing.assert_array_equal(smooth.depth, expected)
     z = np.abs(smooth.ray_directions[..., 2]) if depth_output == "z" else 1.0
     np.testing.assert_allclose(smooth.distance * z, smooth.depth, rtol=1e-6)
+    with pytest.raises(tofcore.ConfigError, match="preview_denoise must be True or False, got 'yes'"):
+        render(scene, sensor, spp=1, preview_denoise="yes")
