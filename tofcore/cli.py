@@ -346,7 +346,8 @@ def summary(frame) -> str:
     lines = [
         f"samples per pixel:          {stats['spp']} (mean over the pixels)",
         f"render time:                {stats['seconds']:.1f} s ({stats['transport']['rays_per_second'] / 1e6:.2f} "
-        f"M rays/s)",
+        f"M rays/s)" + (f", {100 * stats['seconds'] / stats['time_budget_s']:.0f} % of the {stats['time_budget_s']:g} s "
+                        f"budget" if stats.get("time_budget_s") else ""),
         f"render noise (estimated):   {'–' if est is None else f'{est * 1000:.2f} mm'} RMS Monte Carlo error of the "
         f"depth over the pixels that see a surface",
         f"sensor noise:               {'on (shot and read noise, as the preset says)' if noise else 'off'}",
@@ -355,6 +356,8 @@ def summary(frame) -> str:
         f"invalid pixels by reason:   {reasons}",
         f"depth error vs ground truth: {rms} RMS over the valid pixels ({' + '.join(causes)})",
     ]
+    if stats.get("preview_denoise"):
+        lines.append("preview denoise:            on (depth and distance smoothed, tofcore/sensor/denoise.py)")
     return "\n".join(lines)
 
 
