@@ -34,11 +34,13 @@ from ..tracer import qmc as _qmc
 from ..tracer import rng as _rng
 from ..tracer import sampler as _sampler
 from ..tracer import surface as _surface
-from ._target import cpu_parallel_function, device_function
+from ._target import cpu_parallel_function, device_function, gpu_kernel_function, gpu_module
 from .layout import LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE
 
 fn = device_function(__name__)
 cpu_parallel = cpu_parallel_function(__name__)
+gpu_kernel = gpu_kernel_function(__name__)
+cuda = gpu_module(__name__)
 
 # ------------------------------------------------------------------ constants, from the reference modules
 GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
@@ -1076,3 +1078,41 @@ def trace_pixels(scene, settings, pixels, out):
                 replicate_sum[r, c, p] += replicate[r, c]
         for c in range(N_COUNTERS):
             counters[local, c] = count[c]
+
+
+GPU_MAX_CHANNELS = 32
+"""Correlation channels + 2 a GPU thread holds (local arrays need their size when compiling)."""
+
+
+@gpu_kernel
+def gpu_trace_sample(scene, settings, launch, sums):
+    """CUDA: one path per thread — sample ``first[p] + s`` of pixel ``p = order[i]`` for thread i < n_active.
+
+    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), counts (P,), s, n_active): the
+    host launches s = 0, 1, … in turn, so each pixel's sums grow in sample order as on the CPU
+    (:func:`trace_pixels`) and no two threads add to one pixel. ``sums`` = (nee_w (K, P), nee_wg (K, J, P),
+    con_w (K, P), con_wg (K, J, P), replicate (R, J + 2, P), counters (N_COUNTERS, P)): the pass's sums per
+    pixel, kept apart as on the CPU and added to the transport by the host afterwards.
+    """
+    i = cuda.grid(1)
+    order, first, counts, s, n_active = launch
+    if i >= n_active:
+        return
+    p = order[i]
+    if s >= counts[p]:
+        return
+    nee_w, nee_wg, con_w, con_wg, replicate, counters = sums
+    sample = first[p] + s
+    total = cuda.local.array(GPU_MAX_CHANNELS, np.float64)
+    count = cuda.local.array(N_COUNTERS, np.int64)
+    for c in range(N_COUNTERS):
+        count[c] = 0
+    work = (count, cuda.local.array(STACK_SIZE, np.int64), cuda.local.array(STACK_SIZE, np.float32),
+            cuda.local.array(GPU_MAX_CHANNELS, np.float64))
+    trace_path(scene, settings, p, sample, (nee_w[:, p], nee_wg[:, :, p], con_w[:, p], con_wg[:, :, p], total),
+               work)
+    r = sample % replicate.shape[0]
+    for c in range(replicate.shape[1]):
+        replicate[r, c, p] += total[c]
+    for c in range(N_COUNTERS):
+        counters[c, p] += count[c]
