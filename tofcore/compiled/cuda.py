@@ -2,13 +2,14 @@
 
 :func:`load_kernels` executes ``kernels.py`` a second time under the module name
 ``tofcore.compiled.kernels_cuda``, for which every scalar function becomes a ``numba.cuda`` device
-function and :func:`tofcore.compiled.kernels.gpu_trace_sample` a kernel (:mod:`tofcore.compiled._target`).
-:func:`trace_pass` launches that kernel once per sample index s of the pass — thread i traces sample
-``first[p] + s`` of pixel ``p = order[i]`` — so every pixel's sums grow in sample order, as on the CPU, and
-no two threads ever add to one pixel (no atomics, the same frame on every run). The pass's sums are kept
-apart per pixel as on the CPU (next-event estimates and light-vertex connections) and added to the
-transport in the reference's order afterwards: a GPU frame is the CPU frame up to the GPU's libm and its
-fused multiply–adds (tests/tofcore/test_gpu.py states the tolerance).
+function and :func:`tofcore.compiled.kernels.gpu_trace_samples` a kernel (:mod:`tofcore.compiled._target`).
+:func:`trace_pass` launches that kernel over groups of m sample indices, one path per thread: sample
+``s0 + l`` of a pixel goes to lane l of the pass's sums, so each lane of a pixel grows in sample order, no
+two threads ever add to one lane (no atomics: the same frame on every run), and small frames still give
+the GPU enough threads. Next-event estimates and light-vertex connections are kept apart as on the CPU;
+the lanes are added in lane order and then to the transport in the reference's order: a GPU frame is the
+CPU frame up to the GPU's libm, its fused multiply–adds and the lanes' rounding (tests/tofcore/test_gpu.py
+states the tolerance).
 
 The machine code is cached by numba (``cache=True``) beside the sources (``tofcore/compiled/__pycache__``)
 or under ``NUMBA_CACHE_DIR``: the first process on a machine compiles for ~30 s, later ones load it.
@@ -52,9 +53,9 @@ def load_kernels(max_registers: int | None = None):
         spec.loader.exec_module(module)
         _MODULE = module
     if max_registers is None:
-        return _MODULE, _MODULE.gpu_trace_sample
+        return _MODULE, _MODULE.gpu_trace_samples
     if max_registers not in _VARIANTS:
-        _VARIANTS[max_registers] = cuda.jit(max_registers=max_registers)(_MODULE.gpu_trace_sample.py_func)
+        _VARIANTS[max_registers] = cuda.jit(max_registers=max_registers)(_MODULE.gpu_trace_samples.py_func)
     return _MODULE, _VARIANTS[max_registers]
 
 
@@ -84,15 +85,30 @@ def upload(packed) -> DeviceScene:
     return DeviceScene(scene, settings, n_corr, int(packed.max_depth))
 
 
-def launch_plan(counts: np.ndarray) -> tuple[np.ndarray, list[int]]:
-    """(order, n_active per sample index): pixels by decreasing sample count (stable), and for each s < max
-    count how many pixels have more than s samples this pass — thread i < n_active[s] traces pixel order[i]."""
+PATHS_PER_LAUNCH = 1 << 20
+"""Paths a launch aims at: enough threads to fill the GPU many times over (at 255 registers a thread an H100
+holds ~34 k), so small frames run several sample indices per launch, each in its own lane of the sums."""
+
+LANE_BYTES = 512 << 20
+"""Device memory the lanes of a pass's sums may take together."""
+
+
+def launch_plan(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(order, active): pixels by decreasing sample count (stable), and for each sample index s < the
+    largest count how many pixels have more than s samples — pixel order[i] has sample s for i < active[s]."""
     counts = np.asarray(counts, dtype=np.int64)
     order = np.argsort(-counts, kind="stable")
     most = int(counts.max()) if counts.size else 0
-    histogram = np.bincount(counts, minlength=most + 1)
-    more_than = counts.size - np.cumsum(histogram)  # more_than[s] = #pixels with count > s
-    return order, [int(more_than[s]) for s in range(most)]
+    more_than = counts.size - np.cumsum(np.bincount(counts, minlength=most + 1))  # [s]: #pixels with count > s
+    return order, more_than[:most]
+
+
+def lane_count(active: np.ndarray, n_pix: int, bytes_per_lane: int) -> int:
+    """Sample indices per launch m: about :data:`PATHS_PER_LAUNCH` paths, at most :data:`LANE_BYTES` of sums."""
+    if not len(active):
+        return 1
+    by_paths = -(-PATHS_PER_LAUNCH // max(int(active[0]), 1))
+    return int(max(1, min(len(active), by_paths, LANE_BYTES // max(bytes_per_lane, 1))))
 
 
 def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.ndarray,
@@ -100,8 +116,10 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
     """Trace samples [first[p], first[p] + counts[p]) of every pixel into ``out``'s sums on the GPU.
 
     ``out`` holds CuPy arrays ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P) and ``replicate_sum``
-    (R, J + 2, P) (a :class:`tofcore.tracer.transport.Transport` on the GPU). Returns the pass's ray
-    counts (N_COUNTERS,) on the host (one synchronisation per pass).
+    (R, J + 2, P) (a :class:`tofcore.tracer.transport.Transport` on the GPU). A launch traces m sample
+    indices (:func:`lane_count`), each into its own lane of the sums; the lanes are added in lane order,
+    then connections before next-event estimates as on the CPU. Returns the pass's ray counts
+    (N_COUNTERS,) on the host (one synchronisation per pass).
     """
     from .. import backend
 
@@ -110,21 +128,28 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
     n_pix = int(np.asarray(counts).size)
     k_max, n_corr = device_scene.max_depth, device_scene.n_correlations
     order, active = launch_plan(counts)
-    nee_w, con_w = xp.zeros((k_max, n_pix)), xp.zeros((k_max, n_pix))
-    nee_wg, con_wg = xp.zeros((k_max, n_corr, n_pix)), xp.zeros((k_max, n_corr, n_pix))
-    replicate = xp.zeros(out.replicate_sum.shape)
-    counters = xp.zeros((N_COUNTERS, n_pix), np.int64)
+    per_lane = 8 * n_pix * (2 * k_max * (1 + n_corr) + int(np.prod(out.replicate_sum.shape[:-1])) + N_COUNTERS)
+    m = lane_count(active, n_pix, per_lane)
+    nee_w, con_w = xp.zeros((m, k_max, n_pix)), xp.zeros((m, k_max, n_pix))
+    nee_wg, con_wg = xp.zeros((m, k_max, n_corr, n_pix)), xp.zeros((m, k_max, n_corr, n_pix))
+    replicate = xp.zeros((m,) + tuple(out.replicate_sum.shape))
+    counters = xp.zeros((m, N_COUNTERS, n_pix), np.int64)
     sums = tuple(_kernel_array(a) for a in (nee_w, nee_wg, con_w, con_wg, replicate, counters))
     pixels = tuple(cuda.to_device(np.ascontiguousarray(a, dtype=np.int64)) for a in (order, first, counts))
-    for s, n_active in enumerate(active):
-        blocks = (n_active + threads_per_block - 1) // threads_per_block
-        kernel[blocks, threads_per_block](device_scene.scene, device_scene.settings, (*pixels, s, n_active), sums)
-    out.signal_sum += con_w          # the reference's order: connections, then next-event estimates
-    out.signal_sum += nee_w
-    out.correlation_sum += con_wg
-    out.correlation_sum += nee_wg
-    out.replicate_sum += replicate
-    return backend.to_host(counters.sum(axis=1))
+    for s0 in range(0, len(active), m):
+        offsets = np.concatenate([[0], np.cumsum(active[s0:s0 + m])]).astype(np.int64)
+        blocks = (int(offsets[-1]) + threads_per_block - 1) // threads_per_block
+        kernel[blocks, threads_per_block](device_scene.scene, device_scene.settings,
+                                          (*pixels, s0, cuda.to_device(offsets)), sums)
+    for lane in range(1, m):  # lane order, the same on every run
+        for a in (nee_w, nee_wg, con_w, con_wg, replicate, counters):
+            a[0] += a[lane]
+    out.signal_sum += con_w[0]          # the reference's order: connections, then next-event estimates
+    out.signal_sum += nee_w[0]
+    out.correlation_sum += con_wg[0]
+    out.correlation_sum += nee_wg[0]
+    out.replicate_sum += replicate[0]
+    return backend.to_host(counters[0].sum(axis=1))
 
 
 def _kernel_array(a):

@@ -1085,20 +1085,27 @@ GPU_MAX_CHANNELS = 32
 
 
 @gpu_kernel
-def gpu_trace_sample(scene, settings, launch, sums):
-    """CUDA: one path per thread — sample ``first[p] + s`` of pixel ``p = order[i]`` for thread i < n_active.
+def gpu_trace_samples(scene, settings, launch, sums):
+    """CUDA: one path per thread — thread i traces sample ``s0 + l`` of pixel ``order[i − offsets[l]]`` for
+    ``offsets[l] ≤ i < offsets[l + 1]``, and adds it to lane l of the pass's sums.
 
-    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), counts (P,), s, n_active): the
-    host launches s = 0, 1, … in turn, so each pixel's sums grow in sample order as on the CPU
-    (:func:`trace_pixels`) and no two threads add to one pixel. ``sums`` = (nee_w (K, P), nee_wg (K, J, P),
-    con_w (K, P), con_wg (K, J, P), replicate (R, J + 2, P), counters (N_COUNTERS, P)): the pass's sums per
-    pixel, kept apart as on the CPU and added to the transport by the host afterwards.
+    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), counts (P,), s0, offsets (m + 1,)):
+    the host launches groups of m sample indices s0 = 0, m, 2m, … in turn, so lane l of a pixel receives
+    its samples s ≡ l (mod m) in sample order and no two threads add to one lane of one pixel.
+    ``sums`` = (nee_w (m, K, P), nee_wg (m, K, J, P), con_w (m, K, P), con_wg (m, K, J, P), replicate
+    (m, R, J + 2, P), counters (m, N_COUNTERS, P)): next-event estimates and light-vertex connections kept
+    apart as on the CPU (:func:`trace_pixels`); the host adds the lanes in lane order afterwards.
     """
     i = cuda.grid(1)
-    order, first, counts, s, n_active = launch
-    if i >= n_active:
+    order, first, counts, s0, offsets = launch
+    m = offsets.shape[0] - 1
+    if i >= offsets[m]:
         return
-    p = order[i]
+    lane = 0
+    while i >= offsets[lane + 1]:
+        lane += 1
+    p = order[i - offsets[lane]]
+    s = s0 + lane
     if s >= counts[p]:
         return
     nee_w, nee_wg, con_w, con_wg, replicate, counters = sums
@@ -1109,10 +1116,10 @@ def gpu_trace_sample(scene, settings, launch, sums):
         count[c] = 0
     work = (count, cuda.local.array(STACK_SIZE, np.int64), cuda.local.array(STACK_SIZE, np.float32),
             cuda.local.array(GPU_MAX_CHANNELS, np.float64))
-    trace_path(scene, settings, p, sample, (nee_w[:, p], nee_wg[:, :, p], con_w[:, p], con_wg[:, :, p], total),
-               work)
-    r = sample % replicate.shape[0]
-    for c in range(replicate.shape[1]):
-        replicate[r, c, p] += total[c]
+    trace_path(scene, settings, p, sample,
+               (nee_w[lane, :, p], nee_wg[lane, :, :, p], con_w[lane, :, p], con_wg[lane, :, :, p], total), work)
+    r = sample % replicate.shape[1]
+    for c in range(replicate.shape[2]):
+        replicate[lane, r, c, p] += total[c]
     for c in range(N_COUNTERS):
-        counters[c, p] += count[c]
+        counters[lane, c, p] += count[c]
