@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 from dataclasses import dataclass
 
 import numpy as np
@@ -140,3 +141,14 @@ def _gpu_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, cancel)
     n = cuda.trace_pass(choice.device_scene, out, done, counts)
     return TraceStats(camera_rays=int(n[0]), bounce_rays=int(n[1]), shadow_rays=int(n[2]), light_rays=int(n[3]),
                       skipped_shadow_rays=int(n[4]), chunk_seconds=time.perf_counter() - start)
+
+
+def cache_location() -> str:
+    """Where numba keeps the compiled kernels (CPU and CUDA): ``NUMBA_CACHE_DIR``, else ``__pycache__`` beside
+    the sources, else (a read-only install, such as a Blender extension's site-packages) numba's user cache."""
+    import numba
+
+    if numba.config.CACHE_DIR:
+        return str(numba.config.CACHE_DIR)
+    here = Path(__file__).resolve().parent
+    return str(here / "__pycache__") if os.access(here, os.W_OK) else "numba's user cache (~/.cache/numba)"
