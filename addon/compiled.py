@@ -97,8 +97,10 @@ def tracer_text(transport_stats: dict | None) -> str:
     stats = transport_stats or {}
     tracer = stats.get("tracer")
     if tracer == "compiled":
-        threads = stats.get("parallel", "")
-        return f"Tracer: compiled (numba{', ' + threads.split(': ')[-1] + ' threads' if ': ' in threads else ''})"
+        parallel = stats.get("parallel") or ""
+        if parallel.startswith("numba threads: "):
+            return f"Tracer: compiled (numba, {parallel[len('numba threads: '):]} threads)"
+        return f"Tracer: compiled ({parallel})" if parallel else "Tracer: compiled"
     if tracer == "numpy":
         reason = stats.get("tracer_reason") or ""
         if reason.startswith("numba is not installed"):

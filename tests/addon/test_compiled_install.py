@@ -51,6 +51,8 @@ def test_install_command_installs_no_numpy():
 def test_tracer_text():
     assert compiled.tracer_text({"tracer": "compiled", "tracer_reason": "", "parallel": "numba threads: 8"}) == \
         "Tracer: compiled (numba, 8 threads)"
+    assert compiled.tracer_text({"tracer": "compiled", "parallel": "CUDA (numba), one path per thread"}) == \
+        "Tracer: compiled (CUDA (numba), one path per thread)"
     assert compiled.tracer_text({"tracer": "numpy", "tracer_reason": "TOFCORE_TRACER=numpy"}) == \
         "Tracer: NumPy (TOFCORE_TRACER=numpy)"
     # tofcore's hint (pip install "tofcore[compiled]") becomes the Blender way

@@ -128,3 +128,12 @@ def test_preview_denoise_and_time_budget_in_the_summary(tmp_path, capsys):
     assert stats["preview_denoise"]["filter"] == "joint bilateral, amplitude-guided"
     assert "preview denoise:            on" in out
     assert re.search(r"render time: +[\d.]+ s \([\d.]+ M rays/s\), \d+ % of the 600 s budget", out), out
+
+
+def test_warmup_renders_a_tiny_frame_and_names_the_tracer(capsys):
+    from tofcore.cli import main
+
+    assert main(["warmup", "--device", "cpu"]) == 0
+    out = capsys.readouterr().out.strip()
+    # the suite runs the NumPy reference (tests/conftest.py): the line says so and why
+    assert out.startswith("numpy tracer on the CPU (TOFCORE_TRACER=numpy): ready in "), out
