@@ -20,9 +20,9 @@ def _noisy(shape=(60, 80), seed=0):
 
 
 def test_flat_region_is_smoothed_without_bias():
-    """A flat wall at 2 m, Gaussian noise σ, uniform amplitude: the noise falls by the filter's effective
-    sample count (> 4× here, r = 2: ~(Σw)²/Σw² ≈ 12 for the spatial Gaussian, less for the range term), the
-    mean stays (the weights are symmetric in the noise)."""
+    """A flat wall at 2 m, Gaussian noise σ, uniform amplitude: the noise falls (the plane's three
+    parameters from ~20 effective neighbours, fewer through the range term: more than 2× in standard
+    deviation), the mean stays (the weights are symmetric in the noise)."""
     noise, sigma = _noisy()
     depth = 2.0 + noise
     out = preview_denoise(depth, np.full(depth.shape, 500.0), sigma)
@@ -44,13 +44,26 @@ def test_a_depth_step_with_the_same_amplitude_is_kept():
 
 
 def test_an_amplitude_edge_stops_the_averaging():
-    """A 2 σ depth step (the range term alone would mix it) at a 2× amplitude edge: the guide keeps it
-    (amplitude weight exp(−ln²2/(2·0.15²)) ≈ 2e-5)."""
+    """A 2 σ depth step (the range term alone would mix it) at a 4× amplitude edge: the guide keeps it
+    (amplitude weight exp(−ln²4/(2·0.3²)) ≈ 2e-5)."""
     shape = (40, 40)
     truth = np.where(np.arange(40)[None, :] < 20, 2.0, 2.0 + 2 * SIGMA) * np.ones((40, 1))
-    amplitude = np.where(np.arange(40)[None, :] < 20, 400.0, 800.0) * np.ones((40, 1))
+    amplitude = np.where(np.arange(40)[None, :] < 20, 200.0, 800.0) * np.ones((40, 1))
     out = preview_denoise(truth, amplitude, np.full(shape, SIGMA))
     np.testing.assert_allclose(out, truth, atol=1e-3 * SIGMA)
+
+
+def test_a_slope_with_lopsided_windows_is_kept():
+    """A floor rising 1 cm per pixel with 30 % of the pixels invalid at random (lopsided windows): the local
+    plane reproduces a linear depth exactly, where a weighted mean would pull each pixel towards its
+    valid neighbours' side (up to ~1 cm)."""
+    rng = np.random.default_rng(3)
+    y, x = np.mgrid[0:40, 0:50]
+    truth = 3.0 + 0.01 * x + 0.004 * y
+    depth = np.where(rng.random(truth.shape) < 0.3, np.nan, truth)
+    out = preview_denoise(depth, np.full(truth.shape, 500.0), np.full(truth.shape, 0.01))
+    ok = np.isfinite(depth)
+    np.testing.assert_allclose(out[ok], truth[ok], atol=2e-6)
 
 
 def test_invalid_and_unknown_pixels():
