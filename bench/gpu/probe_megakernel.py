@@ -1,4 +1,4 @@
-"""Where the compiled CUDA path tracer's time goes (issue 21, for developers; needs numba-cuda and a GPU).
+"""Where the compiled CUDA path tracer's time goes (megakernel and wavefront) (issue 21, for developers; needs numba-cuda and a GPU).
 
 Times the bench_peers frame (room 9.8k, 512 × 424, 16 spp, 5 vertices) traced by
 :mod:`tofcore.compiled.cuda` for several register limits and block sizes, prints each build's registers
@@ -59,6 +59,7 @@ def main() -> int:
     p.add_argument("--resolution", default="512x424")
     p.add_argument("--spp", type=int, default=16)
     p.add_argument("--repeat", type=int, default=3)
+    p.add_argument("--wavefront-blocks", default="128,256", help="block sizes of the wavefront's kernels")
     p.add_argument("--json", default=None)
     a = p.parse_args()
     from tofcore.compiled import cuda as compiled_cuda
@@ -79,6 +80,17 @@ def main() -> int:
             row[f"kernel_ms_tpb{tpb}"] = 1e3 * statistics.median(runs)
         results[f"registers_{reg}"] = row
         print(reg, json.dumps(row), flush=True)
+
+    for tpb in (int(x) for x in a.wavefront_blocks.split(",") if x):
+        start = time.perf_counter()
+        first = compiled_cuda.trace_frame(packed, n_pix, a.spp, tpb, bvh=args[0].bvh)
+        row = {"first_s": time.perf_counter() - start, "rays": int(first["counters"][:4].sum())}
+        runs = [compiled_cuda.trace_frame(packed, n_pix, a.spp, tpb, bvh=args[0].bvh) for _ in range(a.repeat)]
+        row["kernel_ms"] = 1e3 * statistics.median(r["kernel_s"] for r in runs)
+        one = [compiled_cuda.trace_frame(packed, n_pix, 1, tpb, bvh=args[0].bvh)["kernel_s"] for _ in range(a.repeat)]
+        row["one_spp_ms"] = 1e3 * statistics.median(one)
+        results[f"wavefront_tpb{tpb}"] = row
+        print("wavefront", tpb, json.dumps(row), flush=True)
 
     module, _ = compiled_cuda.load_kernels(None)
     camera_rays = build_camera_rays(module)

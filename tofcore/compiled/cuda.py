@@ -67,10 +67,12 @@ class DeviceScene:
     settings: tuple
     n_correlations: int
     max_depth: int
+    bvh: object = None       # the scene's tofcore.scene.bvh.BVH: the wavefront traces its rays with it
 
 
-def upload(packed) -> DeviceScene:
-    """Copy the packed scene, camera, LED and channel tables to the GPU."""
+def upload(packed, bvh=None) -> DeviceScene:
+    """Copy the packed scene, camera, LED and channel tables to the GPU; ``bvh`` (the scene's BVH) for the
+    wavefront tracer."""
     module, _ = load_kernels()
     n_corr = len(packed.corr_kinds)
     if n_corr + 2 > module.GPU_MAX_CHANNELS:
@@ -82,7 +84,7 @@ def upload(packed) -> DeviceScene:
              dev(packed.frame), tuple(dev(np.ascontiguousarray(a)) for a in packed.leds), dev(packed.corr_kinds),
              dev(corr_table))
     settings = (packed.key, packed.max_depth, packed.independent, packed.light_paths)
-    return DeviceScene(scene, settings, n_corr, int(packed.max_depth))
+    return DeviceScene(scene, settings, n_corr, int(packed.max_depth), bvh)
 
 
 PATHS_PER_LAUNCH = 1 << 20
@@ -111,8 +113,25 @@ def lane_count(active: np.ndarray, n_pix: int, bytes_per_lane: int) -> int:
     return int(max(1, min(len(active), by_paths, LANE_BYTES // max(bytes_per_lane, 1))))
 
 
-def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.ndarray,
-               threads_per_block: int = THREADS_PER_BLOCK, max_registers: int | None = None) -> np.ndarray:
+ROUTE_ENV = "TOFCORE_CUDA_ROUTE"
+ROUTES = ("wavefront", "megakernel")
+
+
+def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """One pass on the GPU by the route ``TOFCORE_CUDA_ROUTE`` names (default ``wavefront``: stages between
+    traversal launches; ``megakernel``: the whole path in one kernel); returns the ray counts."""
+    import os
+
+    route = os.environ.get(ROUTE_ENV, ROUTES[0]).strip().lower() or ROUTES[0]
+    if route not in ROUTES:
+        raise ValueError(f"{ROUTE_ENV} must be one of {list(ROUTES)}, got {route!r}")
+    if route == "wavefront" and device_scene.bvh is not None:
+        return trace_pass_wavefront(device_scene, out, first, counts)
+    return trace_pass_megakernel(device_scene, out, first, counts)
+
+
+def trace_pass_megakernel(device_scene: DeviceScene, out, first: np.ndarray, counts: np.ndarray,
+                          threads_per_block: int = THREADS_PER_BLOCK, max_registers: int | None = None) -> np.ndarray:
     """Trace samples [first[p], first[p] + counts[p]) of every pixel into ``out``'s sums on the GPU.
 
     ``out`` holds CuPy arrays ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P) and ``replicate_sum``
@@ -152,6 +171,97 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
     return backend.to_host(counters[0].sum(axis=1))
 
 
+def trace_pass_wavefront(device_scene: DeviceScene, out, first: np.ndarray, counts: np.ndarray,
+                         threads_per_block: int = THREADS_PER_BLOCK) -> np.ndarray:
+    """:func:`trace_pass` in stages (kernels.wf_*): shading kernels between lean traversal launches.
+
+    Per group of m sample indices (the lanes of :func:`trace_pass`): start every path (camera ray, light
+    ray), trace both ray sets, the light vertices; then per depth shade the live paths (their next-event
+    estimates, connection and next ray), trace the shadow rays that need a test, resolve the
+    contributions into the lanes, trace the next rays. The BVH's own GPU traversal
+    (:mod:`tofcore.gpu.traversal`, bit for bit NumPy's) traces every ray. Returns the ray counts.
+    """
+    from .. import backend
+
+    module, _ = load_kernels()
+    xp = backend.namespace(out.signal_sum)
+    bvh, scene, settings = device_scene.bvh, device_scene.scene, device_scene.settings
+    n_pix = int(np.asarray(counts).size)
+    k_max, n_corr = device_scene.max_depth, device_scene.n_correlations
+    n_led = int(scene[4][0].shape[0])
+    light_paths = bool(settings[3])
+    order, active = launch_plan(counts)
+    per_lane = 8 * n_pix * (2 * k_max * (1 + n_corr) + int(np.prod(out.replicate_sum.shape[:-1])) + N_COUNTERS)
+    m = lane_count(active, n_pix, per_lane)
+    lanes = (xp.zeros((m, k_max, n_pix)), xp.zeros((m, k_max, n_corr, n_pix)), xp.zeros((m, k_max, n_pix)),
+             xp.zeros((m, k_max, n_corr, n_pix)), xp.zeros((m,) + tuple(out.replicate_sum.shape)),
+             xp.zeros((m, N_COUNTERS, n_pix), np.int64))
+    sums, counters = tuple(_kernel_array(a) for a in lanes[:5]), _kernel_array(lanes[5])
+    pixels = tuple(cuda.to_device(np.ascontiguousarray(a, dtype=np.int64)) for a in (order, first, counts))
+
+    def launch(kernel, n, *args):
+        kernel[(n + threads_per_block - 1) // threads_per_block, threads_per_block](*args)
+
+    for s0 in range(0, len(active), m):
+        offsets = np.concatenate([[0], np.cumsum(active[s0:s0 + m])]).astype(np.int64)
+        n = int(offsets[-1])
+        slots = n_led + 1
+        path = (xp.empty(n, np.int64), xp.empty(n, np.int64), xp.empty(n, np.int64), xp.zeros(n, np.int8),
+                xp.zeros(n, np.int8))
+        pstate = (xp.empty((n, 13)), xp.empty(n, np.int32))
+        rays = (xp.empty((n, 3), np.float32), xp.empty((n, 3), np.float32), xp.empty(n, np.int32))
+        light_rays = (xp.zeros((n, 3), np.float32), xp.zeros((n, 3), np.float32), xp.full(n, -1, np.int32))
+        light = xp.zeros((n, module.LIGHT_COLUMNS))
+        pend = (xp.zeros((n, slots)), xp.zeros((n, slots)))
+        shadow = (xp.zeros((n * slots, 3), np.float32), xp.zeros((n * slots, 3), np.float32),
+                  xp.zeros(n * slots, np.float32), xp.full(n * slots, -1, np.int32), xp.zeros(n * slots, np.int8))
+        occluded = xp.zeros(n * slots, np.int8)
+        total = xp.zeros((n, n_corr + 2))
+        hit_prim, hit_u, hit_v = xp.full(n, -1, np.int32), xp.zeros(n, np.float32), xp.zeros(n, np.float32)
+        k = _kernel_arrays
+        dev_path, dev_pstate, dev_rays, dev_shadow = k(path), k(pstate), k(rays), k(shadow)
+        dev_light, dev_pend, dev_total, dev_occluded = _kernel_array(light), k(pend), _kernel_array(total), \
+            _kernel_array(occluded)
+        dev_hits = k((hit_prim, hit_u, hit_v))
+        launch(module.wf_start, n, scene, settings, (*pixels, s0, cuda.to_device(offsets)), dev_path, dev_pstate,
+               dev_rays, k(light_rays), counters)
+        if light_paths:
+            h = bvh.intersect(light_rays[0], light_rays[1])
+            launch(module.wf_light, n, scene, settings, dev_path, k((h.prim, h.u, h.v)), dev_light)
+        h = bvh.intersect(rays[0], rays[1], ignore_prim=rays[2])
+        hit_prim[...], hit_u[...], hit_v[...] = h.prim, h.u, h.v
+        for depth in range(1, k_max + 1):
+            launch(module.wf_shade, n, scene, settings, depth, dev_path, dev_pstate, dev_hits, dev_light, dev_pend,
+                   dev_shadow, dev_rays, counters)
+            test = xp.flatnonzero(shadow[4])
+            occluded[...] = 0
+            if test.size:
+                occluded[test] = bvh.occluded(shadow[0][test], shadow[1][test], shadow[2][test],
+                                              ignore_prim=shadow[3][test])
+            launch(module.wf_resolve, n, scene, settings, depth, dev_path, dev_pend, dev_occluded, dev_total, sums)
+            live = xp.flatnonzero(path[3])
+            if depth == k_max or not live.size:
+                break
+            h = bvh.intersect(rays[0][live], rays[1][live], ignore_prim=rays[2][live])
+            hit_prim[...] = -1
+            hit_prim[live], hit_u[live], hit_v[live] = h.prim, h.u, h.v
+        launch(module.wf_finish, n, dev_path, dev_total, sums[4])
+    nee_w, nee_wg, con_w, con_wg, replicate, count = lanes
+    for lane in range(1, m):  # lane order, the same on every run
+        for a in lanes:
+            a[0] += a[lane]
+    out.signal_sum += con_w[0]          # the reference's order: connections, then next-event estimates
+    out.signal_sum += nee_w[0]
+    out.correlation_sum += con_wg[0]
+    out.correlation_sum += nee_wg[0]
+    out.replicate_sum += replicate[0]
+    return backend.to_host(count[0].sum(axis=1))
+
+
+def _kernel_arrays(arrays: tuple) -> tuple:
+    return tuple(_kernel_array(a) for a in arrays)
+
+
 def _kernel_array(a):
     """A CuPy array as numba sees it (one conversion per pass, not per launch); a NumPy array as it is
     (numba's CUDA simulator)."""
@@ -168,8 +278,9 @@ class Sums:
 
 
 def trace_frame(packed, n_pix: int, spp: int, threads_per_block: int = THREADS_PER_BLOCK,
-                max_registers: int | None = None) -> dict:
-    """One pass of ``spp`` samples of every pixel on the GPU, for benchmarks and checks.
+                max_registers: int | None = None, bvh=None) -> dict:
+    """One pass of ``spp`` samples of every pixel on the GPU, for benchmarks and checks: the wavefront when
+    ``bvh`` (the scene's BVH) is given, else the megakernel.
 
     Returns host arrays ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P), ``replicate_sum``
     (R, J + 2, P), ``counters`` (N_COUNTERS,), the seconds of the launches (``kernel_s``, synchronised) and
@@ -180,14 +291,17 @@ def trace_frame(packed, n_pix: int, spp: int, threads_per_block: int = THREADS_P
 
     xp = np if numba.config.ENABLE_CUDASIM else backend.select_device("gpu").xp
     start = time.perf_counter()
-    device_scene = upload(packed)
+    device_scene = upload(packed, bvh)
     n_corr = device_scene.n_correlations
     out = Sums(xp.zeros((packed.max_depth, n_pix)), xp.zeros((packed.max_depth, n_corr, n_pix)),
                xp.zeros((qmc.REPLICATES, n_corr + 2, n_pix)))
     first, counts = np.zeros(n_pix, np.int64), np.full(n_pix, spp, np.int64)
     cuda.synchronize()
     launch = time.perf_counter()
-    counters = trace_pass(device_scene, out, first, counts, threads_per_block, max_registers)
+    if bvh is not None:
+        counters = trace_pass_wavefront(device_scene, out, first, counts, threads_per_block)
+    else:
+        counters = trace_pass_megakernel(device_scene, out, first, counts, threads_per_block, max_registers)
     cuda.synchronize()
     kernel_s = time.perf_counter() - launch
     return {"signal_sum": backend.to_host(out.signal_sum), "correlation_sum": backend.to_host(out.correlation_sum),
