@@ -309,3 +309,18 @@ def test_cuda_build_of_the_kernels_traces_the_numpy_frame_in_the_simulator(tmp_p
                          text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
     assert run.stdout.startswith("ok")
+
+
+@needs_numba
+def test_the_wavefronts_light_table_round_trips_a_light_vertex():
+    """store_light / load_light (the GPU wavefront's light table) compiled for the CPU: the same tuple back,
+    bit for bit (numba types the heterogeneous tuple as the CUDA build does)."""
+    from tofcore.compiled import kernels
+
+    surf = ((1.0, 2.0, 3.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.6, 0.8),
+            (0.5, 0.2, 0.0, 1.5, 0.0))
+    light = (True, surf, (0.0, -0.6, -0.8), 2.5, 0.125, 3.0e-2, 1e-6)
+    table = np.zeros((3, kernels.LIGHT_COLUMNS))
+    kernels.store_light(table, 1, light)
+    assert kernels.load_light(table, 1) == light
+    assert not table[[0, 2]].any()

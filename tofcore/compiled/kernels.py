@@ -1195,8 +1195,11 @@ def store_light(out, j, light):
     """Row j of the light table from a light tuple (light_vertex_at)."""
     surf = light[1]
     out[j, LIGHT_FOUND] = 1.0 if light[0] else 0.0
-    for k in range(5):
-        store_vec(out, j, LIGHT_SURF + 3 * k, surf[k])
+    store_vec(out, j, LIGHT_SURF, surf[0])  # a heterogeneous tuple takes constant indices only
+    store_vec(out, j, LIGHT_SURF + 3, surf[1])
+    store_vec(out, j, LIGHT_SURF + 6, surf[2])
+    store_vec(out, j, LIGHT_SURF + 9, surf[3])
+    store_vec(out, j, LIGHT_SURF + 12, surf[4])
     params = surf[5]
     out[j, LIGHT_PARAMS] = params[0]
     out[j, LIGHT_PARAMS + 1] = params[1]
@@ -1204,8 +1207,10 @@ def store_light(out, j, light):
     out[j, LIGHT_PARAMS + 3] = params[3]
     out[j, LIGHT_PARAMS + 4] = params[4]
     store_vec(out, j, LIGHT_TO_LED, light[2])
-    for k in range(4):
-        out[j, LIGHT_REST + k] = light[3 + k]
+    out[j, LIGHT_REST] = light[3]
+    out[j, LIGHT_REST + 1] = light[4]
+    out[j, LIGHT_REST + 2] = light[5]
+    out[j, LIGHT_REST + 3] = light[6]
 
 
 @fn
