@@ -40,8 +40,9 @@ from .layout import N_COUNTERS  # noqa: E402
 THREADS_PER_BLOCK = 256
 """Threads per block of the stage kernels (128 measured the same, docs/benchmarks.md)."""
 
-GROUP_BYTES = 768 << 20
-"""Device memory one group's per-path state may take: the group size follows from it (about 0.6–1 M paths)."""
+GROUP_BYTES = 512 << 20
+"""Device memory one group's per-path state may take: the group size follows from it (about 0.4–0.9 M paths;
+the Kinect v2 frame peaked at 2.3 GiB on the device with 768 MiB)."""
 
 MAX_GROUP_PATHS = 1 << 20
 
