@@ -156,44 +156,35 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
         group = (*pixels, s0, cuda.to_device(offsets))
         path = (xp.empty(n, np.int64), xp.empty(n, np.int64), xp.zeros(n, np.int8), xp.zeros(n, np.int8))
         pstate = (xp.empty((n, 13)), xp.empty(n, np.int32))
-        rays = (xp.empty((n, 3), np.float32), xp.empty((n, 3), np.float32), xp.empty(n, np.int32))
+        rays = (xp.empty((n, 3), np.float32), xp.empty((n, 3), np.float32), xp.empty(n, np.int32),
+                xp.empty(n, np.float32))
         light_rays = (xp.zeros((n, 3), np.float32), xp.zeros((n, 3), np.float32), xp.full(n, -1, np.int32))
         light = xp.zeros((n, module.LIGHT_COLUMNS))
         pend = (xp.zeros((n, slots)), xp.zeros((n, slots)))
         shadow = (xp.zeros((n * slots, 3), np.float32), xp.zeros((n * slots, 3), np.float32),
-                  xp.zeros(n * slots, np.float32), xp.full(n * slots, -1, np.int32), xp.zeros(n * slots, np.int8))
-        occluded = xp.zeros(n * slots, np.int8)
+                  xp.zeros(n * slots, np.float32), xp.full(n * slots, -1, np.int32))
         total = xp.zeros((n_corr + 2, n))
         contrib = (xp.zeros((k_max, n)), xp.zeros((k_max, n_corr, n)), xp.zeros((k_max, n)),
                    xp.zeros((k_max, n_corr, n)))
         counters = xp.zeros((N_COUNTERS, n), np.int64)
-        hits = (xp.full(n, -1, np.int32), xp.zeros(n, np.float32), xp.zeros(n, np.float32))
         k = _kernel_arrays
-        dev_path, dev_pstate, dev_rays, dev_shadow, dev_hits = k(path), k(pstate), k(rays), k(shadow), k(hits)
-        dev_light, dev_total, dev_occluded, dev_counters = k((light, total, occluded, counters))
+        dev_path, dev_pstate, dev_rays, dev_shadow = k(path), k(pstate), k(rays), k(shadow)
+        dev_light, dev_total, dev_counters = k((light, total, counters))
         dev_pend, dev_contrib = k(pend), k(contrib)
         launch(module.wf_start, n, scene, settings, group, dev_path, dev_pstate, dev_rays, k(light_rays),
                dev_counters)
         if settings[3]:
             h = bvh.intersect(light_rays[0], light_rays[1])
             launch(module.wf_light, n, scene, settings, dev_path, k((h.prim, h.u, h.v)), dev_light)
-        h = bvh.intersect(rays[0], rays[1], ignore_prim=rays[2])
-        hits[0][...], hits[1][...], hits[2][...] = h.prim, h.u, h.v
+        # Every slot is traced every depth: an ended path's ray and a shadow slot without a test have t_max −1,
+        # which the traversal rejects at the root — no compaction, no host synchronisation to count them.
         for depth in range(1, k_max + 1):
-            launch(module.wf_shade, n, scene, settings, depth, dev_path, dev_pstate, dev_hits, dev_light, dev_pend,
-                   dev_shadow, dev_rays, dev_counters)
-            test = xp.flatnonzero(shadow[4])
-            occluded[...] = 0
-            if test.size:
-                occluded[test] = bvh.occluded(shadow[0][test], shadow[1][test], shadow[2][test],
-                                              ignore_prim=shadow[3][test])
-            launch(module.wf_resolve, n, scene, depth, dev_path, dev_pend, dev_occluded, dev_total, dev_contrib)
-            live = xp.flatnonzero(path[2])
-            if depth == k_max or not live.size:
-                break
-            h = bvh.intersect(rays[0][live], rays[1][live], ignore_prim=rays[2][live])
-            hits[0][...] = -1
-            hits[0][live], hits[1][live], hits[2][live] = h.prim, h.u, h.v
+            h = bvh.intersect(rays[0], rays[1], rays[3], ignore_prim=rays[2])
+            launch(module.wf_shade, n, scene, settings, depth, dev_path, dev_pstate, k((h.prim, h.u, h.v)),
+                   dev_light, dev_pend, dev_shadow, dev_rays, dev_counters)
+            occluded = bvh.occluded(shadow[0], shadow[1], shadow[2], ignore_prim=shadow[3])
+            launch(module.wf_resolve, n, scene, depth, dev_path, dev_pend, _kernel_array(occluded), dev_total,
+                   dev_contrib)
         launch(module.wf_gather, int(offsets[1]), group, k(path)[1], dev_contrib, dev_total, dev_sums)
         rays_counted += counters.sum(axis=1)
     nee_w, nee_wg, con_w, con_wg, replicate = sums

@@ -1129,16 +1129,19 @@ GPU_MAX_CHANNELS = 32
 #   path    = (pixel, sample, alive, shaded)                  int64 ×2, int8 ×2
 #   pstate  = (f (n, 13), prev_prim (n,))                     f: β, path length, prev pdf, prev delta,
 #                                                             prev point xyz, origin xyz, direction xyz
-#   rays    = (origin (n, 3) f32, direction (n, 3) f32, ignore (n,) i32)    the next closest-hit ray
+#   rays    = (origin (n, 3) f32, direction (n, 3) f32, ignore (n,) i32, t_max (n,) f32)   the next
+#             closest-hit ray; t_max −1 for a path that has ended (the traversal leaves it at the root)
 #   hits    = (prim (n,) i32, u (n,) f32, v (n,) f32)
 #   light   = (n, 28) float64: the light tuple of light_vertex_at, flattened (LIGHT_* columns)
 #   pend    = (w (n, L + 1), tau (n, L + 1))                  next-event estimates (LED i) and the
 #                                                             connection (column L) before their shadow test
-#   shadow  = (origin (n(L+1), 3), direction, t_max, ignore, active)   their shadow rays
+#   shadow  = (origin (n(L+1), 3), direction, t_max, ignore)  their shadow rays; t_max −1: no test
 #   contrib = (nee_w (K, n), nee_wg (K, J, n), con_w (K, n), con_wg (K, J, n))   the path's one addend per
 #             bucket; total (J + 2, n) its channel totals; counters (N_COUNTERS, n) its rays
 # wf_gather adds the contributions per pixel in sample order: the pass's sums are the CPU's, addend by addend.
 LIGHT_FOUND, LIGHT_SURF, LIGHT_PARAMS, LIGHT_TO_LED, LIGHT_REST, LIGHT_COLUMNS = 0, 1, 16, 21, 24, 28
+NO_RAY = np.float32(-1.0)
+"""t_max of a ray slot that traces nothing (an ended path, an estimate that needs no shadow test)."""
 
 
 @fn
@@ -1234,6 +1237,7 @@ def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
     store_vec(f, j, 10, direction)
     pstate[1][j] = -1
     store_ray(rays, j, ray_query(origin, direction, 1), to_f32(direction), -1)
+    rays[3][j] = F32_INF
     counters[0, j] += 1
     if light_paths:
         ray = light_ray(scene[3], scene[4], rng)
@@ -1263,11 +1267,16 @@ def wf_shade(scene, settings, depth, path, pstate, hits, light, pend, shadow, ra
     if j >= pixel.shape[0]:
         return
     shaded[j] = 0
+    n_led = scene[4][0].shape[0]
+    slots = n_led + 1
+    for i in range(slots):
+        shadow[2][j * slots + i] = NO_RAY
     if alive[j] == 0:
         return
     prim = hits[0][j]
     if prim < 0:
         alive[j] = 0
+        rays[3][j] = NO_RAY
         return
     geo, frame, leds = scene[0], scene[3], scene[4]
     key, max_depth, independent, light_paths = settings
@@ -1285,15 +1294,11 @@ def wf_shade(scene, settings, depth, path, pstate, hits, light, pend, shadow, ra
     bsdf_area_pdf = prev_pdf * dot(neg(direction), ng) / (segment * segment) if use_mis else 0.0
     state = (throughput, depth, bsdf_area_pdf, prev_delta, use_mis)
     pend_w, pend_tau = pend
-    n_led = leds[0].shape[0]
-    slots = n_led + 1
-    active = shadow[4]
     for i in range(n_led):
         w, dist, led = led_estimate(frame, leds, vertex, state, i)
         pend_w[j, i] = w
         pend_tau[j, i] = (path_length + dist) / SPEED_OF_LIGHT_M_S
         k = j * slots + i
-        active[k] = 0
         if w > 0:
             if depth == 1 and leds[1][i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
                 counters[4, j] += 1
@@ -1301,13 +1306,12 @@ def wf_shade(scene, settings, depth, path, pstate, hits, light, pend, shadow, ra
                 o, d, t_max = shadow_ray(vertex[1], led, point_offset(led, SPAWN_RELATIVE))
                 store_ray((shadow[0], shadow[1], shadow[3]), k, o, d, prim)
                 shadow[2][k] = t_max
-                active[k] = 1
                 counters[2, j] += 1
     k = j * slots + n_led
-    active[k] = 0
     shaded[j] = 1
     if depth == max_depth:
         alive[j] = 0
+        rays[3][j] = NO_RAY
         return
     if light_paths:  # the connection to the light vertex (add_connection), column L
         y = load_light(light, j)
@@ -1321,12 +1325,12 @@ def wf_shade(scene, settings, depth, path, pstate, hits, light, pend, shadow, ra
             o, d, t_max = shadow_ray(vertex[1], y[1][0], y[6])
             store_ray((shadow[0], shadow[1], shadow[3]), k, o, d, prim)
             shadow[2][k] = t_max
-            active[k] = 1
             counters[2, j] += 1
         shaded[j] = 2
     new_dir, weight, pdf, is_delta = next_direction(surf, vertex[2], (key, p, samples[j], independent), depth)
     if not (weight > 0 and dot(new_dir, ng) > 0):
         alive[j] = 0
+        rays[3][j] = NO_RAY
         return
     f[j, 0] = throughput * weight
     f[j, 2] = pdf
@@ -1338,6 +1342,7 @@ def wf_shade(scene, settings, depth, path, pstate, hits, light, pend, shadow, ra
     store_vec(f, j, 10, direction)
     pstate[1][j] = prim
     store_ray(rays, j, ray_query(origin, direction, depth + 1), to_f32(direction), prim)
+    rays[3][j] = F32_INF
     counters[1, j] += 1
 
 
