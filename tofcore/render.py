@@ -130,23 +130,28 @@ def _filtered_deviation(delta, centre, sensor):
     xp = namespace(delta)
     unwrap_w = decoding.unwrap_weights(decoding.decode_cw(centre, mod, check=False), mod,
                                        sensor.processing.unwrap_weights)
-    deviation = 0.0
+    mean_re, mean_im, d_re, d_im = [], [], [], []   # per frequency: Z̄ (H, W) and δZ (R, H, W)
     start = 0
-    for i, (f_hz, n) in enumerate(zip(mod.frequencies_hz, mod.phase_steps)):
+    for n in mod.phase_steps:
         theta = 2.0 * np.pi * np.arange(n) / n
         cos_k = xp.asarray(np.round(np.cos(theta), 15))[:, None, None]
         sin_k = xp.asarray(np.round(np.sin(theta), 15))[:, None, None]
-        mean_re = (cos_k * centre[start:start + n]).sum(axis=0)
-        mean_im = (sin_k * centre[start:start + n]).sum(axis=0)
-        weights = processing.bilateral_weights(mean_re, mean_im, min_amplitude=sensor.invalid.min_amplitude_e * n / 2)
-        z_re, z_im = processing.neighbour_mean(mean_re, weights), processing.neighbour_mean(mean_im, weights)
-        d_re = processing.neighbour_mean((cos_k[None] * delta[:, start:start + n]).sum(axis=1), weights)
-        d_im = processing.neighbour_mean((sin_k[None] * delta[:, start:start + n]).sum(axis=1), weights)
-        norm2 = z_re * z_re + z_im * z_im
-        d_phase = np.where(norm2 > 0, (z_re * d_im - z_im * d_re) / np.where(norm2 > 0, norm2, 1.0), 0.0)
-        deviation = deviation + unwrap_w[i] * SPEED_OF_LIGHT_M_S / (4.0 * np.pi * f_hz) * d_phase
+        mean_re.append((cos_k * centre[start:start + n]).sum(axis=0))
+        mean_im.append((sin_k * centre[start:start + n]).sum(axis=0))
+        d_re.append((cos_k[None] * delta[:, start:start + n]).sum(axis=1))
+        d_im.append((sin_k[None] * delta[:, start:start + n]).sum(axis=1))
         start += n
-    return deviation
+    # all frequencies at once: (F, H, W) phasors, (R, F, H, W) deviations, weights (3, 3, F, H − 2, W − 2)
+    mean_re, mean_im = xp.stack(mean_re), xp.stack(mean_im)
+    min_amplitude = sensor.invalid.min_amplitude_e * xp.asarray(np.asarray(mod.phase_steps, np.float64) / 2)
+    weights = processing.bilateral_weights(mean_re, mean_im, min_amplitude=min_amplitude.reshape(-1, 1, 1))
+    z_re, z_im = processing.neighbour_mean(mean_re, weights), processing.neighbour_mean(mean_im, weights)
+    d_re = processing.neighbour_mean(xp.stack(d_re, axis=1), weights)
+    d_im = processing.neighbour_mean(xp.stack(d_im, axis=1), weights)
+    norm2 = z_re * z_re + z_im * z_im
+    d_phase = np.where(norm2 > 0, (z_re * d_im - z_im * d_re) / np.where(norm2 > 0, norm2, 1.0), 0.0)
+    f_hz = xp.asarray(np.asarray(mod.frequencies_hz, np.float64))[:, None, None]
+    return (unwrap_w * SPEED_OF_LIGHT_M_S / (4.0 * np.pi * f_hz) * d_phase).sum(axis=1)
 
 
 def _normal_tail(x):

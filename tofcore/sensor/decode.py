@@ -50,10 +50,11 @@ NO_RETURN_RELATIVE_AMPLITUDE = 1e-9
 """A ≤ this · B counts as A = 0 (atan2(0, 0)): far above float64 round-off of the DFT sums (~1e-16 N B),
 far below any physical modulation contrast."""
 MAX_UNWRAP_CANDIDATES = 10_000
-UNWRAP_BLOCK_VALUES = 1 << 24
-"""Most values (N candidates × F frequencies × pixels) of one unwrapping temporary: 128 MiB of float64.
-Larger images are unwrapped in blocks of pixels (a 512 × 424 Kinect v2 frame is one block, its five
-ground-truth images together three)."""
+UNWRAP_BLOCK_VALUES = {"numpy": 1 << 18, "device": 1 << 24}
+"""Most values (N candidates × F frequencies × pixels) of one unwrapping temporary; larger images are
+unwrapped in blocks of pixels. NumPy: 2 MiB of float64, temporaries that stay in the caches (a 512 × 424
+Kinect v2 frame is 38 blocks); a device: 128 MiB, few launches and a bounded footprint (the frame is one
+block, its five ground-truth images together three)."""
 
 
 class Reason(enum.IntEnum):
@@ -219,7 +220,7 @@ def unwrap(cw: CwDecoding, modulation: Modulation, *, tolerance_m: float | None 
     offsets = xp.asarray(np.arange(n_candidates) * d_amb[h])[:, None]      # (N, 1): n d_amb,h
     d_amb_i = xp.asarray(d_amb)[None, :, None]                             # (1, F, 1)
     pixels = wrapped.shape[1]
-    block = max(1, UNWRAP_BLOCK_VALUES // (n_candidates * n_freq))
+    block = max(1, UNWRAP_BLOCK_VALUES["numpy" if xp is np else "device"] // (n_candidates * n_freq))
     if pixels <= block:
         best_r2, best_d = _best_wrap(wrapped, weight, offsets, d_amb_i, h)
     else:
