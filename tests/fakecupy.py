@@ -241,7 +241,7 @@ def install(monkeypatch) -> None:
 
     from tofcore import backend
     from tofcore.scene import bvh, fresnel
-    from tofcore.sensor import modulation
+    from tofcore.sensor import modulation, noise
     from tofcore.tracer import qmc, rng
     from tofcore.gpu import fused, traversal
 
@@ -271,7 +271,9 @@ def install(monkeypatch) -> None:
 
     def twin(numpy_function):  # the kernel's NumPy twin, through a host round trip
         def run(*args, **kwargs):
-            return asarray(numpy_function(*(asnumpy(a) if isinstance(a, ndarray) else a for a in args), **kwargs))
+            with _one_kernel():
+                return asarray(numpy_function(*(asnumpy(a) if isinstance(a, ndarray) else a for a in args),
+                                              **kwargs))
         return run
 
     monkeypatch.setattr(traversal, "intersect", intersect)
@@ -282,3 +284,4 @@ def install(monkeypatch) -> None:
     monkeypatch.setattr(fused, "fresnel_dielectric", twin(fresnel.fresnel_dielectric))
     monkeypatch.setattr(fused, "fresnel_conductor", twin(fresnel.fresnel_conductor))
     monkeypatch.setattr(fused, "square_correlation", twin(modulation.square_correlation))
+    monkeypatch.setattr(fused, "poisson", twin(noise.poisson))

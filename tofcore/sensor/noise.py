@@ -38,13 +38,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ..backend import asarray, device_copy, namespace
+from ..backend import asarray, device_twin, namespace
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..errors import ConfigError
 from ..tracer import rng as counter_rng
 
 _DIMS_PER_DRAW = 64
-"""Hash dimensions each draw of a stream owns (a Poisson draw uses 1 + 2 per rejection round)."""
+"""Hash dimensions each draw of a stream owns (a Poisson draw uses 1 + 2 × 24 rounds + 2 = 51)."""
 
 
 @dataclass
@@ -119,25 +119,26 @@ PTRS_ROUNDS = 24
 #: PTRS's log-pmf loses precision to cancellation far above any full well.
 GAUSSIAN_MIN_MEAN = 1e10
 
+HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
 #: ln k! for k = 0..15; Stirling's series from 16 on (:func:`_log_factorial`).
 _LOG_FACTORIAL = np.array([math.lgamma(k + 1.0) for k in range(16)])
 
 
-def _log_factorial(k):
+def _log_factorial(k: np.ndarray) -> np.ndarray:
     """ln k! of integer-valued floats k ≥ 0: a table below 16, Stirling's series for ln Γ(k + 1) from
     there (4 terms: truncation error < 1/(1188 x⁹) < 1e-13 at x = k + 1 ≥ 17)."""
-    xp = namespace(k)
     x = np.maximum(k, 15.0) + 1.0
     inv = 1.0 / x
     inv2 = inv * inv
-    series = (x - 0.5) * np.log(x) - x + 0.5 * math.log(2.0 * math.pi) \
+    series = (x - 0.5) * np.log(x) - x + HALF_LOG_2PI \
         + inv * (1.0 / 12.0 - inv2 * (1.0 / 360.0 - inv2 * (1.0 / 1260.0 - inv2 / 1680.0)))
-    table = xp.take(device_copy(xp, _LOG_FACTORIAL), np.minimum(k, 15.0).astype(np.int64))
-    return np.where(k < 16.0, table, series)
+    return np.where(k < 16.0, _LOG_FACTORIAL[np.minimum(k, 15.0).astype(np.int64)], series)
 
 
-def poisson(mean, stream: NoiseStream, *, check: bool = True):
-    """Poisson counts (float64) of means ``mean`` ≥ 0, one per element, from the next draw of ``stream``.
+@device_twin(on="mean")
+def poisson(mean, key: np.uint64, dim: int, *, check: bool = True):
+    """Poisson counts (float64) of means ``mean`` ≥ 0, one per element, from hash dimensions ``dim`` … ``dim``
+    + 50 of ``key`` (a draw of a :class:`NoiseStream`: ``poisson(q, stream.key, stream.next_draw())``).
 
     Notes
     -----
@@ -151,64 +152,35 @@ def poisson(mean, stream: NoiseStream, *, check: bool = True):
       rounds of two uniforms each; a count still open after them (P < 3.6e-15) and means from
       :data:`GAUSSIAN_MIN_MEAN` on take :math:`\\lfloor \\lambda + \\sqrt\\lambda\\, z + \\tfrac12 \\rfloor`.
 
-    Each round's numbers belong to the element (its index and the round), so NumPy can draw only the
-    elements still open while a device draws all of them under a mask, without reading anything back:
-    both give the same counts.
+    The numbers of element i are uniforms of (key, i, dimension): the draw's first dimension for the
+    inversion, the next two per PTRS round, the two after the last round for the Gaussian. So NumPy
+    draws round by round only the elements still open, and the device twin
+    (:func:`tofcore.gpu.fused.poisson`) runs the same loop per element in one kernel: both give the
+    same counts.
     """
     lam = asarray(mean, dtype=np.float64)
     if check and not bool(np.all(lam >= 0.0) & np.all(np.isfinite(lam))):
         raise ConfigError("poisson: mean must be finite and >= 0")
-    xp = namespace(lam)
-    index, zeros = _indices(lam.shape, xp)
-    dim = stream.next_draw()
-    lam, index, zeros = lam.ravel(), index.ravel(), zeros.ravel()
-    counts = xp.zeros(lam.shape)
-    small = lam < PTRS_MIN_MEAN
-    counts = _on(small, counts, lambda sel: _inversion(lam[sel], _uniform_open(stream, index[sel], zeros[sel], dim)))
-    open_ = ~small & (lam < GAUSSIAN_MIN_MEAN)
-    hat = _ptrs_hat(np.where(open_, lam, PTRS_MIN_MEAN))
+    stream = NoiseStream(key)
+    shape = lam.shape
+    lam = lam.ravel()
+    index, zeros = _indices(lam.shape, np)
+    counts = np.zeros(lam.shape)
+    small = np.flatnonzero(lam < PTRS_MIN_MEAN)
+    counts[small] = _inversion(lam[small], _uniform_open(stream, index[small], zeros[small], dim))
+    open_ = np.flatnonzero((lam >= PTRS_MIN_MEAN) & (lam < GAUSSIAN_MIN_MEAN))
     for r in range(PTRS_ROUNDS):
-        def round_(sel, r=r):
-            u = _uniform_open(stream, index[sel], zeros[sel], dim + 1 + 2 * r)
-            v = _uniform_open(stream, index[sel], zeros[sel], dim + 2 + 2 * r)
-            return _ptrs(lam[sel], *(c[sel] for c in hat), u, v)
-        counts, open_ = _on_accepted(open_, counts, round_)
-        if xp is np and not open_.any():
+        if not open_.size:
             break
-    rest = open_ | (lam >= GAUSSIAN_MIN_MEAN)
-    z_dim = dim + 1 + 2 * PTRS_ROUNDS
-
-    def gaussian(sel):
-        z = _normal(stream, index[sel], zeros[sel], z_dim)
-        return np.maximum(np.floor(lam[sel] + np.sqrt(lam[sel]) * z + 0.5), 0.0)
-    counts = _on(rest, counts, gaussian)
-    return counts.reshape(np.shape(mean) if not hasattr(mean, "shape") else mean.shape)
-
-
-def _on(mask, out, draw):
-    """``out`` with ``draw(selection)`` written where ``mask``: NumPy draws only those elements (index
-    selection), a device draws all under the mask (``slice(None)``), with no read-back of how many."""
-    if namespace(out) is np:
-        sel = np.flatnonzero(mask)
-        if sel.size:
-            out[sel] = draw(sel)
-        return out
-    return np.where(mask, draw(slice(None)), out)
-
-
-def _on_accepted(open_, out, draw):
-    """One rejection round over the open elements: ``draw(selection)`` gives (value, accepted); accepted
-    values are written, and they are no longer open."""
-    if namespace(out) is np:
-        sel = np.flatnonzero(open_)
-        if sel.size:
-            value, accepted = draw(sel)
-            out[sel[accepted]] = value[accepted]
-            open_[sel[accepted]] = False
-        return out, open_
-    value, accepted = draw(slice(None))
-    take = open_ & accepted
-    return np.where(take, value, out), open_ & ~accepted
+        u = _uniform_open(stream, index[open_], zeros[open_], dim + 1 + 2 * r)
+        v = _uniform_open(stream, index[open_], zeros[open_], dim + 2 + 2 * r)
+        k, accepted = _ptrs(lam[open_], *_ptrs_hat(lam[open_]), u, v)
+        counts[open_[accepted]] = k[accepted]
+        open_ = open_[~accepted]
+    rest = np.union1d(open_, np.flatnonzero(lam >= GAUSSIAN_MIN_MEAN))
+    z = _normal(stream, index[rest], zeros[rest], dim + 1 + 2 * PTRS_ROUNDS)
+    counts[rest] = np.maximum(np.floor(lam[rest] + np.sqrt(lam[rest]) * z + 0.5), 0.0)
+    return counts.reshape(shape)
 
 
 def _inversion(lam, u):
@@ -236,20 +208,18 @@ def _ptrs(lam, b, a, log_inv_alpha, v_r, log_lam, u, v):
               + 0.43 \\rfloor; \\quad \\text{accept if } u_s \\ge 0.07,\\ v \\le v_r \\text{ (squeeze), else if }
               \\ln v - \\ln\\alpha - \\ln(a/u_s^2 + b) \\le -\\lambda + k \\ln\\lambda - \\ln k!
 
-    (and k ≥ 0, not (u_s < 0.013 and v > u_s)). The log test runs only where the squeeze does not
-    decide (on NumPy only those elements; on a device all, under the mask).
+    (and k ≥ 0, not (u_s < 0.013 and v > u_s)). The log test runs only where the squeeze does not decide.
     """
     u = u - 0.5
     us = 0.5 - np.abs(u)
     k = np.maximum(np.floor((2.0 * a / us + b) * u + lam + 0.43), -1.0)
     squeeze = (us >= 0.07) & (v <= v_r)
-    undecided = ~squeeze & (k >= 0.0) & ~((us < 0.013) & (v > us))
-
-    def log_test(sel):
-        ks = np.maximum(k[sel], 0.0)
-        hat = np.log(v[sel]) + log_inv_alpha[sel] - np.log(a[sel] / (us[sel] * us[sel]) + b[sel])
-        return hat <= -lam[sel] + ks * log_lam[sel] - _log_factorial(ks)
-    return np.maximum(k, 0.0), _on(undecided, squeeze, log_test)
+    test = np.flatnonzero(~squeeze & (k >= 0.0) & ~((us < 0.013) & (v > us)))  # the squeeze does not decide
+    ks = k[test]
+    hat = np.log(v[test]) + log_inv_alpha[test] - np.log(a[test] / (us[test] * us[test]) + b[test])
+    accepted = squeeze.copy()
+    accepted[test] = hat <= -lam[test] + ks * log_lam[test] - _log_factorial(ks)
+    return np.maximum(k, 0.0), accepted
 
 
 def add_raw_noise(raw: np.ndarray, *, read_noise_e: float, rng: NoiseStream, check: bool = True) -> np.ndarray:
@@ -284,7 +254,7 @@ def add_raw_noise(raw: np.ndarray, *, read_noise_e: float, rng: NoiseStream, che
         if not np.isfinite(charge).all():
             raise ConfigError(f"{where}: raw must be finite, got {int(np.count_nonzero(~np.isfinite(charge)))} "
                               f"non-finite values")
-    shot = poisson(np.maximum(charge, 0.0), rng, check=False)
+    shot = poisson(np.maximum(charge, 0.0), rng.key, rng.next_draw(), check=False)
     read = standard_normal(charge.shape, rng, namespace(charge))
     return np.maximum(shot + read_noise_e * read, 0.0)
 
