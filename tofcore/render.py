@@ -210,8 +210,9 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     transient_bin_m, transient_max_m : also keep the transient (time-resolved) histogram, bins of this
         width (m of optical path length LED → … → lens) up to this length; ``frame.transient`` is then
         (H, W, B) mean radiance per bin, bin b centred at (b + ½)·width (:meth:`Transport.transient`).
-    device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering and decoding on the GPU;
-        the random sensor noise is drawn on the CPU so that both devices give the same frame) or
+    device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering, noise and decoding on the
+        GPU; the noise is counter-based, :class:`~tofcore.sensor.noise.NoiseStream`, so both devices give
+        the same frame) or
         ``"auto"`` (the GPU when usable, else the CPU). The frame's arrays are NumPy either way;
         ``frame.stats["device"]`` records where it ran and, for ``"auto"``, why it fell back.
         GPU failures (no CuPy, no device, out of memory, CUDA errors) raise
