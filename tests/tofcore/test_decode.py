@@ -229,6 +229,18 @@ def test_decode_rejects_bad_inputs():
         decode(np.ones((4, 2)), m, DecodeSettings(unwrap_tolerance_m=0.0))
 
 
+def test_decode_settings_are_checked_once_and_name_the_field():
+    with pytest.raises(ConfigError, match=r"DecodeSettings: phasor_filter must be one of \['none', 'bilateral'\], got 'box'"):
+        DecodeSettings(phasor_filter="box")
+    with pytest.raises(ConfigError, match=r"DecodeSettings: min_amplitude_e must be a finite number >= 0, got -1.0"):
+        DecodeSettings(min_amplitude_e=-1.0)
+    with pytest.raises(ConfigError, match=r"DecodeSettings: saturation_e must be > 0 \(electrons\) or None, got 0"):
+        DecodeSettings(saturation_e=0)
+    with pytest.raises(ConfigError, match="decode: settings must be a DecodeSettings, got dict"):
+        decode(np.ones((4, 2)), Modulation(kind="cw_sine", frequencies_hz=(20e6,)), {"range_m": (0.0, 1.0)})
+    assert DecodeSettings().replace(range_m=[0.5, 2]).range_m == (0.5, 2.0)
+
+
 # ------------------------------------------------------------------ z-depth
 def test_radial_to_z_is_distance_times_ray_z():
     directions = np.array([[[0.0, 0.0, 1.0], [0.6, 0.0, 0.8]], [[0.0, -0.28, 0.96], [0.0, 0.0, 1.0]]])
