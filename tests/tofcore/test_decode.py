@@ -230,7 +230,8 @@ def test_decode_rejects_bad_inputs():
 
 
 def test_decode_settings_are_checked_once_and_name_the_field():
-    with pytest.raises(ConfigError, match=r"DecodeSettings: phasor_filter must be one of \['none', 'bilateral'\], got 'box'"):
+    with pytest.raises(ConfigError,
+                       match=r"DecodeSettings: phasor_filter must be one of \['none', 'bilateral'\], got 'box'"):
         DecodeSettings(phasor_filter="box")
     with pytest.raises(ConfigError, match=r"DecodeSettings: min_amplitude_e must be a finite number >= 0, got -1.0"):
         DecodeSettings(min_amplitude_e=-1.0)

@@ -141,7 +141,7 @@ def test_raw_noise_is_deterministic_per_seed_and_differs_between_seeds():
 
 
 def _chi2_critical(dof: int, z: float = 3.719) -> float:
-    """Upper 1e-4 quantile of χ²(dof) (z = 3.719 standard normal), Wilson–Hilferty: rel. error < 1 % for dof ≥ 3."""
+    """Upper 1e-4 quantile of χ²(dof) (z = 3.719 standard normal) by Wilson–Hilferty (rel. error < 1 %, dof ≥ 3)."""
     a = 2.0 / (9.0 * dof)
     return dof * (1.0 - a + z * math.sqrt(a)) ** 3
 

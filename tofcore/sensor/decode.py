@@ -387,7 +387,8 @@ class DecodeSettings:
                 raise ConfigError(f"DecodeSettings: {name} must be a finite number >= 0, got {value!r}")
         if self.saturation_e is not None and not (isinstance(self.saturation_e, (int, float, np.number))
                                                   and self.saturation_e > 0):
-            raise ConfigError(f"DecodeSettings: saturation_e must be > 0 (electrons) or None, got {self.saturation_e!r}")
+            raise ConfigError(f"DecodeSettings: saturation_e must be > 0 (electrons) or None, "
+                              f"got {self.saturation_e!r}")
         object.__setattr__(self, "range_m", _check_range(self.range_m))
         tolerance = self.unwrap_tolerance_m
         if tolerance is not None and not (isinstance(tolerance, (int, float, np.number)) and tolerance > 0):
