@@ -289,21 +289,16 @@ numba_cuda_only = pytest.mark.skipif(_numba_cuda_missing() is not None,
                                      reason=f"needs numba-cuda and a CUDA GPU: {_numba_cuda_missing()}")
 
 
-CUDA_ROUTES = ("wavefront", "megakernel")
-
-
 @pytest.mark.gpu
 @numba_cuda_only
-@pytest.mark.parametrize("route", CUDA_ROUTES)
 @pytest.mark.parametrize("sensor_name", list(SENSORS))
-def test_compiled_gpu_frame_equals_cpu_frame(sensor_name, route, monkeypatch):
-    """kernels.py compiled for CUDA (both routes) against the NumPy reference on the CPU."""
+def test_compiled_gpu_frame_equals_cpu_frame(sensor_name, monkeypatch):
+    """kernels.py compiled for CUDA (the wavefront of tofcore.compiled.cuda) against the NumPy reference."""
     sensor = SENSORS[sensor_name]()
     scene = tofcore.demo_scene("box_on_wall")
     settings = dict(spp=4, max_depth=3, seed=7)
     cpu = render(scene, sensor, device="cpu", **settings)
     monkeypatch.setenv("TOFCORE_TRACER", "compiled")
-    monkeypatch.setenv("TOFCORE_CUDA_ROUTE", route)
     on_gpu = render(scene, sensor, device="gpu", **settings)
     assert on_gpu.stats["transport"]["tracer"] == "compiled", on_gpu.stats["transport"]
     assert on_gpu.stats["device"]["name"] == "gpu"
@@ -314,8 +309,7 @@ def test_compiled_gpu_frame_equals_cpu_frame(sensor_name, route, monkeypatch):
 
 @pytest.mark.gpu
 @numba_cuda_only
-@pytest.mark.parametrize("route", CUDA_ROUTES)
-def test_compiled_gpu_sums_with_uneven_sample_counts_equal_cpu_sums(route, monkeypatch):
+def test_compiled_gpu_sums_with_uneven_sample_counts_equal_cpu_sums(monkeypatch):
     """Adaptive passes give pixels different sample counts: the launch per sample index covers them."""
     scene = tofcore.demo_scene("room")
     cam = Camera.from_fov(24, 18, 60.0)
@@ -325,7 +319,6 @@ def test_compiled_gpu_sums_with_uneven_sample_counts_equal_cpu_sums(route, monke
     leds = [tofcore.LED(position_m=(0.03, 0.0, 0.0)), tofcore.LED(position_m=(-0.03, 0.0, 0.0))]
     ref = tofcore.trace(scene, cam, leds, device="cpu", **kwargs)
     monkeypatch.setenv("TOFCORE_TRACER", "compiled")
-    monkeypatch.setenv("TOFCORE_CUDA_ROUTE", route)
     got = tofcore.trace(scene, cam, leds, device="gpu", **kwargs)
     assert got.stats.tracer == "compiled"
     for name in ("signal_sum", "correlation_sum", "replicate_sum"):
