@@ -9,10 +9,11 @@ bits of transcendental functions (tests/tofcore/test_compiled.py states and test
 
 Environment: ``TOFCORE_TRACER=numpy`` forces the NumPy reference, ``compiled`` makes a render that
 cannot use the compiled tracer an error instead of a fall-back, ``auto`` (default) picks it when it
-can. The machine code is cached by numba beside the sources (``tofcore/compiled/__pycache__``; numba's
-user cache ``~/.cache/numba`` where that folder is not writable; ``NUMBA_CACHE_DIR`` overrides both):
-the first render of a fresh install compiles for 30–80 s (docs/benchmarks.md), later processes load
-the kernels in about a second.
+can. The machine code is cached by numba beside the sources (``tofcore/compiled/__pycache__/numba-<hash>``;
+``~/.cache/tofcore/numba-<hash>`` where that folder is not writable; ``$NUMBA_CACHE_DIR/tofcore-<hash>``
+where that variable is set), ``<hash>`` naming the kernels' constants, so a changed constant never loads
+stale code (:mod:`tofcore.compiled._target`): the first render of a fresh install compiles for 30–80 s
+(docs/benchmarks.md), later processes load the kernels in about a second.
 """
 
 from __future__ import annotations
