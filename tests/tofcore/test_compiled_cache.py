@@ -31,11 +31,13 @@ import numpy as np
 if sys.argv[1] == "changed":
     from tofcore.tracer import rng
     rng._M1 = np.uint64(0x9E3779B97F4A7C15)
+from tofcore import compiled
 from tofcore.compiled import kernels as k
 value = k.uniform(np.uint64(1), 2, 3, 4)
 from tofcore.tracer import rng
 print(json.dumps({"value": float(value), "numpy": float(rng.uniform(np.uint64(1), np.array([2]), np.array([3]), 4)[0]),
-                  "hits": sum(k.uniform.stats.cache_hits.values()), "folder": k.uniform.stats.cache_path}))
+                  "hits": sum(k.uniform.stats.cache_hits.values()), "folder": k.uniform.stats.cache_path,
+                  "location": compiled.cache_location()}))
 """
 
 
@@ -76,3 +78,4 @@ def test_a_changed_constant_is_compiled_anew_not_loaded_stale(tmp_path):
     assert changed["hits"] == 0, "stale machine code loaded for a changed constant"
     assert changed["value"] == changed["numpy"] != first["value"]
     assert changed["folder"] != first["folder"] == back["folder"]
+    assert first["folder"].startswith(first["location"] + os.sep), "tofcore render --verbose names another folder"

@@ -9,9 +9,10 @@ scalar/LLVM/CUDA variants and pbrt-v4 marks shared code ``PBRT_CPU_GPU``).
 
 Cache safety: numba reuses cached machine code while the source file's stamp (mtime, size) and the
 function's bytecode are unchanged, but the module's constants, read from other modules (rng, qmc, bsdf,
-surface, sampler, layout), are frozen into that code. So the code is cached in a folder named after
-:func:`constants_fingerprint` (a hash of every constant of the module and of the compiler options):
-changing a constant anywhere, or an option, compiles anew instead of loading stale code.
+surface, sampler, layout), are frozen into that code, and numba's options are not part of its key
+either. So the code is cached in a folder named after :func:`constants_fingerprint` (a hash of every
+constant of the module and of :data:`CPU_DECORATORS`): changing a constant anywhere, or an option,
+compiles anew instead of loading stale code. (The CUDA build caches as numba does.)
 """
 
 from __future__ import annotations
@@ -101,13 +102,22 @@ def _numba_cache_dir(folder: str):
         numba.config.CACHE_DIR = before
 
 
-def _cpu_jit(module_name: str, **options):
-    """``numba.njit(**options)`` caching in :func:`cache_folder` of the module's constants fingerprint."""
+CPU_DECORATORS = {"device": dict(_nrt=False, **CPU_OPTIONS), "parallel": dict(parallel=True, **CPU_OPTIONS)}
+"""numba options of the scalar functions (no reference counting: they allocate nothing) and of the driver."""
+
+CACHE_FOLDERS: dict[str, str | None] = {}
+"""Module name → the cache folder of its CPU machine code (:func:`cache_folder`), once decorated."""
+
+
+def _cpu_jit(module_name: str, kind: str):
+    """``numba.njit`` with the options :data:`CPU_DECORATORS` ``[kind]``, cached in the module's folder."""
     import numba
 
-    namespace = vars(sys.modules[module_name])
-    fingerprint = constants_fingerprint(namespace, options)
-    folder = cache_folder(namespace["__file__"], fingerprint)
+    if module_name not in CACHE_FOLDERS:
+        namespace = vars(sys.modules[module_name])
+        CACHE_FOLDERS[module_name] = cache_folder(namespace["__file__"],
+                                                  constants_fingerprint(namespace, CPU_DECORATORS))
+    folder, options = CACHE_FOLDERS[module_name], CPU_DECORATORS[kind]
 
     def decorate(function):
         if folder is None:
@@ -124,13 +134,13 @@ def device_function(module_name: str):
 
     CPU: ``njit`` with :data:`CPU_OPTIONS` and without numba's reference counting (``_nrt=False``: these
     functions allocate nothing, and the atomic increments and decrements of every array passed took ≈ 7 %
-    of a thread's time, on memory all threads write), cached in :func:`cache_folder`. CUDA:
+    of a thread's profile, on counters that all threads write), cached in :func:`cache_folder`. CUDA:
     ``cuda.jit(device=True)``.
     """
     if module_name.endswith(CUDA_SUFFIX):
         from numba import cuda
         return cuda.jit(device=True)
-    return _cpu_jit(module_name, _nrt=False, **CPU_OPTIONS)
+    return _cpu_jit(module_name, "device")
 
 
 def cpu_parallel_function(module_name: str):
@@ -142,4 +152,23 @@ def cpu_parallel_function(module_name: str):
     """
     if module_name.endswith(CUDA_SUFFIX):
         return lambda function: function
-    return _cpu_jit(module_name, parallel=True, **CPU_OPTIONS)
+    return _cpu_jit(module_name, "parallel")
+
+
+def gpu_kernel_function(module_name: str):
+    """The decorator of a CUDA kernel written beside the functions it calls: ``numba.cuda.jit`` with the
+    machine code cached (``cache=True``: numba's cache beside the source or under ``NUMBA_CACHE_DIR``) for
+    the CUDA build; for the CPU build the function stays plain Python and is never called."""
+    if module_name.endswith(CUDA_SUFFIX):
+        from numba import cuda
+        return cuda.jit(cache=True)
+    return lambda function: function
+
+
+def gpu_module(module_name: str):
+    """``numba.cuda`` for the CUDA build of a module (its kernels read ``cuda.grid``, ``cuda.local``), else None
+    (the CPU build never imports numba's CUDA target)."""
+    if module_name.endswith(CUDA_SUFFIX):
+        from numba import cuda
+        return cuda
+    return None

@@ -1,12 +1,22 @@
-"""The compiled tracer's path function compiled for CUDA from the same source (a spike, issue 21 route c).
+"""The compiled tracer on the GPU: the same source (kernels.py) compiled by numba.cuda, as a wavefront.
 
 :func:`load_kernels` executes ``kernels.py`` a second time under the module name
 ``tofcore.compiled.kernels_cuda``, for which every scalar function becomes a ``numba.cuda`` device
-function (:mod:`tofcore.compiled._target`); :func:`trace_frame` runs one thread per pixel — the pixel's
-samples in sample order, the per-bucket sums kept apart as on the CPU (next-event estimates and
-light-vertex connections) and added in the reference's order — so a frame is the CPU frame up to the
-GPU's libm and its fused multiply–adds. Not wired into :func:`tofcore.trace` yet: ``bench/bench_compiled.py``
-times it and compares it with the CPU tracers.
+function and the ``wf_*`` functions kernels (:mod:`tofcore.compiled._target`). :func:`trace_pass` runs
+the path in stages over groups of paths — start (camera and light rays), light vertices, then per depth
+shade, resolve — with the BVH's own CUDA traversal (:mod:`tofcore.gpu.traversal`, one thread per ray,
+bit for bit NumPy's) tracing every ray set in between, and gathers each pixel's addends in sample order:
+the pass's sums are the CPU's addend by addend, so a GPU frame is the CPU frame up to the GPU's libm and
+its fused multiply–adds in the shading code (tests/tofcore/test_gpu.py states the tolerance). No atomics:
+the same frame on every run.
+
+Why a wavefront (docs/benchmarks.md, issue 21): the whole path as one kernel (a megakernel) needed 255
+registers a thread and ran at 12.5 % occupancy with 13 of 32 threads of a warp active — 208–229 ms for
+the bench_peers frame, against 126 ms for these stages.
+
+The machine code is cached by numba (``cache=True``) beside the sources (``tofcore/compiled/__pycache__``)
+or under ``NUMBA_CACHE_DIR``: the first process on a machine compiles for ~15–30 s, later ones load it
+(``tofcore warmup --device gpu``).
 """
 
 from __future__ import annotations
@@ -14,105 +24,220 @@ from __future__ import annotations
 import importlib.util
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 if not hasattr(np, "row_stack"):  # NumPy 2.5 removed it; numba-cuda 0.30 still registers an overload for it
     np.row_stack = np.vstack
-from numba import cuda, float32, float64, int64  # noqa: E402
+import numba  # noqa: E402
+from numba import cuda  # noqa: E402
 
-from ._target import CUDA_SUFFIX
-from .layout import N_COUNTERS, STACK_SIZE
+from ._target import CUDA_SUFFIX  # noqa: E402
+from .layout import N_COUNTERS  # noqa: E402
 
-MAX_CHANNELS = 32
-"""Correlation channels + 2 a thread can hold (local arrays need a size known when compiling)."""
+THREADS_PER_BLOCK = 256
+"""Threads per block of the stage kernels (128 measured the same, docs/benchmarks.md)."""
 
-_KERNELS = None
+GROUP_BYTES = 512 << 20
+"""Device memory one group's per-path state may take: the group size follows from it (about 0.4–0.9 M paths;
+the Kinect v2 frame peaked at 2.3 GiB on the device with 768 MiB)."""
+
+MAX_GROUP_PATHS = 1 << 20
+
+_MODULE = None
 
 
 def load_kernels():
-    """The module of device functions: kernels.py compiled by numba.cuda (loaded once per process)."""
-    global _KERNELS
-    if _KERNELS is None:
+    """The CUDA build of kernels.py (loaded once per process)."""
+    global _MODULE
+    if _MODULE is None:
         name = __name__.rsplit(".", 1)[0] + ".kernels" + CUDA_SUFFIX
         spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("kernels.py"))
         module = importlib.util.module_from_spec(spec)
         sys.modules[name] = module
         spec.loader.exec_module(module)
-        _KERNELS = (module, _build(module))
-    return _KERNELS
+        _MODULE = module
+    return _MODULE
 
 
-def _build(k):
-    @cuda.jit
-    def trace_pixels(scene, settings, pixels, sums):
-        """Trace pixel p's samples: ``scene`` and ``settings`` as in kernels.trace_path, ``pixels`` =
-        (first, counts), ``sums`` = per-pixel (nee_w, nee_wg, con_w, con_wg, replicate, counters)."""
-        p = cuda.grid(1)
-        first, counts = pixels
-        if p >= first.shape[0]:
-            return
-        nee_w, nee_wg, con_w, con_wg, replicate, counters = sums
-        n_ch = scene[5].shape[0] + 2
-        total = cuda.local.array(MAX_CHANNELS, float64)
-        count = cuda.local.array(N_COUNTERS, int64)
-        work = (count, cuda.local.array(STACK_SIZE, int64), cuda.local.array(STACK_SIZE, float32),
-                cuda.local.array(MAX_CHANNELS, float64))
-        path_sums = (nee_w[p], nee_wg[p], con_w[p], con_wg[p], total)
-        for c in range(N_COUNTERS):
-            count[c] = 0
-        for sample in range(first[p], first[p] + counts[p]):
-            k.trace_path(scene, settings, p, sample, path_sums, work)
-            r = sample % replicate.shape[1]
-            for c in range(n_ch):
-                replicate[p, r, c] += total[c]
-        for c in range(N_COUNTERS):
-            counters[p, c] = count[c]
+@dataclass(frozen=True, eq=False)
+class DeviceScene:
+    """A render's packed arrays (:class:`tofcore.compiled.setup.Packed`) on the GPU, uploaded once, and the
+    scene's BVH (its records are uploaded by :mod:`tofcore.gpu.traversal` at the first ray)."""
 
-    return trace_pixels
+    scene: tuple
+    settings: tuple
+    n_correlations: int
+    max_depth: int
+    bvh: object
 
 
-def trace_frame(packed, n_pix: int, spp: int, threads_per_block: int = 128) -> dict:
-    """One pass of ``spp`` samples of every pixel on the GPU; sums in the layout of tofcore.transport.Transport.
-
-    Returns host arrays ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P), ``replicate_sum``
-    (R, J + 2, P), ``counters`` (N_COUNTERS,) and the seconds of the kernel (``kernel_s``, synchronised)
-    and of the whole call (``seconds``: uploads, kernel, read-back).
-    """
-    from ..tracer import qmc
-
-    module, kernel = load_kernels()
-    start = time.perf_counter()
+def upload(packed, bvh) -> DeviceScene:
+    """Copy the packed scene, camera, LED and channel tables to the GPU."""
+    module = load_kernels()
     n_corr = len(packed.corr_kinds)
-    if n_corr + 2 > MAX_CHANNELS:
-        raise ValueError(f"cuda.trace_frame: at most {MAX_CHANNELS - 2} correlation channels, got {n_corr}")
-    k_max = packed.max_depth
+    if n_corr + 2 > module.GPU_MAX_CHANNELS:
+        raise ValueError(f"the GPU tracer takes at most {module.GPU_MAX_CHANNELS - 2} correlation channels, "
+                         f"got {n_corr}")
     dev = cuda.to_device
-    # an empty channel table still needs a row for numba's typing
-    corr_table = packed.corr_table if n_corr else np.zeros((1, 6))
+    corr_table = packed.corr_table if n_corr else np.zeros((1, 6))  # numba types an empty table by a row
     scene = (tuple(dev(np.ascontiguousarray(a)) for a in packed.geo), dev(packed.cam), dev(packed.cam_table),
              dev(packed.frame), tuple(dev(np.ascontiguousarray(a)) for a in packed.leds), dev(packed.corr_kinds),
              dev(corr_table))
     settings = (packed.key, packed.max_depth, packed.independent, packed.light_paths)
-    pixels = (dev(np.zeros(n_pix, np.int64)), dev(np.full(n_pix, spp, np.int64)))
-    sums = [dev(np.zeros(shape)) for shape in ((n_pix, k_max), (n_pix, k_max, max(n_corr, 1)), (n_pix, k_max),
-                                               (n_pix, k_max, max(n_corr, 1)), (n_pix, qmc.REPLICATES, n_corr + 2))]
-    counters = cuda.device_array((n_pix, N_COUNTERS), np.int64)
+    return DeviceScene(scene, settings, n_corr, int(packed.max_depth), bvh)
+
+
+def launch_plan(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(order, active): pixels by decreasing sample count (stable), and for each sample index s < the
+    largest count how many pixels have more than s samples — pixel order[i] has sample s for i < active[s]."""
+    counts = np.asarray(counts, dtype=np.int64)
+    order = np.argsort(-counts, kind="stable")
+    most = int(counts.max()) if counts.size else 0
+    more_than = counts.size - np.cumsum(np.bincount(counts, minlength=most + 1))  # [s]: #pixels with count > s
+    return order, more_than[:most]
+
+
+def groups(active: np.ndarray, limit: int) -> list[tuple[int, int]]:
+    """Consecutive sample-index ranges [s0, s1) of at most ``limit`` paths each (at least one index)."""
+    out, s0 = [], 0
+    while s0 < len(active):
+        s1, paths = s0 + 1, int(active[s0])
+        while s1 < len(active) and paths + int(active[s1]) <= limit:
+            paths += int(active[s1])
+            s1 += 1
+        out.append((s0, s1))
+        s0 = s1
+    return out
+
+
+def path_bytes(n_depth: int, n_corr: int, n_led: int) -> int:
+    """Device bytes of one path's state in a group (the arrays :func:`trace_pass` allocates per path)."""
+    slots = n_led + 1
+    return (8 * 3 + 2 + 8 * 13 + 4 + 28 + 8 * 28 + 16 * slots + slots * 29 + 8 * (n_corr + 2)
+            + 16 * n_depth * (1 + n_corr) + 8 * N_COUNTERS + 12)
+
+
+def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.ndarray,
+               threads_per_block: int = THREADS_PER_BLOCK) -> np.ndarray:
+    """Trace samples [first[p], first[p] + counts[p]) of every pixel into ``out``'s sums on the GPU.
+
+    ``out`` holds CuPy arrays ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P) and ``replicate_sum``
+    (R, J + 2, P) (a :class:`tofcore.tracer.transport.Transport` on the GPU); NumPy arrays under numba's
+    CUDA simulator (tests). Per group of sample indices (:func:`groups`): start every path, trace the
+    camera and light rays, the light vertices; per depth shade the live paths, trace the shadow rays that
+    need a test, resolve, trace the next rays; gather. Returns the pass's ray counts (N_COUNTERS,) on the host.
+    """
+    from .. import backend
+
+    module = load_kernels()
+    xp = backend.namespace(out.signal_sum)
+    bvh, scene, settings = device_scene.bvh, device_scene.scene, device_scene.settings
+    n_pix = int(np.asarray(counts).size)
+    k_max, n_corr = device_scene.max_depth, device_scene.n_correlations
+    n_led = int(scene[4][0].shape[0])
+    slots = n_led + 1
+    order, active = launch_plan(counts)
+    sums = (xp.zeros((k_max, n_pix)), xp.zeros((k_max, n_corr, n_pix)), xp.zeros((k_max, n_pix)),
+            xp.zeros((k_max, n_corr, n_pix)), xp.zeros(out.replicate_sum.shape))
+    dev_sums = _kernel_arrays(sums)
+    rays_counted = xp.zeros(N_COUNTERS, np.int64)
+    pixels = tuple(cuda.to_device(np.ascontiguousarray(a, dtype=np.int64)) for a in (order, first, counts))
+    limit = max(1, min(MAX_GROUP_PATHS, GROUP_BYTES // path_bytes(k_max, n_corr, n_led)))
+
+    def launch(kernel, n, *args):
+        kernel[(n + threads_per_block - 1) // threads_per_block, threads_per_block](*args)
+
+    for s0, s1 in groups(active, limit):
+        offsets = np.concatenate([[0], np.cumsum(active[s0:s1])]).astype(np.int64)
+        n = int(offsets[-1])
+        group = (*pixels, s0, cuda.to_device(offsets))
+        path = (xp.empty(n, np.int64), xp.empty(n, np.int64), xp.zeros(n, np.int8), xp.zeros(n, np.int8))
+        pstate = (xp.empty((n, 13)), xp.empty(n, np.int32))
+        rays = (xp.empty((n, 3), np.float32), xp.empty((n, 3), np.float32), xp.empty(n, np.int32),
+                xp.empty(n, np.float32))
+        light_rays = (xp.zeros((n, 3), np.float32), xp.zeros((n, 3), np.float32), xp.full(n, -1, np.int32))
+        light = xp.zeros((n, module.LIGHT_COLUMNS))
+        pend = (xp.zeros((n, slots)), xp.zeros((n, slots)))
+        shadow = (xp.zeros((n * slots, 3), np.float32), xp.zeros((n * slots, 3), np.float32),
+                  xp.zeros(n * slots, np.float32), xp.full(n * slots, -1, np.int32))
+        total = xp.zeros((n_corr + 2, n))
+        contrib = (xp.zeros((k_max, n)), xp.zeros((k_max, n_corr, n)), xp.zeros((k_max, n)),
+                   xp.zeros((k_max, n_corr, n)))
+        counters = xp.zeros((N_COUNTERS, n), np.int64)
+        k = _kernel_arrays
+        dev_path, dev_pstate, dev_rays, dev_shadow = k(path), k(pstate), k(rays), k(shadow)
+        dev_light, dev_total, dev_counters = k((light, total, counters))
+        dev_pend, dev_contrib = k(pend), k(contrib)
+        launch(module.wf_start, n, scene, settings, group, dev_path, dev_pstate, dev_rays, k(light_rays),
+               dev_counters)
+        if settings[3]:
+            h = bvh.intersect(light_rays[0], light_rays[1])
+            launch(module.wf_light, n, scene, settings, dev_path, k((h.prim, h.u, h.v)), dev_light)
+        # Every slot is traced every depth: an ended path's ray and a shadow slot without a test have t_max −1,
+        # which the traversal rejects at the root — no compaction, no host synchronisation to count them.
+        for depth in range(1, k_max + 1):
+            h = bvh.intersect(rays[0], rays[1], rays[3], ignore_prim=rays[2])
+            launch(module.wf_shade, n, scene, settings, depth, dev_path, dev_pstate, k((h.prim, h.u, h.v)),
+                   dev_light, dev_pend, dev_shadow, dev_rays, dev_counters)
+            occluded = bvh.occluded(shadow[0], shadow[1], shadow[2], ignore_prim=shadow[3])
+            launch(module.wf_resolve, n, scene, depth, dev_path, dev_pend, _kernel_array(occluded), dev_total,
+                   dev_contrib)
+        launch(module.wf_gather, int(offsets[1]), group, k(path)[1], dev_contrib, dev_total, dev_sums)
+        rays_counted += counters.sum(axis=1)
+    nee_w, nee_wg, con_w, con_wg, replicate = sums
+    out.signal_sum += con_w          # the reference's order: connections, then next-event estimates
+    out.signal_sum += nee_w
+    out.correlation_sum += con_wg
+    out.correlation_sum += nee_wg
+    out.replicate_sum += replicate
+    return backend.to_host(rays_counted)
+
+
+def _kernel_arrays(arrays: tuple) -> tuple:
+    """Arrays as the kernels take them (:func:`_kernel_array`), converted once per group, not per launch."""
+    return tuple(_kernel_array(a) for a in arrays)
+
+
+def _kernel_array(a):
+    """A CuPy array as numba sees it (one conversion per pass, not per launch); a NumPy array as it is
+    (numba's CUDA simulator)."""
+    return cuda.as_cuda_array(a) if hasattr(a, "__cuda_array_interface__") else a
+
+
+@dataclass
+class Sums:
+    """Stand-alone sums for :func:`trace_frame` (the layout of tofcore.tracer.transport.Transport)."""
+
+    signal_sum: object
+    correlation_sum: object
+    replicate_sum: object
+
+
+def trace_frame(packed, bvh, n_pix: int, spp: int, threads_per_block: int = THREADS_PER_BLOCK) -> dict:
+    """One pass of ``spp`` samples of every pixel on the GPU, for benchmarks and checks.
+
+    Returns host arrays ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P), ``replicate_sum``
+    (R, J + 2, P), ``counters`` (N_COUNTERS,), the seconds of the pass (``kernel_s``, synchronised) and
+    of the whole call (``seconds``: uploads, pass, read-back).
+    """
+    from .. import backend
+    from ..tracer import qmc
+
+    xp = np if numba.config.ENABLE_CUDASIM else backend.select_device("gpu").xp
+    start = time.perf_counter()
+    device_scene = upload(packed, bvh)
+    n_corr = device_scene.n_correlations
+    out = Sums(xp.zeros((packed.max_depth, n_pix)), xp.zeros((packed.max_depth, n_corr, n_pix)),
+               xp.zeros((qmc.REPLICATES, n_corr + 2, n_pix)))
+    first, counts = np.zeros(n_pix, np.int64), np.full(n_pix, spp, np.int64)
     cuda.synchronize()
     launch = time.perf_counter()
-    kernel[(n_pix + threads_per_block - 1) // threads_per_block, threads_per_block](scene, settings, pixels,
-                                                                                    (*sums, counters))
+    counters = trace_pass(device_scene, out, first, counts, threads_per_block)
     cuda.synchronize()
     kernel_s = time.perf_counter() - launch
-    nee_w, nee_wg, con_w, con_wg, replicate = (s.copy_to_host() for s in sums)
-    signal = np.zeros((k_max, n_pix))
-    signal += con_w.T
-    signal += nee_w.T
-    corr = np.zeros((k_max, n_corr, n_pix))
-    corr += con_wg[:, :, :n_corr].transpose(1, 2, 0)
-    corr += nee_wg[:, :, :n_corr].transpose(1, 2, 0)
-    return {"signal_sum": signal, "correlation_sum": corr,
-            "replicate_sum": np.zeros((qmc.REPLICATES, n_corr + 2, n_pix)) + replicate.transpose(1, 2, 0),
-            "counters": counters.copy_to_host().sum(axis=0), "kernel_s": kernel_s,
+    return {"signal_sum": backend.to_host(out.signal_sum), "correlation_sum": backend.to_host(out.correlation_sum),
+            "replicate_sum": backend.to_host(out.replicate_sum), "counters": counters, "kernel_s": kernel_s,
             "seconds": time.perf_counter() - start}

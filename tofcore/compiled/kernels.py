@@ -36,7 +36,7 @@ from ..tracer import qmc as _qmc
 from ..tracer import rng as _rng
 from ..tracer import sampler as _sampler
 from ..tracer import surface as _surface
-from ._target import cpu_parallel_function, device_function
+from ._target import cpu_parallel_function, device_function, gpu_kernel_function, gpu_module
 from .layout import LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE
 
 # ------------------------------------------------------------------ constants, from the reference modules
@@ -79,6 +79,8 @@ CHILD_ROW, PRIM_ROW, WIDTH = 6, 9, 4
 # Below every constant: the decorators hash them all into the name of the cache folder (_target).
 fn = device_function(__name__)
 cpu_parallel = cpu_parallel_function(__name__)
+gpu_kernel = gpu_kernel_function(__name__)
+cuda = gpu_module(__name__)
 
 
 # ------------------------------------------------------------------ vectors
@@ -313,51 +315,15 @@ def ray_frame(d):
 
 
 @fn
-def leaf_hit(leaves_f, leaves_i, row, k, ray, t_max, ignore):
-    """Watertight test of triangle ``k`` of the leaf at ``row`` (tofcore.bvh._watertight), float32.
-
-    ``ray`` = (origin o, frame vectors b1, b2, direction d). Returns (hit, t, u, v, triangle index).
-    The edge functions' sign test comes first and the divisions only for a ray inside the triangle:
-    the same operations on the same values as the reference, where they matter.
-    """
-    o, b1, b2, d = ray
-    prim = leaves_i[row + PRIM_ROW, k]
-    if prim < 0 or prim == ignore:
-        return False, F32_ZERO, F32_ZERO, F32_ZERO, prim
-    ax, ay, az = leaves_f[row, k] - o[0], leaves_f[row + 1, k] - o[1], leaves_f[row + 2, k] - o[2]
-    px, py, pz = leaves_f[row + 3, k] - o[0], leaves_f[row + 4, k] - o[1], leaves_f[row + 5, k] - o[2]
-    cx, cy, cz = leaves_f[row + 6, k] - o[0], leaves_f[row + 7, k] - o[1], leaves_f[row + 8, k] - o[2]
-    a1 = ax * b1[0] + ay * b1[1] + az * b1[2]
-    a2 = ax * b2[0] + ay * b2[1] + az * b2[2]
-    p1 = px * b1[0] + py * b1[1] + pz * b1[2]
-    p2 = px * b2[0] + py * b2[1] + pz * b2[2]
-    c1 = cx * b1[0] + cy * b1[1] + cz * b1[2]
-    c2 = cx * b2[0] + cy * b2[1] + cz * b2[2]
-    w_u = c1 * p2 - c2 * p1
-    w_v = a1 * c2 - a2 * c1
-    w_w = p1 * a2 - p2 * a1
-    inside = ((w_u >= F32_ZERO and w_v >= F32_ZERO and w_w >= F32_ZERO)
-              or (w_u <= F32_ZERO and w_v <= F32_ZERO and w_w <= F32_ZERO))
-    if not inside:
-        return False, F32_ZERO, F32_ZERO, F32_ZERO, prim
-    a3 = ax * d[0] + ay * d[1] + az * d[2]
-    p3 = px * d[0] + py * d[1] + pz * d[2]
-    c3 = cx * d[0] + cy * d[1] + cz * d[2]
-    det = w_u + w_v + w_w
-    t = (w_u * a3 + w_v * p3 + w_w * c3) / det
-    if not (t > F32_ZERO and t < t_max):
-        return False, F32_ZERO, F32_ZERO, F32_ZERO, prim
-    return True, t, w_v / det, w_w / det, prim
-
-
-@fn
 def traverse(bvh, o, d, t_max, ignore, any_hit, stack, stack_t):
     """Closest hit (or any hit) of one float32 ray over the 4-wide BVH records, with a per-ray stack.
 
     Same slab test as tofcore.bvh.BVH._trace (entry plane chosen by the sign of the direction, tiny
     direction components replaced by ±1e-30, boxes clipped at the best t so far) and the same
-    triangle test; for a closest hit, children are visited near to far (an any-hit ray, whose answer
-    does not depend on the order, visits them as they come). Returns (t, prim, u, v); prim −1 on a miss.
+    watertight triangle test in float32 (the same products and sums in the same order; the divisions only
+    once the ray is inside the triangle). For a closest hit, children are visited near to far; an any-hit
+    ray, whose answer does not depend on the order, visits them as they come. Returns (t, prim, u, v);
+    prim −1 on a miss.
     ``bvh`` = (node planes, node children, leaf vertices, leaf triangles): the first four arrays of the
     scene tuple (tofcore.compiled.setup.scene_arrays); ``stack`` (int64) and ``stack_t`` (float32) are
     scratch arrays of STACK_SIZE entries, the first row of a node record and its entry distance.
@@ -371,7 +337,6 @@ def traverse(bvh, o, d, t_max, ignore, any_hit, stack, stack_t):
     ey = 4 if d[1] < F32_ZERO else 1
     ez = 5 if d[2] < F32_ZERO else 2
     b1, b2 = ray_frame(d)
-    ray = (o, b1, b2, d)
     best_t = t_max
     best_prim = -1
     best_u = F32_ZERO
@@ -397,14 +362,38 @@ def traverse(bvh, o, d, t_max, ignore, any_hit, stack, stack_t):
             if not t_in <= t_out:
                 continue
             child = nodes_i[node + CHILD_ROW, c]
-            if child < 0:  # a leaf: test its triangles now
-                row = ~child
+            if child < 0:  # a leaf: test its triangles now (tofcore.bvh._watertight, written out here: a
+                row = ~child  # call per triangle cost ≈ 8 % of the traversal)
                 for k in range(leaves_i.shape[1]):
-                    hit, t, u, v, prim = leaf_hit(leaves_f, leaves_i, row, k, ray, best_t, ignore)
-                    if hit:
-                        if any_hit:
-                            return t, prim, u, v
-                        best_t, best_prim, best_u, best_v = t, prim, u, v
+                    prim = leaves_i[row + PRIM_ROW, k]
+                    if prim < 0 or prim == ignore:
+                        continue
+                    ax, ay, az = leaves_f[row, k] - o[0], leaves_f[row + 1, k] - o[1], leaves_f[row + 2, k] - o[2]
+                    px, py, pz = leaves_f[row + 3, k] - o[0], leaves_f[row + 4, k] - o[1], leaves_f[row + 5, k] - o[2]
+                    cx, cy, cz = leaves_f[row + 6, k] - o[0], leaves_f[row + 7, k] - o[1], leaves_f[row + 8, k] - o[2]
+                    a1 = ax * b1[0] + ay * b1[1] + az * b1[2]
+                    a2 = ax * b2[0] + ay * b2[1] + az * b2[2]
+                    p1 = px * b1[0] + py * b1[1] + pz * b1[2]
+                    p2 = px * b2[0] + py * b2[1] + pz * b2[2]
+                    c1 = cx * b1[0] + cy * b1[1] + cz * b1[2]
+                    c2 = cx * b2[0] + cy * b2[1] + cz * b2[2]
+                    w_u = c1 * p2 - c2 * p1
+                    w_v = a1 * c2 - a2 * c1
+                    w_w = p1 * a2 - p2 * a1
+                    # The edge functions share a sign (zero counts as both): only then the divisions.
+                    if not ((w_u >= F32_ZERO and w_v >= F32_ZERO and w_w >= F32_ZERO)
+                            or (w_u <= F32_ZERO and w_v <= F32_ZERO and w_w <= F32_ZERO)):
+                        continue
+                    a3 = ax * d[0] + ay * d[1] + az * d[2]
+                    p3 = px * d[0] + py * d[1] + pz * d[2]
+                    c3 = cx * d[0] + cy * d[1] + cz * d[2]
+                    det = w_u + w_v + w_w
+                    t = (w_u * a3 + w_v * p3 + w_w * c3) / det
+                    if not (t > F32_ZERO and t < best_t):
+                        continue
+                    if any_hit:
+                        return t, prim, w_v / det, w_w / det
+                    best_t, best_prim, best_u, best_v = t, prim, w_v / det, w_w / det
                 continue
             j = top
             while not any_hit and j > first and stack_t[j - 1] < t_in:
@@ -779,11 +768,11 @@ def correlation(kind, par, tau):
 #   sums     = (nee_w, nee_wg, con_w, con_wg, total)                           a pixel's sums (trace_path)
 #   work     = (counters, stack, stack_t, wg)                                  scratch (traverse, trace_path)
 @fn
-def connect_led(geo, frame, leds, vertex, state, i, work):
-    """Next-event estimate to LED ``i``: (w, distance to the LED) (transport._connect_led)."""
+def led_estimate(frame, leds, vertex, state, i):
+    """Next-event estimate to LED ``i`` before its shadow test: (w, distance to the LED, the LED's position)
+    (transport._connect_led)."""
     surf, spawn, wo, prim = vertex
     throughput, depth, bsdf_area_pdf, prev_delta, use_mis = state
-    counters = work[0]
     led_positions, led_table = leds[0], leds[1]
     position, ng, ns, params = surf[0], surf[1], surf[4], surf[5]
     led = (led_positions[i, 0], led_positions[i, 1], led_positions[i, 2])
@@ -802,24 +791,29 @@ def connect_led(geo, frame, leds, vertex, state, i, work):
         p_light = led_table[i, 3] * emission_pdf(kind, cos_axis) * max(cos_geo, 0.0) / (dist * dist)
         share = bsdf_area_pdf / (bsdf_area_pdf + p_light) if bsdf_area_pdf + p_light > 0 else 1.0
         w = w * (1.0 if prev_delta else share)
+    return w, dist, led
+
+
+@fn
+def connect_led(geo, frame, leds, vertex, state, i, work):
+    """Next-event estimate to LED ``i``, shadow test included: (w, distance to the LED) (transport._connect_led)."""
+    w, dist, led = led_estimate(frame, leds, vertex, state, i)
+    counters = work[0]
     if w > 0:
-        if depth == 1 and led_table[i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
+        if state[1] == 1 and leds[1][i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
             counters[4] += 1
         else:
-            o, d, t_max = shadow_ray(spawn, led, point_offset(led, SPAWN_RELATIVE))
+            o, d, t_max = shadow_ray(vertex[1], led, point_offset(led, SPAWN_RELATIVE))
             counters[2] += 1
-            if intersect(geo, o, d, t_max, prim, True, work)[1] >= 0:
+            if intersect(geo, o, d, t_max, vertex[3], True, work)[1] >= 0:
                 w = 0.0
     return w, dist
 
 
 @fn
-def light_vertex(geo, frame, leds, rng, work):
-    """The sample's light vertex y (light_paths.trace_light_vertices): the ``light`` tuple.
-
-    (found, surface of y facing the LED, unit direction y → LED, |y − LED|, emitted, p_B, the margin
-    a shadow ray to y stops short of it: 4 × y's spawn offset).
-    """
+def light_ray(frame, leds, rng):
+    """The ray of the sample's light vertex (light_paths.trace_light_vertices): (LED index, its position,
+    the float64 emission direction, its pdf, the float32 query origin and direction)."""
     key, pixel, sample, independent = rng
     led_positions, led_table, led_cdf = leds[0], leds[1], leds[2]
     u_led = sample_1d(key, pixel, sample, DIM_LED_CHOICE, independent)
@@ -836,8 +830,18 @@ def light_vertex(geo, frame, leds, rng, work):
     offset = point_offset(origin, LEAVE_RELATIVE)
     query = to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
                     origin[2] + offset * direction[2]))
-    work[0][3] += 1
-    t, prim, u, v = intersect(geo, query, to_f32(direction), F32_INF, -1, False, work)
+    return index, origin, direction, pdf_dir, query, to_f32(direction)
+
+
+@fn
+def light_vertex_at(geo, leds, ray, prim, u, v):
+    """The ``light`` tuple where the light ray ``ray`` (:func:`light_ray`) hits (prim, u, v); prim −1: none.
+
+    (found, surface of y facing the LED, unit direction y → LED, |y − LED|, emitted, p_B, the margin
+    a shadow ray to y stops short of it: 4 × y's spawn offset).
+    """
+    index, origin, direction, pdf_dir = ray[0], ray[1], ray[2], ray[3]
+    led_table = leds[1]
     surf = surface_at(geo, max(prim, 0), u, v, origin, direction)
     if prim < 0 or not pdf_dir > 0:
         return False, surf, direction, 0.0, 0.0, 0.0, 0.0
@@ -848,17 +852,26 @@ def light_vertex(geo, frame, leds, rng, work):
     q = led_table[index, 3]
     emitted = led_table[index, 2] / (q if q > 0 else 1.0) * cos_shading / cos_geo if cos_geo > 0 else 0.0
     margin = 4.0 * spawn_offset(geo, prim, surf[0], surf[1])
-    if not led_distance > offset:  # an LED on (or behind) the surface it lights has no light vertex there
+    if not led_distance > point_offset(origin, LEAVE_RELATIVE):  # an LED on (or behind) the surface it lights
         return True, surf, to_led, led_distance, 0.0, 0.0, margin
     return True, surf, to_led, led_distance, emitted, pdf_dir * abs(cos_geo) / (led_distance * led_distance), margin
 
 
 @fn
-def connect_light(geo, vertex, throughput, light, work):
-    """Strategy B at camera vertex x: (w_B, extra path length |x − y| + |y − LED|) (light_paths.connect)."""
+def light_vertex(geo, frame, leds, rng, work):
+    """The sample's light vertex y (light_paths.trace_light_vertices): the ``light`` tuple of :func:`light_vertex_at`."""
+    ray = light_ray(frame, leds, rng)
+    work[0][3] += 1
+    t, prim, u, v = intersect(geo, ray[4], ray[5], F32_INF, -1, False, work)
+    return light_vertex_at(geo, leds, ray, prim, u, v)
+
+
+@fn
+def light_estimate(vertex, throughput, light):
+    """Strategy B at camera vertex x before its shadow test: (w_B, extra path length |x − y| + |y − LED|)
+    (light_paths.connect)."""
     x, spawn, wo, prim = vertex
-    y, y_to_led, y_led_distance, y_emitted, y_pdf_area, y_margin = light[1], light[2], light[3], light[4], \
-        light[5], light[6]
+    y, y_to_led, y_led_distance, y_emitted, y_pdf_area = light[1], light[2], light[3], light[4], light[5]
     to_y = sub(y[0], x[0])
     dist = norm(to_y)
     if not dist > 0:
@@ -875,13 +888,20 @@ def connect_light(geo, vertex, throughput, light, work):
         w = w * y_pdf_area / (p_bsdf + y_pdf_area)
     else:
         w = 0.0
+    return w, dist + y_led_distance
+
+
+@fn
+def connect_light(geo, vertex, throughput, light, work):
+    """Strategy B at camera vertex x, shadow test included: (w_B, extra path length) (light_paths.connect)."""
+    w, extra = light_estimate(vertex, throughput, light)
     if w > 0:
         # Stop short of y by a few ray offsets, so y's own surface does not occlude it.
-        o, d, t_max = shadow_ray(spawn, y[0], y_margin)
+        o, d, t_max = shadow_ray(vertex[1], light[1][0], light[6])
         work[0][2] += 1
-        if intersect(geo, o, d, t_max, prim, True, work)[1] >= 0:
+        if intersect(geo, o, d, t_max, vertex[3], True, work)[1] >= 0:
             w = 0.0
-    return w, dist + y_led_distance
+    return w, extra
 
 
 @fn
@@ -898,18 +918,22 @@ def camera_start(scene, rng):
 
 
 @fn
-def next_hit(geo, origin, direction, depth, prev_prim, work):
-    """(prim, u, v) where the path's ray from ``origin`` hits (prim −1 on a miss); the camera ray
-    (depth 1) leaves the lens by LEAVE_RELATIVE of its coordinates, the others from their spawn point."""
+def ray_query(origin, direction, depth):
+    """The float32 origin of the path's ray at ``depth``: the camera ray (depth 1) leaves the lens by
+    LEAVE_RELATIVE of its coordinates, the others start at their spawn point."""
     if depth == 1:
         offset = point_offset(origin, LEAVE_RELATIVE)
-        query = to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
-                        origin[2] + offset * direction[2]))
-        work[0][0] += 1
-    else:
-        query = to_f32(origin)
-        work[0][1] += 1
-    t, prim, u, v = intersect(geo, query, to_f32(direction), F32_INF, prev_prim, False, work)
+        return to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
+                       origin[2] + offset * direction[2]))
+    return to_f32(origin)
+
+
+@fn
+def next_hit(geo, origin, direction, depth, prev_prim, work):
+    """(prim, u, v) where the path's ray from ``origin`` hits (prim −1 on a miss)."""
+    work[0][0 if depth == 1 else 1] += 1
+    t, prim, u, v = intersect(geo, ray_query(origin, direction, depth), to_f32(direction), F32_INF, prev_prim,
+                              False, work)
     return prim, u, v
 
 
@@ -1084,3 +1108,305 @@ def trace_pixels(scene, settings, pixels, out):
                 replicate_sum[r, c, p] += replicate[r, c]
         for c in range(N_COUNTERS):
             counters[local, c] = count[c]
+
+
+GPU_MAX_CHANNELS = 32
+"""Correlation channels + 2 a GPU thread holds (local arrays need their size when compiling)."""
+
+
+# ------------------------------------------------------------------ GPU wavefront: the path in stages
+#
+# The same path as trace_path, cut where it traces rays: each kernel advances every path of a launch
+# group by one stage and leaves its rays in buffers that tofcore.gpu.traversal (a lean kernel, one thread
+# per ray, bit for bit the NumPy traversal) traces in between; tofcore.compiled.cuda.trace_pass drives
+# them. A group holds the paths of sample indices s0 ≤ s < s1 of a pass, path j of lane l = s − s0 being
+# pixel order[j − offsets[l]]. Per-path state in global memory (column or row j):
+#   path    = (pixel, sample, alive, shaded)                  int64 ×2, int8 ×2
+#   pstate  = (f (n, 13), prev_prim (n,))                     f: β, path length, prev pdf, prev delta,
+#                                                             prev point xyz, origin xyz, direction xyz
+#   rays    = (origin (n, 3) f32, direction (n, 3) f32, ignore (n,) i32, t_max (n,) f32)   the next
+#             closest-hit ray; t_max −1 for a path that has ended (the traversal leaves it at the root)
+#   hits    = (prim (n,) i32, u (n,) f32, v (n,) f32)
+#   light   = (n, 28) float64: the light tuple of light_vertex_at, flattened (LIGHT_* columns)
+#   pend    = (w (n, L + 1), tau (n, L + 1))                  next-event estimates (LED i) and the
+#                                                             connection (column L) before their shadow test
+#   shadow  = (origin (n(L+1), 3), direction, t_max, ignore)  their shadow rays; t_max −1: no test
+#   contrib = (nee_w (K, n), nee_wg (K, J, n), con_w (K, n), con_wg (K, J, n))   the path's one addend per
+#             bucket; total (J + 2, n) its channel totals; counters (N_COUNTERS, n) its rays
+# wf_gather adds the contributions per pixel in sample order: the pass's sums are the CPU's, addend by addend.
+LIGHT_FOUND, LIGHT_SURF, LIGHT_PARAMS, LIGHT_TO_LED, LIGHT_REST, LIGHT_COLUMNS = 0, 1, 16, 21, 24, 28
+NO_RAY = np.float32(-1.0)
+"""t_max of a ray slot that traces nothing (an ended path, an estimate that needs no shadow test)."""
+
+
+@fn
+def store_vec(a, j, col, v):
+    a[j, col] = v[0]
+    a[j, col + 1] = v[1]
+    a[j, col + 2] = v[2]
+
+
+@fn
+def load_vec(a, j, col):
+    return a[j, col], a[j, col + 1], a[j, col + 2]
+
+
+@fn
+def store_light(out, j, light):
+    """Row j of the light table from a light tuple (light_vertex_at)."""
+    surf = light[1]
+    out[j, LIGHT_FOUND] = 1.0 if light[0] else 0.0
+    store_vec(out, j, LIGHT_SURF, surf[0])  # a heterogeneous tuple takes constant indices only
+    store_vec(out, j, LIGHT_SURF + 3, surf[1])
+    store_vec(out, j, LIGHT_SURF + 6, surf[2])
+    store_vec(out, j, LIGHT_SURF + 9, surf[3])
+    store_vec(out, j, LIGHT_SURF + 12, surf[4])
+    params = surf[5]
+    out[j, LIGHT_PARAMS] = params[0]
+    out[j, LIGHT_PARAMS + 1] = params[1]
+    out[j, LIGHT_PARAMS + 2] = params[2]
+    out[j, LIGHT_PARAMS + 3] = params[3]
+    out[j, LIGHT_PARAMS + 4] = params[4]
+    store_vec(out, j, LIGHT_TO_LED, light[2])
+    out[j, LIGHT_REST] = light[3]
+    out[j, LIGHT_REST + 1] = light[4]
+    out[j, LIGHT_REST + 2] = light[5]
+    out[j, LIGHT_REST + 3] = light[6]
+
+
+@fn
+def load_light(table, j):
+    """The light tuple of row j (store_light)."""
+    surf = (load_vec(table, j, LIGHT_SURF), load_vec(table, j, LIGHT_SURF + 3), load_vec(table, j, LIGHT_SURF + 6),
+            load_vec(table, j, LIGHT_SURF + 9), load_vec(table, j, LIGHT_SURF + 12),
+            (table[j, LIGHT_PARAMS], table[j, LIGHT_PARAMS + 1], table[j, LIGHT_PARAMS + 2],
+             table[j, LIGHT_PARAMS + 3], table[j, LIGHT_PARAMS + 4]))
+    return (table[j, LIGHT_FOUND] != 0.0, surf, load_vec(table, j, LIGHT_TO_LED), table[j, LIGHT_REST],
+            table[j, LIGHT_REST + 1], table[j, LIGHT_REST + 2], table[j, LIGHT_REST + 3])
+
+
+@fn
+def store_ray(rays, j, origin, direction, ignore):
+    o, d, ig = rays[0], rays[1], rays[2]
+    store_vec(o, j, 0, origin)
+    store_vec(d, j, 0, direction)
+    ig[j] = ignore
+
+
+@gpu_kernel
+def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
+    """Stage 1: each path's pixel and sample, its camera ray and its light ray.
+
+    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), counts (P,), s0, offsets (m + 1,)).
+    """
+    j = cuda.grid(1)
+    order, first, counts, s0, offsets = launch
+    m = offsets.shape[0] - 1
+    if j >= offsets[m]:
+        return
+    lo = 0  # the lane l with offsets[l] <= j < offsets[l + 1]
+    hi = m
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if offsets[mid] <= j:
+            lo = mid
+        else:
+            hi = mid
+    p = order[j - offsets[lo]]
+    pixel, samples, alive, shaded = path
+    pixel[j] = p
+    sample = first[p] + s0 + lo
+    samples[j] = sample
+    shaded[j] = 0
+    alive[j] = 1
+    key, max_depth, independent, light_paths = settings
+    rng = (key, p, sample, independent)
+    origin, direction = camera_start(scene, rng)
+    f = pstate[0]
+    f[j, 0] = 1.0
+    f[j, 1] = 0.0
+    f[j, 2] = 0.0
+    f[j, 3] = 0.0
+    store_vec(f, j, 4, origin)
+    store_vec(f, j, 7, origin)
+    store_vec(f, j, 10, direction)
+    pstate[1][j] = -1
+    store_ray(rays, j, ray_query(origin, direction, 1), to_f32(direction), -1)
+    rays[3][j] = F32_INF
+    counters[0, j] += 1
+    if light_paths:
+        ray = light_ray(scene[3], scene[4], rng)
+        store_ray(light_rays, j, ray[4], ray[5], -1)
+        counters[3, j] += 1
+
+
+@gpu_kernel
+def wf_light(scene, settings, path, light_hits, light):
+    """Stage 2: the light vertex where each path's light ray hit (light_vertex_at), into the light table."""
+    j = cuda.grid(1)
+    pixel, samples = path[0], path[1]
+    if j >= pixel.shape[0]:
+        return
+    key, max_depth, independent, light_paths = settings
+    ray = light_ray(scene[3], scene[4], (key, pixel[j], samples[j], independent))
+    prim, u, v = light_hits
+    store_light(light, j, light_vertex_at(scene[0], scene[4], ray, prim[j], u[j], v[j]))
+
+
+@gpu_kernel
+def wf_shade(scene, settings, depth, path, pstate, hits, light, pend, shadow, rays, counters):
+    """Stage 3 at ``depth``: the surface each live path hit, its next-event estimates and connection with
+    their shadow rays (pend, shadow), and its next ray (rays) — trace_path's loop body, minus traversal."""
+    j = cuda.grid(1)
+    pixel, samples, alive, shaded = path
+    if j >= pixel.shape[0]:
+        return
+    shaded[j] = 0
+    n_led = scene[4][0].shape[0]
+    slots = n_led + 1
+    for i in range(slots):
+        shadow[2][j * slots + i] = NO_RAY
+    if alive[j] == 0:
+        return
+    prim = hits[0][j]
+    if prim < 0:
+        alive[j] = 0
+        rays[3][j] = NO_RAY
+        return
+    geo, frame, leds = scene[0], scene[3], scene[4]
+    key, max_depth, independent, light_paths = settings
+    p = pixel[j]
+    f = pstate[0]
+    throughput, path_length, prev_pdf, prev_delta = f[j, 0], f[j, 1], f[j, 2], f[j, 3] != 0.0
+    prev_point, origin, direction = load_vec(f, j, 4), load_vec(f, j, 7), load_vec(f, j, 10)
+    surf = surface_at(geo, prim, hits[1][j], hits[2][j], origin, direction)
+    position, ng = surf[0], surf[1]
+    segment = norm(sub(position, prev_point))
+    path_length = path_length + segment
+    f[j, 1] = path_length
+    vertex = camera_vertex(geo, prim, surf, direction)
+    use_mis = light_paths and depth >= 2
+    bsdf_area_pdf = prev_pdf * dot(neg(direction), ng) / (segment * segment) if use_mis else 0.0
+    state = (throughput, depth, bsdf_area_pdf, prev_delta, use_mis)
+    pend_w, pend_tau = pend
+    for i in range(n_led):
+        w, dist, led = led_estimate(frame, leds, vertex, state, i)
+        pend_w[j, i] = w
+        pend_tau[j, i] = (path_length + dist) / SPEED_OF_LIGHT_M_S
+        k = j * slots + i
+        if w > 0:
+            if depth == 1 and leds[1][i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
+                counters[4, j] += 1
+            else:
+                o, d, t_max = shadow_ray(vertex[1], led, point_offset(led, SPAWN_RELATIVE))
+                store_ray((shadow[0], shadow[1], shadow[3]), k, o, d, prim)
+                shadow[2][k] = t_max
+                counters[2, j] += 1
+    k = j * slots + n_led
+    shaded[j] = 1
+    if depth == max_depth:
+        alive[j] = 0
+        rays[3][j] = NO_RAY
+        return
+    if light_paths:  # the connection to the light vertex (add_connection), column L
+        y = load_light(light, j)
+        w = 0.0
+        extra = 0.0
+        if y[0]:
+            w, extra = light_estimate(vertex, throughput, y)
+        pend_w[j, n_led] = w
+        pend_tau[j, n_led] = (path_length + extra) / SPEED_OF_LIGHT_M_S
+        if w > 0:
+            o, d, t_max = shadow_ray(vertex[1], y[1][0], y[6])
+            store_ray((shadow[0], shadow[1], shadow[3]), k, o, d, prim)
+            shadow[2][k] = t_max
+            counters[2, j] += 1
+        shaded[j] = 2
+    new_dir, weight, pdf, is_delta = next_direction(surf, vertex[2], (key, p, samples[j], independent), depth)
+    if not (weight > 0 and dot(new_dir, ng) > 0):
+        alive[j] = 0
+        rays[3][j] = NO_RAY
+        return
+    f[j, 0] = throughput * weight
+    f[j, 2] = pdf
+    f[j, 3] = 1.0 if is_delta else 0.0
+    store_vec(f, j, 4, position)
+    origin = vertex[1]
+    direction = divide(new_dir, norm(new_dir))
+    store_vec(f, j, 7, origin)
+    store_vec(f, j, 10, direction)
+    pstate[1][j] = prim
+    store_ray(rays, j, ray_query(origin, direction, depth + 1), to_f32(direction), prim)
+    rays[3][j] = F32_INF
+    counters[1, j] += 1
+
+
+@gpu_kernel
+def wf_resolve(scene, depth, path, pend, occluded, total, contrib):
+    """Stage 4 at ``depth``: each shaded path's unoccluded next-event estimates and connection, as
+    add_next_events and add_connection compute them, into its addends (contrib) and its totals."""
+    j = cuda.grid(1)
+    shaded = path[3]
+    if j >= shaded.shape[0] or shaded[j] == 0:
+        return
+    corr_kinds, corr_table = scene[5], scene[6]
+    nee_w, nee_wg, con_w, con_wg = contrib
+    pend_w, pend_tau = pend
+    n_led = pend_w.shape[1] - 1
+    n_corr = corr_kinds.shape[0]
+    wg = cuda.local.array(GPU_MAX_CHANNELS, np.float64)
+    for c in range(n_corr):
+        wg[c] = 0.0
+    w_sum = 0.0
+    for i in range(n_led):
+        w = 0.0 if occluded[j * (n_led + 1) + i] else pend_w[j, i]
+        tau = pend_tau[j, i]
+        w_sum += w
+        for c in range(n_corr):
+            wg[c] += correlation(corr_kinds[c], corr_table[c], tau) * w
+    k = depth - 1
+    nee_w[k, j] = w_sum
+    total[0, j] += w_sum
+    for c in range(n_corr):
+        nee_wg[k, c, j] = wg[c]
+        total[1 + c, j] += wg[c]
+    if shaded[j] == 2:
+        w = 0.0 if occluded[j * (n_led + 1) + n_led] else pend_w[j, n_led]
+        tau = pend_tau[j, n_led]
+        con_w[depth, j] = w
+        total[0, j] += w
+        for c in range(n_corr):
+            wg_c = correlation(corr_kinds[c], corr_table[c], tau) * w
+            con_wg[depth, c, j] = wg_c
+            total[1 + c, j] += wg_c
+
+
+@gpu_kernel
+def wf_gather(launch, samples, contrib, total, sums):
+    """Stage 5: add the group's paths to the pass's sums, one thread per pixel, its samples in sample order.
+
+    ``launch`` as in :func:`wf_start`; thread i serves pixel order[i] (the pixels of lane 0 include every
+    later lane's). ``sums`` = (nee_w (K, P), nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate
+    (R, J + 2, P)): each pixel's addends arrive in the order trace_pixels adds them on the CPU.
+    """
+    i = cuda.grid(1)
+    order, offsets = launch[0], launch[4]
+    if i >= offsets[1]:
+        return
+    p = order[i]
+    nee_w, nee_wg, con_w, con_wg = contrib
+    pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate = sums
+    n_depth, n_corr = nee_wg.shape[0], nee_wg.shape[1]
+    for lane in range(offsets.shape[0] - 1):
+        if i >= offsets[lane + 1] - offsets[lane]:
+            break
+        j = offsets[lane] + i
+        for k in range(n_depth):
+            pass_nee_w[k, p] += nee_w[k, j]
+            pass_con_w[k, p] += con_w[k, j]
+            for c in range(n_corr):
+                pass_nee_wg[k, c, p] += nee_wg[k, c, j]
+                pass_con_wg[k, c, p] += con_wg[k, c, j]
+        r = samples[j] % replicate.shape[0]
+        for c in range(replicate.shape[1]):
+            replicate[r, c, p] += total[c, j]
