@@ -6,8 +6,8 @@ The bench_peers frame (demo room, 9,800 triangles, 512 × 424, 16 spp, 5 surface
 * ``--cpu-threads 1,2,16``: the compiled tracer on that many numba threads (``tofcore.trace``,
   ``TOFCORE_TRACER=compiled``), wall seconds of the trace; with ``--numpy`` also the NumPy tracer;
 * ``--kernels``: CPU-seconds per call of the compiled kernels on one thread — traversal of 200,000 random
-  rays inside the room (against ``BVH.intersect`` on the same rays), ``eval_bsdf``, ``sample_bsdf``, a
-  Sobol' pair;
+  rays inside the room (against ``BVH.intersect`` on the same rays), any-hit traversal of 200,000 shadow
+  rays between two random points, ``eval_bsdf``, ``sample_bsdf``, a Sobol' pair;
 * ``--gpu``: the same source compiled by numba.cuda (:mod:`tofcore.compiled.cuda`), one thread per pixel:
   the cold first call (compilation) and the median of ``--repeat`` warm frames, kernel and whole call;
   first checked against the CPU tracer on a small frame (``--check``), sums compared as
@@ -97,14 +97,21 @@ def kernel_costs(n: int = 200_000) -> dict:
     d = r.normal(size=(n, 3))
     d = (d / np.linalg.norm(d, axis=1, keepdims=True)).astype(np.float32)
 
+    to = (lo + (hi - lo) * (0.1 + 0.8 * r.random((n, 3)))).astype(np.float32)  # shadow rays: o → to
+    shadow = (to - o).astype(np.float64)
+    length = np.linalg.norm(shadow, axis=1)
+    shadow = (shadow / length[:, None]).astype(np.float32)
+    length = length.astype(np.float32)
+    no_limit = np.full(n, np.inf, np.float32)
+
     @numba.njit
-    def traverse(geo, o, d):
+    def traverse(geo, o, d, t_max, any_hit):
         hits = 0
         work = (np.zeros(k.N_COUNTERS, np.int64), np.empty(k.STACK_SIZE, np.int64), np.empty(k.STACK_SIZE, np.float32),
                 np.zeros(1))
         for i in range(o.shape[0]):
-            h = k.intersect(geo, (o[i, 0], o[i, 1], o[i, 2]), (d[i, 0], d[i, 1], d[i, 2]), np.float32(np.inf), -1,
-                            False, work)
+            h = k.intersect(geo, (o[i, 0], o[i, 1], o[i, 2]), (d[i, 0], d[i, 1], d[i, 2]), t_max[i], -1,
+                            any_hit, work)
             hits += h[1] >= 0
         return hits
 
@@ -130,7 +137,10 @@ def kernel_costs(n: int = 200_000) -> dict:
         return total
 
     key = rng.seed_key(1)
-    jobs = {"traversal (compiled)": lambda: traverse(geo, o, d), "eval_bsdf": lambda: bsdf(n, False),
+    jobs = {"traversal (compiled)": lambda: traverse(geo, o, d, no_limit, False),
+            "any-hit traversal of shadow rays between two random points (compiled)":
+                lambda: traverse(geo, o, shadow, length, True),
+            "eval_bsdf": lambda: bsdf(n, False),
             "sample_bsdf": lambda: bsdf(n, True), "Sobol' pair": lambda: sobol(key, n),
             "traversal (NumPy BVH.intersect, 1 thread)": lambda: scene.bvh.intersect(o, d, workers=1)}
     out = {}

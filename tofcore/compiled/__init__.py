@@ -9,10 +9,11 @@ bits of transcendental functions (tests/tofcore/test_compiled.py states and test
 
 Environment: ``TOFCORE_TRACER=numpy`` forces the NumPy reference, ``compiled`` makes a render that
 cannot use the compiled tracer an error instead of a fall-back, ``auto`` (default) picks it when it
-can. The machine code is cached by numba beside the sources (``tofcore/compiled/__pycache__``; numba's
-user cache ``~/.cache/numba`` where that folder is not writable; ``NUMBA_CACHE_DIR`` overrides both):
-the first render of a fresh install compiles for 30–80 s (docs/benchmarks.md), later processes load
-the kernels in about a second.
+can. The machine code is cached by numba beside the sources (``tofcore/compiled/__pycache__/numba-<hash>``;
+``~/.cache/tofcore/numba-<hash>`` where that folder is not writable; ``$NUMBA_CACHE_DIR/tofcore-<hash>``
+where that variable is set), ``<hash>`` naming the kernels' constants, so a changed constant never loads
+stale code (:mod:`tofcore.compiled._target`): the first render of a fresh install compiles for 30–80 s
+(docs/benchmarks.md), later processes load the kernels in about a second.
 """
 
 from __future__ import annotations
@@ -144,10 +145,16 @@ def _gpu_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, cancel)
 
 
 def cache_location() -> str:
-    """Where numba keeps the compiled kernels (CPU and CUDA): ``NUMBA_CACHE_DIR``, else ``__pycache__`` beside
-    the sources, else (a read-only install, such as a Blender extension's site-packages) numba's user cache."""
+    """Where numba keeps the compiled kernels: the CPU build's folder once the kernels are imported
+    (:func:`tofcore.compiled._target.cache_folder`); else, as for the CUDA build, ``NUMBA_CACHE_DIR``, else
+    ``__pycache__`` beside the sources, else (a read-only install, such as a Blender extension's
+    site-packages) numba's user cache."""
     import numba
 
+    from . import _target
+
+    if _target.CACHE_FOLDERS.get(__name__ + ".kernels"):
+        return str(_target.CACHE_FOLDERS[__name__ + ".kernels"])
     if numba.config.CACHE_DIR:
         return str(numba.config.CACHE_DIR)
     here = Path(__file__).resolve().parent

@@ -16,8 +16,10 @@ Decorated by :func:`tofcore.compiled._target.device_function`: ``numba.njit`` wh
 ``numba.cuda.jit(device=True)`` when :mod:`tofcore.compiled.cuda` compiles this same file for CUDA.
 The CPU driver :func:`trace_pixels` (numba threads over pixels) is here too, because numba's cache checks
 only the stamp of a function's own file: everything the cached CPU code inlines must live in this file.
-Constants read from the reference modules (rng, qmc, bsdf, …) are frozen into the cache as well: after
-changing one, touch this file (or delete ``tofcore/compiled/__pycache__``).
+Constants read from the reference modules (rng, qmc, bsdf, …) are frozen into the machine code too, so
+the cache folder is named after a hash of every constant defined above the decorators
+(:func:`tofcore.compiled._target.constants_fingerprint`): a changed constant compiles anew. Function
+bodies therefore read only this module's globals, never ``module.attribute`` of another module.
 """
 
 from __future__ import annotations
@@ -36,11 +38,6 @@ from ..tracer import sampler as _sampler
 from ..tracer import surface as _surface
 from ._target import cpu_parallel_function, device_function, gpu_kernel_function, gpu_module
 from .layout import LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE
-
-fn = device_function(__name__)
-cpu_parallel = cpu_parallel_function(__name__)
-gpu_kernel = gpu_kernel_function(__name__)
-cuda = gpu_module(__name__)
 
 # ------------------------------------------------------------------ constants, from the reference modules
 GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
@@ -78,6 +75,12 @@ F32_ZERO, F32_ONE = np.float32(0.0), np.float32(1.0)
 F32_INF = np.float32(np.inf)
 # Rows of the BVH records (tofcore.bvh): node = 6 plane rows + child row; leaf = 9 vertex rows + triangle row.
 CHILD_ROW, PRIM_ROW, WIDTH = 6, 9, 4
+
+# Below every constant: the decorators hash them all into the name of the cache folder (_target).
+fn = device_function(__name__)
+cpu_parallel = cpu_parallel_function(__name__)
+gpu_kernel = gpu_kernel_function(__name__)
+cuda = gpu_module(__name__)
 
 
 # ------------------------------------------------------------------ vectors
@@ -312,52 +315,20 @@ def ray_frame(d):
 
 
 @fn
-def leaf_hit(leaves_f, leaves_i, row, k, ray, t_max, ignore):
-    """Watertight test of triangle ``k`` of the leaf at ``row`` (tofcore.bvh._watertight), float32.
-
-    ``ray`` = (origin o, frame vectors b1, b2, direction d). Returns (hit, t, u, v, triangle index).
-    """
-    o, b1, b2, d = ray
-    prim = leaves_i[row + PRIM_ROW, k]
-    if prim < 0 or prim == ignore:
-        return False, F32_ZERO, F32_ZERO, F32_ZERO, prim
-    ax, ay, az = leaves_f[row, k] - o[0], leaves_f[row + 1, k] - o[1], leaves_f[row + 2, k] - o[2]
-    px, py, pz = leaves_f[row + 3, k] - o[0], leaves_f[row + 4, k] - o[1], leaves_f[row + 5, k] - o[2]
-    cx, cy, cz = leaves_f[row + 6, k] - o[0], leaves_f[row + 7, k] - o[1], leaves_f[row + 8, k] - o[2]
-    a1 = ax * b1[0] + ay * b1[1] + az * b1[2]
-    a2 = ax * b2[0] + ay * b2[1] + az * b2[2]
-    a3 = ax * d[0] + ay * d[1] + az * d[2]
-    p1 = px * b1[0] + py * b1[1] + pz * b1[2]
-    p2 = px * b2[0] + py * b2[1] + pz * b2[2]
-    p3 = px * d[0] + py * d[1] + pz * d[2]
-    c1 = cx * b1[0] + cy * b1[1] + cz * b1[2]
-    c2 = cx * b2[0] + cy * b2[1] + cz * b2[2]
-    c3 = cx * d[0] + cy * d[1] + cz * d[2]
-    w_u = c1 * p2 - c2 * p1
-    w_v = a1 * c2 - a2 * c1
-    w_w = p1 * a2 - p2 * a1
-    lo = min(min(w_u, w_v), w_w)
-    hi = max(max(w_u, w_v), w_w)
-    det = w_u + w_v + w_w
-    t = (w_u * a3 + w_v * p3 + w_w * c3) / det
-    hit = (lo >= F32_ZERO or hi <= F32_ZERO) and t > F32_ZERO and t < t_max
-    return hit, t, w_v / det, w_w / det, prim
-
-
-@fn
-def traverse(geo, o, d, t_max, ignore, any_hit, work):
+def traverse(bvh, o, d, t_max, ignore, any_hit, stack, stack_t):
     """Closest hit (or any hit) of one float32 ray over the 4-wide BVH records, with a per-ray stack.
 
     Same slab test as tofcore.bvh.BVH._trace (entry plane chosen by the sign of the direction, tiny
     direction components replaced by ±1e-30, boxes clipped at the best t so far) and the same
-    triangle test; children are visited near to far. Returns (t, prim, u, v); prim −1 on a miss.
-    ``geo``: the scene tuple (its first four arrays: node and leaf records, see
-    tofcore.compiled.setup.scene_arrays); ``work`` = (counters, stack, stack_t, wg) as in :func:`trace_path`:
-    ``stack`` (int64) and ``stack_t`` (float32) are scratch arrays of STACK_SIZE entries, the first row of a
-    node record and its entry distance.
+    watertight triangle test in float32 (the same products and sums in the same order; the divisions only
+    once the ray is inside the triangle). For a closest hit, children are visited near to far; an any-hit
+    ray, whose answer does not depend on the order, visits them as they come. Returns (t, prim, u, v);
+    prim −1 on a miss.
+    ``bvh`` = (node planes, node children, leaf vertices, leaf triangles): the first four arrays of the
+    scene tuple (tofcore.compiled.setup.scene_arrays); ``stack`` (int64) and ``stack_t`` (float32) are
+    scratch arrays of STACK_SIZE entries, the first row of a node record and its entry distance.
     """
-    nodes_f, nodes_i, leaves_f, leaves_i = geo[0], geo[1], geo[2], geo[3]
-    stack, stack_t = work[1], work[2]
+    nodes_f, nodes_i, leaves_f, leaves_i = bvh
     inv = (F32_ONE / (d[0] if abs(d[0]) >= TINY_DIR else (-TINY_DIR if d[0] < F32_ZERO else TINY_DIR)),
            F32_ONE / (d[1] if abs(d[1]) >= TINY_DIR else (-TINY_DIR if d[1] < F32_ZERO else TINY_DIR)),
            F32_ONE / (d[2] if abs(d[2]) >= TINY_DIR else (-TINY_DIR if d[2] < F32_ZERO else TINY_DIR)))
@@ -366,7 +337,6 @@ def traverse(geo, o, d, t_max, ignore, any_hit, work):
     ey = 4 if d[1] < F32_ZERO else 1
     ez = 5 if d[2] < F32_ZERO else 2
     b1, b2 = ray_frame(d)
-    ray = (o, b1, b2, d)
     best_t = t_max
     best_prim = -1
     best_u = F32_ZERO
@@ -392,17 +362,41 @@ def traverse(geo, o, d, t_max, ignore, any_hit, work):
             if not t_in <= t_out:
                 continue
             child = nodes_i[node + CHILD_ROW, c]
-            if child < 0:  # a leaf: test its triangles now
-                row = ~child
+            if child < 0:  # a leaf: test its triangles now (tofcore.bvh._watertight, written out here: a
+                row = ~child  # call per triangle cost ≈ 8 % of the traversal)
                 for k in range(leaves_i.shape[1]):
-                    hit, t, u, v, prim = leaf_hit(leaves_f, leaves_i, row, k, ray, best_t, ignore)
-                    if hit:
-                        if any_hit:
-                            return t, prim, u, v
-                        best_t, best_prim, best_u, best_v = t, prim, u, v
+                    prim = leaves_i[row + PRIM_ROW, k]
+                    if prim < 0 or prim == ignore:
+                        continue
+                    ax, ay, az = leaves_f[row, k] - o[0], leaves_f[row + 1, k] - o[1], leaves_f[row + 2, k] - o[2]
+                    px, py, pz = leaves_f[row + 3, k] - o[0], leaves_f[row + 4, k] - o[1], leaves_f[row + 5, k] - o[2]
+                    cx, cy, cz = leaves_f[row + 6, k] - o[0], leaves_f[row + 7, k] - o[1], leaves_f[row + 8, k] - o[2]
+                    a1 = ax * b1[0] + ay * b1[1] + az * b1[2]
+                    a2 = ax * b2[0] + ay * b2[1] + az * b2[2]
+                    p1 = px * b1[0] + py * b1[1] + pz * b1[2]
+                    p2 = px * b2[0] + py * b2[1] + pz * b2[2]
+                    c1 = cx * b1[0] + cy * b1[1] + cz * b1[2]
+                    c2 = cx * b2[0] + cy * b2[1] + cz * b2[2]
+                    w_u = c1 * p2 - c2 * p1
+                    w_v = a1 * c2 - a2 * c1
+                    w_w = p1 * a2 - p2 * a1
+                    # The edge functions share a sign (zero counts as both): only then the divisions.
+                    if not ((w_u >= F32_ZERO and w_v >= F32_ZERO and w_w >= F32_ZERO)
+                            or (w_u <= F32_ZERO and w_v <= F32_ZERO and w_w <= F32_ZERO)):
+                        continue
+                    a3 = ax * d[0] + ay * d[1] + az * d[2]
+                    p3 = px * d[0] + py * d[1] + pz * d[2]
+                    c3 = cx * d[0] + cy * d[1] + cz * d[2]
+                    det = w_u + w_v + w_w
+                    t = (w_u * a3 + w_v * p3 + w_w * c3) / det
+                    if not (t > F32_ZERO and t < best_t):
+                        continue
+                    if any_hit:
+                        return t, prim, w_v / det, w_w / det
+                    best_t, best_prim, best_u, best_v = t, prim, w_v / det, w_w / det
                 continue
             j = top
-            while j > first and stack_t[j - 1] < t_in:
+            while not any_hit and j > first and stack_t[j - 1] < t_in:
                 stack[j] = stack[j - 1]
                 stack_t[j] = stack_t[j - 1]
                 j -= 1
@@ -414,8 +408,9 @@ def traverse(geo, o, d, t_max, ignore, any_hit, work):
 
 @fn
 def intersect(geo, o, d, t_max, ignore, any_hit, work):
-    """:func:`traverse` over the scene tuple ``geo`` (see tofcore.compiled.setup.scene_arrays)."""
-    return traverse(geo, o, d, t_max, ignore, any_hit, work)
+    """:func:`traverse` over the scene tuple ``geo`` (see tofcore.compiled.setup.scene_arrays) with the
+    stacks of ``work``. Only the four BVH arrays go on: every array passed costs its fields in each call."""
+    return traverse((geo[0], geo[1], geo[2], geo[3]), o, d, t_max, ignore, any_hit, work[1], work[2])
 
 
 @fn
