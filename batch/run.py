@@ -3,10 +3,11 @@
 Executors
 ---------
 ===================  ===========================================================================
-``LocalExecutor``    a ``ProcessPoolExecutor`` with the "spawn" context (the default);
-                     ``--workers N`` processes, at most N view tasks in flight; with
+``LocalExecutor``    ``--workers N`` processes ("spawn" context; the default), each its own
+                     one-process pool taking the next view as soon as it reports one; with
                      ``--device gpu``/``auto`` one process per GPU, each pinned to its GPU
-                     (``CUDA_VISIBLE_DEVICES``, set by the pool initializer)
+                     (``CUDA_VISIBLE_DEVICES``, set by the initializer); a worker that dies
+                     fails only its own view and is replaced
 ``DaskExecutor``     ``distributed.Client(address)`` for an existing cluster (``--scheduler``;
                      each worker uses the GPU its environment shows), or a ``LocalCluster``
                      of worker processes (``--dask local``; one per GPU, each pinned, with a
