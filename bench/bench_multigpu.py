@@ -70,8 +70,8 @@ def write_set(folder: Path, frames: int, args) -> Path:
     return path
 
 
-def run_batch(set_file: Path, dataset: Path, gpus: list[str], cache: Path, log: Path, args) -> float:
-    """Wall seconds of one ``python -m batch run``; raises when it fails."""
+def run_batch(set_file: Path, dataset: Path, gpus: list[str], cache: Path, log: Path, args) -> tuple[float, float]:
+    """(wall seconds, epoch when started) of one ``python -m batch run``; raises when it fails."""
     env = dict(os.environ, CUDA_VISIBLE_DEVICES=",".join(gpus), CUPY_CACHE_DIR=str(cache / "cupy"),
                NUMBA_CACHE_DIR=str(cache / "numba"),
                PYTHONPATH=os.pathsep.join([str(REPO)] + ([os.environ["PYTHONPATH"]] if "PYTHONPATH" in os.environ
@@ -80,14 +80,14 @@ def run_batch(set_file: Path, dataset: Path, gpus: list[str], cache: Path, log: 
     if args.device == "cpu":
         env["TOF_BATCH_FAKE_GPU"] = "1"
     cmd = [sys.executable, "-m", "batch", "run", str(set_file), "--out", str(dataset), "--device", "gpu", "--quiet"]
-    started = time.perf_counter()
+    launched, started = time.time(), time.perf_counter()
     with log.open("w") as out:
         proc = subprocess.run(cmd, cwd=REPO, env=env, stdout=out, stderr=subprocess.STDOUT)
     seconds = time.perf_counter() - started
     if proc.returncode != 0:
         raise SystemExit(f"bench_multigpu: {' '.join(cmd)} failed (exit {proc.returncode}); see {log}:\n"
                          + "\n".join(log.read_text().splitlines()[-15:]))
-    return seconds
+    return seconds, launched
 
 
 def records(dataset: Path) -> list[dict]:
@@ -106,7 +106,8 @@ def one_run(n_gpus: int, cache_state: str, round_no: int, set_file: Path, work: 
     dataset = work / "datasets" / name
     cache = Path(tempfile.mkdtemp(prefix=f"cache-{name}-", dir=work)) if cache_state == "cold" else args.warm_cache
     try:
-        seconds = run_batch(set_file, dataset, args.gpus[:n_gpus], cache, args.out_dir / f"{name}.log", args)
+        seconds, launched = run_batch(set_file, dataset, args.gpus[:n_gpus], cache, args.out_dir / f"{name}.log",
+                                      args)
     finally:
         if cache_state == "cold":
             shutil.rmtree(cache, ignore_errors=True)
@@ -117,6 +118,10 @@ def one_run(n_gpus: int, cache_state: str, round_no: int, set_file: Path, work: 
     workers = worker_timing(rows)
     result = {"name": name, "gpus": n_gpus, "cache": cache_state, "round": round_no, "frames": len(rows),
               "wall_s": seconds, "frames_per_min": len(rows) / seconds * 60, "workers": workers,
+              # the parent before its first worker: interpreter, imports, GPU discovery, set and index
+              "parent_s": min(w["worker_started"] for w in workers) - launched,
+              # the last worker's end to the command's: index rewrite, dataset card, exit
+              "tail_s": launched + seconds - max(w["worker_started"] + w["span_s"] for w in workers),
               "frames_per_worker": [w["frames"] for w in workers],
               "devices": sorted({(r.get("device") or {}).get("description") or "?" for r in rows}),
               "png": png_digests(dataset)}
@@ -132,7 +137,7 @@ def warm_up(work: Path, args) -> None:
     if any(args.warm_cache.rglob("*")):
         return
     args.warm_cache.mkdir(parents=True, exist_ok=True)
-    seconds = run_batch(write_set(work, 2, args), work / "datasets" / "warm-up", args.gpus[:2], args.warm_cache,
+    seconds, _ = run_batch(write_set(work, 2, args), work / "datasets" / "warm-up", args.gpus[:2], args.warm_cache,
                         args.out_dir / "warm-up.log", args)
     print(f"warm-up (2 frames, empty cache {args.warm_cache}): {seconds:.1f} s", flush=True)
 
@@ -153,16 +158,18 @@ def _seconds(value: float | None) -> str:
 
 def table(results: list[dict]) -> list[str]:
     by_key = {(r["cache"], r["round"], r["gpus"]): r for r in results}
-    lines = ["| cache | round | GPUs | frames | wall s | frames/min | scaling | frames per worker | "
-             "per worker: start-up / first render / render median / write / idle s |",
-             "|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| cache | round | GPUs | frames | wall s | frames/min | scaling | frames per worker | parent s "
+             "(before workers / after) | per worker: start-up / first render / render median / write total / "
+             "idle s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         one = by_key.get((r["cache"], r["round"], 1))
         scaling = f"{r['frames_per_min'] / one['frames_per_min']:.2f}×" if one and r["gpus"] > 1 else "–"
         phases = "; ".join(f"{w['startup_s']:.1f} / {w['first_s']:.1f} / {_seconds(w['render_median_s'])} / "
                            f"{w['write_s']:.1f} / {w['idle_s']:.1f}" for w in r["workers"])
         lines.append(f"| {r['cache']} | {r['round']} | {r['gpus']} | {r['frames']} | {r['wall_s']:.1f} | "
-                     f"{r['frames_per_min']:.1f} | {scaling} | {r['frames_per_worker']} | {phases} |")
+                     f"{r['frames_per_min']:.1f} | {scaling} | {r['frames_per_worker']} | {r['parent_s']:.1f} / "
+                     f"{r['tail_s']:.1f} | {phases} |")
     return lines
 
 
@@ -200,7 +207,7 @@ def main() -> int:
     started = time.perf_counter()
     set_file = write_set(work, args.frames, args)
     warm_up(work, args)
-    results, skipped, last = [], [], {}
+    results, skipped, last, same = [], [], {}, None
     for n_gpus, cache_state, round_no in plan(args):
         expected = last.get((n_gpus, cache_state))
         if expected is not None and time.perf_counter() - started + expected > args.budget:
@@ -209,12 +216,18 @@ def main() -> int:
         result = one_run(n_gpus, cache_state, round_no, set_file, work, args)
         last[(n_gpus, cache_state)] = result["wall_s"]
         results.append(result)
-    same_png = {}
-    for r in results:
-        if r["gpus"] > 1:
-            one = next((o for o in results if o["gpus"] == 1), None)
-            same_png[r["name"]] = one is not None and r["png"] == one["png"]
-    depth_same = all(same_png.values()) if same_png else None
+        same = report(results, skipped, args, time.perf_counter() - started)  # after every run: a cut-off keeps it
+    print((args.out_dir / "bench_multigpu.md").read_text(), end="")
+    if not args.keep_datasets:
+        shutil.rmtree(work, ignore_errors=True)
+    return 0 if same is not False else 1
+
+
+def report(results: list[dict], skipped: list[str], args, seconds: float) -> bool | None:
+    """Write ``bench_multigpu.md`` and ``.json``; whether the PNGs of the 2-GPU runs equal the first 1-GPU run's."""
+    one = next((o for o in results if o["gpus"] == 1), None)
+    same_png = {r["name"]: one is not None and r["png"] == one["png"] for r in results if r["gpus"] > 1}
+    same = all(same_png.values()) if same_png and one is not None else None
     scalings = {}
     for cache_state in ("warm", "cold"):
         pairs = [(r["frames_per_min"], o["frames_per_min"]) for r in results for o in results
@@ -222,29 +235,24 @@ def main() -> int:
                  and o["gpus"] == 1]
         if pairs:
             scalings[cache_state] = [two / one for two, one in pairs]
+    fake = " (fake GPUs on the CPU)" if args.device == "cpu" else ""
     lines = [f"bench_multigpu: {args.frames} frames, demo room, Kinect v2 × {args.resolution_scale:g}, "
-             f"{args.spp} spp, path length {args.max_depth}, png+json, --device gpu"
-             f"{' (fake GPUs on the CPU)' if tiny else ''}; devices {sorted({d for r in results for d in r['devices']})}",
-             ""] + table(results) + [""]
+             f"{args.spp} spp, path length {args.max_depth}, png+json, --device gpu{fake}; devices "
+             f"{sorted({d for r in results for d in r['devices']})}", ""] + table(results) + [""]
     for cache_state, values in scalings.items():
         lines.append(f"{cache_state}: scaling 2 GPUs / 1 GPU = {', '.join(f'{v:.2f}×' for v in values)} "
                      f"(median {statistics.median(values):.2f}×)")
     lines.append(f"PNG files (depth_mm.png and the rest but convergence.png) identical between 1 and 2 GPUs: "
-                 f"{depth_same} ({len(results[0]['png']) if results else 0} files per run)")
+                 f"{same} ({len(results[0]['png'])} files per run)")
     if skipped:
         lines.append(f"skipped for the {args.budget:g} s budget: {', '.join(skipped)}")
-    lines.append(f"total {time.perf_counter() - started:.0f} s")
-    text = "\n".join(lines)
-    print(text)
-    (args.out_dir / "bench_multigpu.md").write_text(text + "\n")
-    for r in results:
-        r.pop("png")
+    lines.append(f"total {seconds:.0f} s")
+    (args.out_dir / "bench_multigpu.md").write_text("\n".join(lines) + "\n")
+    runs = [{k: v for k, v in r.items() if k != "png"} for r in results]
     (args.out_dir / "bench_multigpu.json").write_text(json.dumps(
         {"settings": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
-         "runs": results, "scaling": scalings, "png_identical": same_png, "skipped": skipped}, indent=1))
-    if not args.keep_datasets:
-        shutil.rmtree(work, ignore_errors=True)
-    return 0 if depth_same is not False else 1
+         "runs": runs, "scaling": scalings, "png_identical": same_png, "skipped": skipped}, indent=1))
+    return same
 
 
 if __name__ == "__main__":
