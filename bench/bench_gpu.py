@@ -129,10 +129,12 @@ def run_tofcore_frame(detail: int, spp: int, max_depth: int, width: int, height:
     scene, cam, pose, _led_world = bp._setup(detail, width, height)
     scene.bvh
     build_s = time.perf_counter() - t0
-    omega = 2 * np.pi * bp.FREQ
+    from tofcore.sensor.modulation import phasor_correlations
+
     leds = [tofcore.LED(position_m=bp.LED)]
+    # cos(ωτ) and sin(ωτ) at bench_peers' frequency, as the kernels know them (tofcore.compiled.setup)
     kwargs = dict(world_from_sensor=pose, spp=spp, max_depth=max_depth, device=tof.dev, progressive=False,
-                  correlations=[lambda tau: np.cos(omega * tau), lambda tau: np.sin(omega * tau)])
+                  correlations=phasor_correlations([bp.FREQ]))
 
     def one(seed: int):
         tof.sync()
@@ -151,7 +153,8 @@ def run_tofcore_frame(detail: int, spp: int, max_depth: int, width: int, height:
     return dict({"renderer": "tofcore", "triangles": scene.triangle_count, "build_s": build_s, "cold_s": cold,
                  "frame_s": statistics.median(warm), "frames_s": warm, "rays": s.rays,
                  "camera_rays": s.camera_rays, "bounce_rays": s.bounce_rays, "shadow_rays": s.shadow_rays,
-                 "skipped_shadow_rays": s.skipped_shadow_rays, "paths": width * height * spp},
+                 "skipped_shadow_rays": s.skipped_shadow_rays, "paths": width * height * spp,
+                 "tracer": s.tracer, "tracer_reason": s.tracer_reason},
                 **tof.info(), **tof.memory())
 
 
@@ -571,6 +574,8 @@ def tables(report: dict) -> str:
     if "tofcore" in versions:
         t = versions["tofcore"]
         label["tofcore"] += f" (CuPy {t['cupy']})" if t.get("cupy") else f" (NumPy {t.get('numpy')})"
+        label["tofcore"] += (", compiled tracer (numba)" if t.get("tracer") == "compiled"
+                             else f", array tracer ({t.get('tracer_reason') or 'TOFCORE_TRACER'})")
     for p in ("mitsuba", "mitransient"):
         if p in versions:
             r = versions[p]

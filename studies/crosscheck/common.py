@@ -181,10 +181,17 @@ def phasor_film(freq_indices: tuple[int, int], base_hz: float = BASE_HZ, bins: i
             "wl_mean": span / mean_idx, "wl_sigma": span / (6 * half / 3)}
 
 
+MITSUBA_VARIANTS = {"cpu": "llvm_ad_mono", "gpu": "cuda_ad_mono"}
+DEVICE = "cpu"
+"""Where both renderers run: ``cpu`` (mitransient on LLVM, tofcore on the CPU) or ``gpu`` (mitransient on
+CUDA, tofcore with ``device="gpu"``); error_vs_time.py's ``--device`` sets it."""
+
+
 def mitsuba_setup():
-    """Select the CPU variant (needs DRJIT_LIBLLVM_PATH → libLLVM 19) and import mitransient."""
+    """Select the variant of :data:`DEVICE` (the CPU one needs DRJIT_LIBLLVM_PATH → libLLVM 19) and import
+    mitransient."""
     import mitsuba as mi
-    mi.set_variant("llvm_ad_mono")
+    mi.set_variant(MITSUBA_VARIANTS[DEVICE])
     import mitransient  # noqa: F401  (registers the transient plugins)
     return mi
 

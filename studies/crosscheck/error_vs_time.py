@@ -92,7 +92,7 @@ VARIANTS = {"tofcore": dict(sampler="sobol", light_paths=True, adaptive=True),
 
 def depth_sigma(t, f_hz: float) -> np.ndarray:
     """(H, W) standard error (m) of the depth of one frequency from the tracer's replicates (delta method)."""
-    means, counts = t.replicate_means()
+    means, counts = (tofcore.backend.to_host(x) for x in t.replicate_means())
     i = FREQS.index(f_hz)
     p = means[:, 1 + 2 * i] + 1j * means[:, 2 + 2 * i]               # (R, H, W) replicate phasors
     centre = p.mean(axis=0)
@@ -107,17 +107,18 @@ def run_tofcore(s: cc.Setup, spp: int, ref, ref_var, mask, log, variant: str = "
     settings = VARIANTS[variant]
 
     def allocate(t, n):
-        return tofcore.tracer.estimator.allocate_samples(depth_sigma(t, FREQS[MAIN]), t.sample_count, n)
+        return tofcore.tracer.estimator.allocate_samples(depth_sigma(t, FREQS[MAIN]),
+                                                         tofcore.backend.to_host(t.sample_count), n)
 
     rows, spent_eval = [], 0.0
     t0 = time.perf_counter()
     for t in tofcore.trace_progressive(s.scene, s.camera, [s.led], world_from_sensor=s.pose,
                                        correlations=cc.sine_correlations(FREQS), spp=spp, max_depth=5, seed=7,
                                        sampler=settings["sampler"], light_paths=settings["light_paths"],
-                                       allocate=allocate if settings["adaptive"] else None):
+                                       allocate=allocate if settings["adaptive"] else None, device=cc.DEVICE):
         now = time.perf_counter()
         e0 = now
-        p = cc.phasors_from_correlation(t.correlation())
+        p = cc.phasors_from_correlation(tofcore.backend.to_host(t.correlation()))
         row = {"seconds": now - t0 - spent_eval, "spp": float(t.sample_count.mean()), "rays": int(t.stats.rays),
                "errors": errors(p, ref, ref_var, mask)}
         rows.append(row)
@@ -132,10 +133,10 @@ def tofcore_reference(s: cc.Setup, spp: int, log) -> tuple[np.ndarray, np.ndarra
     """A tofcore reference (light vertices, QMC, uniform spp, seed apart): phasors and per-pixel distance variance."""
     t0 = time.perf_counter()
     t = tofcore.trace(s.scene, s.camera, [s.led], world_from_sensor=s.pose, correlations=cc.sine_correlations(FREQS),
-                      spp=spp, max_depth=5, seed=123_456, progressive=False, light_paths=True)
+                      spp=spp, max_depth=5, seed=123_456, progressive=False, light_paths=True, device=cc.DEVICE)
     seconds = time.perf_counter() - t0
     log(f"{s.name}: tofcore reference {spp} spp in {seconds:.0f} s")
-    ref = cc.phasors_from_correlation(t.correlation())
+    ref = cc.phasors_from_correlation(tofcore.backend.to_host(t.correlation()))
     var = np.stack([depth_sigma(t, f) ** 2 for f in FREQS])
     return ref, np.nan_to_num(var), seconds
 
@@ -280,6 +281,9 @@ def main() -> int:
     ap.add_argument("--ref-batches", default="corner:32,room:16", help="reference 1024-spp batches per scene")
     ap.add_argument("--tofcore-ref", default="", help="scene:spp of a tofcore reference replacing mitransient's, "
                                                          "e.g. room:4096")
+    ap.add_argument("--device", choices=sorted(cc.MITSUBA_VARIANTS), default="cpu",
+                    help="cpu: mitransient llvm_ad_mono, tofcore on the CPU; gpu: mitransient cuda_ad_mono, "
+                         "tofcore device='gpu'")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
     ap.add_argument("--replot", action="store_true", help="recompute the times and the figure from the JSON")
     args = ap.parse_args()
@@ -308,6 +312,7 @@ def main() -> int:
     def log(msg):
         print(f"[{time.perf_counter() - t00:7.1f} s] {msg}", file=sys.stderr, flush=True)
 
+    cc.DEVICE = args.device
     mi = cc.mitsuba_setup()
     import mitransient
     results = {}

@@ -116,3 +116,12 @@ def test_a_transient_histogram_beyond_the_memory_limit_is_refused_before_renderi
                          "--transient-max", "10m", "--formats", "json"], capsys)
     assert code == 2 and err.count("\n") == 1 and "10000 transient bins" in err and "widen the transient bins" in err
     assert not (tmp_path / "out").exists()
+
+
+def test_warmup_renders_a_tiny_frame_and_names_the_tracer(capsys):
+    from tofcore.cli import main
+
+    assert main(["warmup", "--device", "cpu"]) == 0
+    out = capsys.readouterr().out.strip()
+    # the suite runs the NumPy reference (tests/conftest.py): the line says so and why
+    assert out.startswith("numpy tracer on the CPU (TOFCORE_TRACER=numpy): ready in "), out

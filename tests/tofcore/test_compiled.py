@@ -261,3 +261,46 @@ def test_forcing_the_compiled_tracer_where_it_cannot_run_is_an_error(monkeypatch
     monkeypatch.setenv(compiled.TRACER_ENV, "fast")
     with pytest.raises(ConfigError, match=r"TOFCORE_TRACER must be one of \['auto', 'numpy', 'compiled'\], got 'fast'"):
         trace(*args, **kwargs)
+
+
+SIMULATED_GPU_PASS = """
+import numpy as np, tofcore
+from tofcore import backend
+from tofcore.compiled import cuda, setup
+from tofcore.scene.camera import Camera
+from tofcore.sensor.modulation import phasor_correlations
+from tofcore.tracer.setup import TraceSettings, make_setup
+from tofcore.tracer import qmc
+scene, cam = tofcore.demo_scene("room", detail=4), Camera.from_fov(6, 5, 60.0)
+leds = [tofcore.LED(position_m=(0.03, 0, 0))]
+shared = dict(world_from_sensor=tofcore.suggested_pose(scene), correlations=phasor_correlations([80e6]),
+              max_depth=4, seed=3)
+counts = np.arange(30) % 4
+ref = tofcore.trace(scene, cam, leds, device="cpu", spp=3, progressive=False, allocate=lambda t, n: counts,
+                    **shared)
+ctx = make_setup(scene, cam, leds, TraceSettings(**shared), backend.select_device("cpu"))
+packed = setup.pack(ctx)
+out = cuda.Sums(np.zeros((4, 30)), np.zeros((4, 2, 30)), np.zeros((qmc.REPLICATES, 4, 30)))
+n = cuda.trace_pass(cuda.upload(packed), out, np.zeros(30, np.int64), counts)
+for name in ("signal_sum", "correlation_sum", "replicate_sum"):
+    np.testing.assert_allclose(getattr(out, name), getattr(ref, name), rtol=1e-12, atol=1e-300, err_msg=name)
+assert n[1:4].tolist() == [ref.stats.bounce_rays, ref.stats.shadow_rays, ref.stats.light_rays], n
+assert n[0] == counts.sum() and ref.stats.camera_rays == counts.sum() + 30  # + the first-hit rays
+print("ok", n.tolist())
+"""
+
+
+@needs_numba
+def test_cuda_build_of_the_kernels_traces_the_numpy_frame_in_the_simulator(tmp_path):
+    """The CUDA build (kernels.py under numba.cuda, one launch per sample index, uneven counts) run by
+    numba's CUDA simulator on the CPU equals the NumPy tracer: the GPU driver's indexing and sum order are
+    checked in CI; tests/tofcore/test_gpu.py checks the real device."""
+    import os
+    import subprocess
+    import sys
+
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", TOFCORE_TRACER="numpy", NUMBA_CACHE_DIR=str(tmp_path))
+    run = subprocess.run([sys.executable, "-W", "ignore", "-c", SIMULATED_GPU_PASS], env=env, capture_output=True,
+                         text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.startswith("ok")

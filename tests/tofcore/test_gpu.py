@@ -21,7 +21,7 @@ import pytest
 import tofcore
 from tofcore import backend
 from tofcore.scene.camera import Camera
-from tofcore.sensor.modulation import Modulation
+from tofcore.sensor.modulation import Modulation, phasor_correlations
 from tofcore.sensor.presets import load_preset
 from tofcore.render import render
 from tofcore.sensor.config import Noise, Scattering
@@ -275,3 +275,52 @@ def test_kinect_frame_stays_within_the_gpu_memory_budget():
     budget = chunk * parallel.GPU_BYTES_PER_PATH + accumulators + 64 * n_pix * 8
     print(f"peak pool bytes {peak / 2**20:.0f} MiB, budget {budget / 2**20:.0f} MiB")
     assert peak <= budget
+
+
+# ------------------------------------------------------------------ the compiled tracer on the GPU (numba.cuda)
+def _numba_cuda_missing() -> str | None:
+    if _NO_CUDA is not None:
+        return _NO_CUDA
+    from tofcore import compiled
+    return compiled.cuda_unavailable() or None
+
+
+numba_cuda_only = pytest.mark.skipif(_numba_cuda_missing() is not None,
+                                     reason=f"needs numba-cuda and a CUDA GPU: {_numba_cuda_missing()}")
+
+
+@pytest.mark.gpu
+@numba_cuda_only
+@pytest.mark.parametrize("sensor_name", list(SENSORS))
+def test_compiled_gpu_frame_equals_cpu_frame(sensor_name, monkeypatch):
+    """kernels.py compiled for CUDA, one path per thread, against the NumPy reference on the CPU."""
+    sensor = SENSORS[sensor_name]()
+    scene = tofcore.demo_scene("box_on_wall")
+    settings = dict(spp=4, max_depth=3, seed=7)
+    cpu = render(scene, sensor, device="cpu", **settings)
+    monkeypatch.setenv("TOFCORE_TRACER", "compiled")
+    on_gpu = render(scene, sensor, device="gpu", **settings)
+    assert on_gpu.stats["transport"]["tracer"] == "compiled", on_gpu.stats["transport"]
+    assert on_gpu.stats["device"]["name"] == "gpu"
+    assert_frames_agree(cpu, on_gpu, "cuda")
+    for key in ("camera_rays", "bounce_rays", "shadow_rays", "light_rays"):
+        assert abs(on_gpu.stats["transport"][key] - cpu.stats["transport"][key]) <= 1e-3 * cpu.stats["transport"][key]
+
+
+@pytest.mark.gpu
+@numba_cuda_only
+def test_compiled_gpu_sums_with_uneven_sample_counts_equal_cpu_sums(monkeypatch):
+    """Adaptive passes give pixels different sample counts: the launch per sample index covers them."""
+    scene = tofcore.demo_scene("room")
+    cam = Camera.from_fov(24, 18, 60.0)
+    counts = np.arange(24 * 18) % 5
+    kwargs = dict(spp=4, max_depth=4, seed=3, progressive=False, allocate=lambda transport, n: counts,
+                  correlations=phasor_correlations([80e6]))
+    ref = tofcore.trace(scene, cam, [tofcore.LED()], device="cpu", **kwargs)
+    monkeypatch.setenv("TOFCORE_TRACER", "compiled")
+    got = tofcore.trace(scene, cam, [tofcore.LED()], device="gpu", **kwargs)
+    assert got.stats.tracer == "compiled"
+    for name in ("signal_sum", "correlation_sum", "replicate_sum"):
+        x, y = getattr(ref, name), backend.to_host(getattr(got, name))
+        close = np.isclose(y, x, rtol=1e-9, atol=1e-12 * np.abs(x).max(initial=0.0))
+        assert close.mean() >= 1 - FRAME_TOLERANCE["max_disagreeing"], name

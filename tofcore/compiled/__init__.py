@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import os
 import time
+from pathlib import Path
 from dataclasses import dataclass
 
 import numpy as np
@@ -42,6 +43,7 @@ class Choice:
     tracer: str                 # "compiled" or "numpy"
     reason: str                 # why the NumPy tracer runs ("" for the compiled one)
     packed: setup.Packed | None  # the compiled tracer's arrays, None for NumPy
+    device_scene: object = None  # those arrays on the GPU (tofcore.compiled.cuda.DeviceScene) for a GPU render
 
 
 def numba_version() -> str | None:
@@ -63,11 +65,42 @@ def choose(ctx) -> Choice:
     why = setup.unsupported(ctx)
     if not why and numba_version() is None:
         why = 'numba is not installed (pip install "tofcore[compiled]")'
+    if not why and ctx.device.is_gpu:
+        why = cuda_unavailable()
     if why:
         if wanted == "compiled":
             raise ConfigError(f"{TRACER_ENV}=compiled, but the compiled tracer cannot render this: {why}")
         return Choice("numpy", why, None)
-    return Choice("compiled", "", setup.pack(ctx))
+    packed = setup.pack(ctx)
+    if not ctx.device.is_gpu:
+        return Choice("compiled", "", packed)
+    from . import cuda
+    return Choice("compiled", "", packed, cuda.upload(packed))
+
+
+def cuda_unavailable() -> str:
+    """Why numba cannot run the compiled tracer on this machine's GPU, or ""."""
+    try:
+        from numba import cuda
+        available = cuda.is_available()
+    except Exception as exc:  # numba without its CUDA target (numba-cuda), or a broken driver
+        return f"numba's CUDA target cannot be loaded ({type(exc).__name__}: {str(exc).splitlines()[0][:120]})"
+    return "" if available else "numba finds no CUDA GPU (install numba-cuda beside CuPy)"
+
+
+def parallel_label(choice: Choice, workers: int) -> str:
+    """How the compiled tracer runs, for TraceStats.parallel."""
+    if choice.device_scene is not None:
+        return "CUDA (numba), one path per thread"
+    return f"numba threads: {thread_count(workers)}"
+
+
+def pass_pieces(choice: Choice, counts: np.ndarray, chunk_size: int, chunks) -> list[tuple[int, int]]:
+    """The pixel ranges a pass is traced in: one launch sequence for the whole pass on the GPU, else
+    ranges of ``max(chunk_size, COMPILED_CHUNK_PATHS)`` paths (``chunks``: tofcore.tracer.parallel.chunks)."""
+    if choice.device_scene is not None:
+        return [(0, int(counts.size))]
+    return chunks(counts, max(chunk_size, COMPILED_CHUNK_PATHS))
 
 
 def thread_count(workers: int) -> int:
@@ -80,6 +113,9 @@ def thread_count(workers: int) -> int:
 def trace_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, chunks, threads: int, cancel):
     """Trace one pass's pixel ranges with the compiled kernel on ``threads`` threads; yields TraceStats per
     range, or None where ``cancel`` asked to stop."""
+    if choice.device_scene is not None:
+        yield _gpu_pass(choice, out, done, counts, cancel)
+        return
     import numba
 
     from . import cpu
@@ -93,3 +129,26 @@ def trace_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, chunks
         n = cpu.trace_chunk(choice.packed, out, p0, p1, done, counts)
         yield TraceStats(camera_rays=int(n[0]), bounce_rays=int(n[1]), shadow_rays=int(n[2]), light_rays=int(n[3]),
                          skipped_shadow_rays=int(n[4]), chunk_seconds=time.perf_counter() - start)
+
+
+def _gpu_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, cancel) -> TraceStats | None:
+    """The whole pass on the GPU (tofcore.compiled.cuda.trace_pass), or None where ``cancel`` asked to stop."""
+    from . import cuda
+
+    if cancel is not None and cancel():
+        return None
+    start = time.perf_counter()
+    n = cuda.trace_pass(choice.device_scene, out, done, counts)
+    return TraceStats(camera_rays=int(n[0]), bounce_rays=int(n[1]), shadow_rays=int(n[2]), light_rays=int(n[3]),
+                      skipped_shadow_rays=int(n[4]), chunk_seconds=time.perf_counter() - start)
+
+
+def cache_location() -> str:
+    """Where numba keeps the compiled kernels (CPU and CUDA): ``NUMBA_CACHE_DIR``, else ``__pycache__`` beside
+    the sources, else (a read-only install, such as a Blender extension's site-packages) numba's user cache."""
+    import numba
+
+    if numba.config.CACHE_DIR:
+        return str(numba.config.CACHE_DIR)
+    here = Path(__file__).resolve().parent
+    return str(here / "__pycache__") if os.access(here, os.W_OK) else "numba's user cache (~/.cache/numba)"

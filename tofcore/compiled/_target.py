@@ -38,3 +38,22 @@ def cpu_parallel_function(module_name: str):
     import numba
     return numba.njit(parallel=True, cache=True, nogil=True, error_model="numpy", fastmath=False)
 
+
+
+def gpu_kernel_function(module_name: str):
+    """The decorator of a CUDA kernel written beside the functions it calls: ``numba.cuda.jit`` with the
+    machine code cached (``cache=True``: numba's cache beside the source or under ``NUMBA_CACHE_DIR``) for
+    the CUDA build; for the CPU build the function stays plain Python and is never called."""
+    if module_name.endswith(CUDA_SUFFIX):
+        from numba import cuda
+        return cuda.jit(cache=True)
+    return lambda function: function
+
+
+def gpu_module(module_name: str):
+    """``numba.cuda`` for the CUDA build of a module (its kernels read ``cuda.grid``, ``cuda.local``), else None
+    (the CPU build never imports numba's CUDA target)."""
+    if module_name.endswith(CUDA_SUFFIX):
+        from numba import cuda
+        return cuda
+    return None

@@ -34,11 +34,13 @@ from ..tracer import qmc as _qmc
 from ..tracer import rng as _rng
 from ..tracer import sampler as _sampler
 from ..tracer import surface as _surface
-from ._target import cpu_parallel_function, device_function
+from ._target import cpu_parallel_function, device_function, gpu_kernel_function, gpu_module
 from .layout import LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE
 
 fn = device_function(__name__)
 cpu_parallel = cpu_parallel_function(__name__)
+gpu_kernel = gpu_kernel_function(__name__)
+cuda = gpu_module(__name__)
 
 # ------------------------------------------------------------------ constants, from the reference modules
 GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
@@ -771,11 +773,11 @@ def correlation(kind, par, tau):
 #   sums     = (nee_w, nee_wg, con_w, con_wg, total)                           a pixel's sums (trace_path)
 #   work     = (counters, stack, stack_t, wg)                                  scratch (traverse, trace_path)
 @fn
-def connect_led(geo, frame, leds, vertex, state, i, work):
-    """Next-event estimate to LED ``i``: (w, distance to the LED) (transport._connect_led)."""
+def led_estimate(frame, leds, vertex, state, i):
+    """Next-event estimate to LED ``i`` before its shadow test: (w, distance to the LED, the LED's position)
+    (transport._connect_led)."""
     surf, spawn, wo, prim = vertex
     throughput, depth, bsdf_area_pdf, prev_delta, use_mis = state
-    counters = work[0]
     led_positions, led_table = leds[0], leds[1]
     position, ng, ns, params = surf[0], surf[1], surf[4], surf[5]
     led = (led_positions[i, 0], led_positions[i, 1], led_positions[i, 2])
@@ -794,24 +796,29 @@ def connect_led(geo, frame, leds, vertex, state, i, work):
         p_light = led_table[i, 3] * emission_pdf(kind, cos_axis) * max(cos_geo, 0.0) / (dist * dist)
         share = bsdf_area_pdf / (bsdf_area_pdf + p_light) if bsdf_area_pdf + p_light > 0 else 1.0
         w = w * (1.0 if prev_delta else share)
+    return w, dist, led
+
+
+@fn
+def connect_led(geo, frame, leds, vertex, state, i, work):
+    """Next-event estimate to LED ``i``, shadow test included: (w, distance to the LED) (transport._connect_led)."""
+    w, dist, led = led_estimate(frame, leds, vertex, state, i)
+    counters = work[0]
     if w > 0:
-        if depth == 1 and led_table[i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
+        if state[1] == 1 and leds[1][i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
             counters[4] += 1
         else:
-            o, d, t_max = shadow_ray(spawn, led, point_offset(led, SPAWN_RELATIVE))
+            o, d, t_max = shadow_ray(vertex[1], led, point_offset(led, SPAWN_RELATIVE))
             counters[2] += 1
-            if intersect(geo, o, d, t_max, prim, True, work)[1] >= 0:
+            if intersect(geo, o, d, t_max, vertex[3], True, work)[1] >= 0:
                 w = 0.0
     return w, dist
 
 
 @fn
-def light_vertex(geo, frame, leds, rng, work):
-    """The sample's light vertex y (light_paths.trace_light_vertices): the ``light`` tuple.
-
-    (found, surface of y facing the LED, unit direction y → LED, |y − LED|, emitted, p_B, the margin
-    a shadow ray to y stops short of it: 4 × y's spawn offset).
-    """
+def light_ray(frame, leds, rng):
+    """The ray of the sample's light vertex (light_paths.trace_light_vertices): (LED index, its position,
+    the float64 emission direction, its pdf, the float32 query origin and direction)."""
     key, pixel, sample, independent = rng
     led_positions, led_table, led_cdf = leds[0], leds[1], leds[2]
     u_led = sample_1d(key, pixel, sample, DIM_LED_CHOICE, independent)
@@ -828,8 +835,18 @@ def light_vertex(geo, frame, leds, rng, work):
     offset = point_offset(origin, LEAVE_RELATIVE)
     query = to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
                     origin[2] + offset * direction[2]))
-    work[0][3] += 1
-    t, prim, u, v = intersect(geo, query, to_f32(direction), F32_INF, -1, False, work)
+    return index, origin, direction, pdf_dir, query, to_f32(direction)
+
+
+@fn
+def light_vertex_at(geo, leds, ray, prim, u, v):
+    """The ``light`` tuple where the light ray ``ray`` (:func:`light_ray`) hits (prim, u, v); prim −1: none.
+
+    (found, surface of y facing the LED, unit direction y → LED, |y − LED|, emitted, p_B, the margin
+    a shadow ray to y stops short of it: 4 × y's spawn offset).
+    """
+    index, origin, direction, pdf_dir = ray[0], ray[1], ray[2], ray[3]
+    led_table = leds[1]
     surf = surface_at(geo, max(prim, 0), u, v, origin, direction)
     if prim < 0 or not pdf_dir > 0:
         return False, surf, direction, 0.0, 0.0, 0.0, 0.0
@@ -840,17 +857,26 @@ def light_vertex(geo, frame, leds, rng, work):
     q = led_table[index, 3]
     emitted = led_table[index, 2] / (q if q > 0 else 1.0) * cos_shading / cos_geo if cos_geo > 0 else 0.0
     margin = 4.0 * spawn_offset(geo, prim, surf[0], surf[1])
-    if not led_distance > offset:  # an LED on (or behind) the surface it lights has no light vertex there
+    if not led_distance > point_offset(origin, LEAVE_RELATIVE):  # an LED on (or behind) the surface it lights
         return True, surf, to_led, led_distance, 0.0, 0.0, margin
     return True, surf, to_led, led_distance, emitted, pdf_dir * abs(cos_geo) / (led_distance * led_distance), margin
 
 
 @fn
-def connect_light(geo, vertex, throughput, light, work):
-    """Strategy B at camera vertex x: (w_B, extra path length |x − y| + |y − LED|) (light_paths.connect)."""
+def light_vertex(geo, frame, leds, rng, work):
+    """The sample's light vertex y (light_paths.trace_light_vertices): the ``light`` tuple of :func:`light_vertex_at`."""
+    ray = light_ray(frame, leds, rng)
+    work[0][3] += 1
+    t, prim, u, v = intersect(geo, ray[4], ray[5], F32_INF, -1, False, work)
+    return light_vertex_at(geo, leds, ray, prim, u, v)
+
+
+@fn
+def light_estimate(vertex, throughput, light):
+    """Strategy B at camera vertex x before its shadow test: (w_B, extra path length |x − y| + |y − LED|)
+    (light_paths.connect)."""
     x, spawn, wo, prim = vertex
-    y, y_to_led, y_led_distance, y_emitted, y_pdf_area, y_margin = light[1], light[2], light[3], light[4], \
-        light[5], light[6]
+    y, y_to_led, y_led_distance, y_emitted, y_pdf_area = light[1], light[2], light[3], light[4], light[5]
     to_y = sub(y[0], x[0])
     dist = norm(to_y)
     if not dist > 0:
@@ -867,13 +893,20 @@ def connect_light(geo, vertex, throughput, light, work):
         w = w * y_pdf_area / (p_bsdf + y_pdf_area)
     else:
         w = 0.0
+    return w, dist + y_led_distance
+
+
+@fn
+def connect_light(geo, vertex, throughput, light, work):
+    """Strategy B at camera vertex x, shadow test included: (w_B, extra path length) (light_paths.connect)."""
+    w, extra = light_estimate(vertex, throughput, light)
     if w > 0:
         # Stop short of y by a few ray offsets, so y's own surface does not occlude it.
-        o, d, t_max = shadow_ray(spawn, y[0], y_margin)
+        o, d, t_max = shadow_ray(vertex[1], light[1][0], light[6])
         work[0][2] += 1
-        if intersect(geo, o, d, t_max, prim, True, work)[1] >= 0:
+        if intersect(geo, o, d, t_max, vertex[3], True, work)[1] >= 0:
             w = 0.0
-    return w, dist + y_led_distance
+    return w, extra
 
 
 @fn
@@ -890,18 +923,22 @@ def camera_start(scene, rng):
 
 
 @fn
-def next_hit(geo, origin, direction, depth, prev_prim, work):
-    """(prim, u, v) where the path's ray from ``origin`` hits (prim −1 on a miss); the camera ray
-    (depth 1) leaves the lens by LEAVE_RELATIVE of its coordinates, the others from their spawn point."""
+def ray_query(origin, direction, depth):
+    """The float32 origin of the path's ray at ``depth``: the camera ray (depth 1) leaves the lens by
+    LEAVE_RELATIVE of its coordinates, the others start at their spawn point."""
     if depth == 1:
         offset = point_offset(origin, LEAVE_RELATIVE)
-        query = to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
-                        origin[2] + offset * direction[2]))
-        work[0][0] += 1
-    else:
-        query = to_f32(origin)
-        work[0][1] += 1
-    t, prim, u, v = intersect(geo, query, to_f32(direction), F32_INF, prev_prim, False, work)
+        return to_f32((origin[0] + offset * direction[0], origin[1] + offset * direction[1],
+                       origin[2] + offset * direction[2]))
+    return to_f32(origin)
+
+
+@fn
+def next_hit(geo, origin, direction, depth, prev_prim, work):
+    """(prim, u, v) where the path's ray from ``origin`` hits (prim −1 on a miss)."""
+    work[0][0 if depth == 1 else 1] += 1
+    t, prim, u, v = intersect(geo, ray_query(origin, direction, depth), to_f32(direction), F32_INF, prev_prim,
+                              False, work)
     return prim, u, v
 
 
@@ -1076,3 +1113,48 @@ def trace_pixels(scene, settings, pixels, out):
                 replicate_sum[r, c, p] += replicate[r, c]
         for c in range(N_COUNTERS):
             counters[local, c] = count[c]
+
+
+GPU_MAX_CHANNELS = 32
+"""Correlation channels + 2 a GPU thread holds (local arrays need their size when compiling)."""
+
+
+@gpu_kernel
+def gpu_trace_samples(scene, settings, launch, sums):
+    """CUDA: one path per thread — thread i traces sample ``s0 + l`` of pixel ``order[i − offsets[l]]`` for
+    ``offsets[l] ≤ i < offsets[l + 1]``, and adds it to lane l of the pass's sums.
+
+    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), counts (P,), s0, offsets (m + 1,)):
+    the host launches groups of m sample indices s0 = 0, m, 2m, … in turn, so lane l of a pixel receives
+    its samples s ≡ l (mod m) in sample order and no two threads add to one lane of one pixel.
+    ``sums`` = (nee_w (m, K, P), nee_wg (m, K, J, P), con_w (m, K, P), con_wg (m, K, J, P), replicate
+    (m, R, J + 2, P), counters (m, N_COUNTERS, P)): next-event estimates and light-vertex connections kept
+    apart as on the CPU (:func:`trace_pixels`); the host adds the lanes in lane order afterwards.
+    """
+    i = cuda.grid(1)
+    order, first, counts, s0, offsets = launch
+    m = offsets.shape[0] - 1
+    if i >= offsets[m]:
+        return
+    lane = 0
+    while i >= offsets[lane + 1]:
+        lane += 1
+    p = order[i - offsets[lane]]
+    s = s0 + lane
+    if s >= counts[p]:
+        return
+    nee_w, nee_wg, con_w, con_wg, replicate, counters = sums
+    sample = first[p] + s
+    total = cuda.local.array(GPU_MAX_CHANNELS, np.float64)
+    count = cuda.local.array(N_COUNTERS, np.int64)
+    for c in range(N_COUNTERS):
+        count[c] = 0
+    work = (count, cuda.local.array(STACK_SIZE, np.int64), cuda.local.array(STACK_SIZE, np.float32),
+            cuda.local.array(GPU_MAX_CHANNELS, np.float64))
+    trace_path(scene, settings, p, sample,
+               (nee_w[lane, :, p], nee_wg[lane, :, :, p], con_w[lane, :, p], con_wg[lane, :, :, p], total), work)
+    r = sample % replicate.shape[1]
+    for c in range(replicate.shape[2]):
+        replicate[lane, r, c, p] += total[c]
+    for c in range(N_COUNTERS):
+        counters[lane, c, p] += count[c]

@@ -12,6 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..backend import to_host
 from ..sensor.modulation import (CorrelationBank, phasor_component, pulsed_correlation, sine_correlation,
                                 square_correlation)
 from . import layout
@@ -36,8 +37,6 @@ class Packed:
 
 def unsupported(ctx) -> str:
     """Why the compiled tracer cannot render this trace context exactly as the NumPy one, or ""."""
-    if ctx.device.is_gpu:
-        return "the render runs on the GPU"
     if ctx.ambient is not None:
         return "ambient light is not compiled yet"
     if ctx.transient_bins:
@@ -66,12 +65,12 @@ def scene_arrays(scene, table) -> tuple:
     bvh = scene.bvh
     nodes = np.ascontiguousarray(bvh._nodes)
     leaves = np.ascontiguousarray(bvh._leaves)
-    normals = table.normals if table.normals is not None else np.zeros((0, 3), np.float32)
-    materials = np.stack([table.values[k] for k in layout.MATERIAL_COLUMNS], axis=1)
+    normals = to_host(table.normals) if table.normals is not None else np.zeros((0, 3), np.float32)
+    materials = np.stack([to_host(table.values[k]) for k in layout.MATERIAL_COLUMNS], axis=1)
     return (nodes.view(np.float32), nodes, leaves.view(np.float32), leaves,
-            np.ascontiguousarray(table.triangles), np.ascontiguousarray(table.vertices),
-            np.ascontiguousarray(table.face_normals), np.ascontiguousarray(normals),
-            np.ascontiguousarray(table.material_ids), np.ascontiguousarray(materials, dtype=np.float64))
+            np.ascontiguousarray(to_host(table.triangles)), np.ascontiguousarray(to_host(table.vertices)),
+            np.ascontiguousarray(to_host(table.face_normals)), np.ascontiguousarray(normals),
+            np.ascontiguousarray(to_host(table.material_ids)), np.ascontiguousarray(materials, dtype=np.float64))
 
 
 def camera_numbers(camera) -> np.ndarray:
@@ -93,8 +92,8 @@ def frame_array(ctx) -> np.ndarray:
     come from each point's own coordinates (kernels.point_offset, kernels.spawn_offset)."""
     frame = np.zeros((5, 3))
     frame[0:3] = ctx.world_from_sensor[:3, :3]
-    frame[3] = np.asarray(ctx.lens_center)
-    frame[4] = np.asarray(ctx.led_axis)
+    frame[3] = to_host(ctx.lens_center)
+    frame[4] = to_host(ctx.led_axis)
     return frame
 
 
@@ -104,7 +103,7 @@ def led_arrays(ctx) -> tuple:
     q = np.asarray(ctx.led_probability, dtype=np.float64)
     table = np.array([[layout.LED_KINDS.index(led.kind), led.intensity_w_sr, led.power_w, q[i],
                        float(ctx.skip_first_shadow[i])] for i, led in enumerate(ctx.leds)], dtype=np.float64)
-    return (np.ascontiguousarray(np.asarray(ctx.led_positions, dtype=np.float64)), table,
+    return (np.ascontiguousarray(to_host(ctx.led_positions), dtype=np.float64), table,
             np.ascontiguousarray(np.cumsum(q)[:-1]))
 
 

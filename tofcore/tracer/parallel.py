@@ -122,7 +122,7 @@ class PassRunner:
         pieces = chunks(counts, pass_chunk_paths(int(counts.sum()), self.chunk_size, self.workers))
         if self.compiled is not None:
             compiled = importlib.import_module(COMPILED_TRACER)
-            pieces = chunks(counts, max(self.chunk_size, compiled.COMPILED_CHUNK_PATHS))
+            pieces = compiled.pass_pieces(self.compiled, counts, self.chunk_size, chunks)
             results = compiled.trace_pass(self.compiled, self.transport, done, counts, pieces, self.workers,
                                           self.cancel)
         elif self.shared is not None and len(pieces) > 1:

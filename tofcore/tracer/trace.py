@@ -118,7 +118,7 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
     shared, why_not = (None, why_not) if why_not else parallel.share(setup, transport)
     stats.parallel = "processes" if shared is not None else "one" if why_not == "one" else f"threads: {why_not}"
     if tracer.packed is not None:
-        stats.parallel = f"numba threads: {importlib.import_module(parallel.COMPILED_TRACER).thread_count(n_workers)}"
+        stats.parallel = importlib.import_module(parallel.COMPILED_TRACER).parallel_label(tracer, n_workers)
     stats.setup_seconds = time.perf_counter() - start
     n_pix = camera.width * camera.height
     done = np.zeros(n_pix, np.int64)  # host copy of transport.sample_count
