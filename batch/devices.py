@@ -57,13 +57,19 @@ FAKE_GPU_ENV = "TOF_BATCH_FAKE_GPU"
 
 _UUID = re.compile(r"^(GPU|MIG)-[0-9A-Za-z/\-]+$")
 
-# Run in a child process: the parent must not create a CUDA context. Prints one JSON line.
+# Run in a child process: the parent must not create a CUDA context. Prints one JSON line. CuPy alone
+# counts the devices (importing tofcore, a second or so, is left out of every GPU run's start); only when
+# it finds none does tofcore's backend say why, in its words.
 _PROBE = """
 import json
-from tofcore import backend
-count = backend.gpu_count()
+try:
+    import cupy
+    count = int(cupy.cuda.runtime.getDeviceCount())
+except Exception:
+    count = 0
 reason = None
 if count == 0:
+    from tofcore import backend
     try:
         backend.select_device("gpu")
         reason = "CUDA reports no device"
