@@ -179,10 +179,19 @@ class LocalExecutor:
 
     def _submit(self, slot: _Slot, task: ViewTask) -> None:
         with sigint_blocked():  # the first submit starts the slot's worker process
-            slot.future = slot.pool.submit(run_view, task)
+            try:
+                slot.future = slot.pool.submit(run_view, task)
+            except BrokenProcessPool:  # the worker died between two views: a new one takes this view
+                self._replace(slot)
+                slot.future = slot.pool.submit(run_view, task)
         slot.task = task
         if slot.process is None:
             slot.process = next(iter((getattr(slot.pool, "_processes", None) or {}).values()), None)
+
+    def _replace(self, slot: _Slot) -> None:
+        """A new worker process (pool) for a slot whose process died, pinned to the same GPU."""
+        slot.pool.shutdown(wait=False, cancel_futures=True)
+        slot.pool, slot.process = self._new_slot(slot.gpu).pool, None
 
     def _died(self, slot: _Slot) -> WorkerDied:
         """The one-line error of the view whose worker died; waits briefly for its exit status."""
@@ -191,9 +200,12 @@ class LocalExecutor:
         if process is not None:
             process.join(timeout=2.0)
             code = process.exitcode
-        how = (f"killed by {signal.Signals(-code).name}" if code is not None and code < 0
-               and -code in signal.Signals._value2member_map_ else f"exit code {code}" if code is not None
-               else "ended")
+        how = "ended" if code is None else f"exit code {code}"
+        if code is not None and code < 0:
+            try:
+                how = f"killed by {signal.Signals(-code).name}"
+            except ValueError:
+                how = f"killed by signal {-code}"
         pid = f" (pid {process.pid})" if process is not None else ""
         return WorkerDied(f"the worker process{where}{pid} died while rendering this view ({how}); the other "
                           f"workers went on; --retry-failed renders its frames again",
@@ -223,9 +235,7 @@ class LocalExecutor:
                     outcome = future.result()
                 except BrokenProcessPool:  # this worker died: a new process on its GPU takes the next view
                     outcome = self._died(slot)
-                    slot.pool.shutdown(wait=False, cancel_futures=True)
-                    fresh = self._new_slot(slot.gpu)
-                    slot.pool, slot.process = fresh.pool, None
+                    self._replace(slot)
                 except Exception as exc:
                     outcome = exc
                 finished.append((task, outcome))
