@@ -29,11 +29,11 @@ traceback; with ``auto`` the frame is rendered again on the CPU and the reason
 recorded.
 
 Timing: every record has ``timing``, where its worker's time went (epoch seconds and durations):
-``worker_started`` (the process's initializer ran), ``task_started`` (the worker took the view),
-``load_s`` (scene load or export; 0 for a cached scene and for the view's later frames),
-``render_started``, ``render_s`` (``tofcore.render``: in a process's first frame this includes
-importing the simulator and CuPy, the CUDA context and compiling or loading the kernels),
-``write_s`` (error metrics and the frame's files, up to ``record.json``) and ``finished``. :func:`batch.run.worker_timing`
+``worker_started`` (the parent started the process), ``task_started`` (the worker took the view),
+``load_s`` (scene load or export, with the first import of tofcore; 0 for the view's later frames),
+``render_started``, ``render_s`` (``tofcore.render``: in a process's first GPU frame this includes
+importing CuPy, the CUDA context and compiling or loading the kernels), ``write_s`` (error metrics
+and the frame's files, up to ``record.json``) and ``finished``. :func:`batch.timing.worker_timing`
 sums them up per worker at the end of a run.
 
 Fault injection for tests: ``TOF_BATCH_FAIL`` holds comma-separated
