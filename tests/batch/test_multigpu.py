@@ -2,8 +2,9 @@
 
 Each test runs on two fake GPUs (``TOF_BATCH_FAKE_GPU``: two pinned worker processes rendering on the
 CPU; what CI runs) and, marked ``gpu``, on the first two real GPUs of a machine that has at least two
-(skipped elsewhere). On a real GPU the set is the benchmark's frame (Kinect v2 room, 512 × 424, 64 spp):
-point ``CUPY_CACHE_DIR`` at a warm kernel cache to keep the first frame short.
+(skipped elsewhere). On a real GPU the set is the benchmark's frame (Kinect v2 room, 512 × 424, 64 spp,
+the tracer chosen as a user's run chooses it): point ``CUPY_CACHE_DIR`` and ``NUMBA_CACHE_DIR`` at warm
+kernel caches to keep the first frame short.
 """
 
 from __future__ import annotations
@@ -57,7 +58,8 @@ def two_gpus(request) -> tuple[dict, str]:
     gpus = _two_real_gpus()
     if len(gpus) < 2:
         pytest.skip(f"needs 2 CUDA GPUs and CuPy; {len(gpus)} usable")
-    return {"CUDA_VISIBLE_DEVICES": ",".join(gpus)}, GPU_SET
+    # The product's tracer choice (the suite's conftest pins the NumPy reference): on a GPU, the compiled one.
+    return {"CUDA_VISIBLE_DEVICES": ",".join(gpus), "TOFCORE_TRACER": "auto"}, GPU_SET
 
 
 def _start(env: dict, *args: str) -> subprocess.Popen:
