@@ -94,6 +94,12 @@ def records(dataset: Path) -> list[dict]:
     return [json.loads(line) for line in (dataset / "index.jsonl").read_text().splitlines()]
 
 
+def tracer(dataset: Path, record: dict) -> str:
+    """The tracer that rendered a frame (``frame.json``: stats.transport.tracer)."""
+    stats = json.loads((dataset / record["dir"] / "frame.json").read_text())["stats"]
+    return stats.get("transport", {}).get("tracer") or "?"
+
+
 def png_digests(dataset: Path) -> dict[str, str]:
     """SHA-256 of every PNG of the dataset but ``convergence.png`` (its x axis is the render time), by
     ``job_id/name``."""
@@ -124,6 +130,7 @@ def one_run(n_gpus: int, cache_state: str, round_no: int, set_file: Path, work: 
               "tail_s": launched + seconds - max(w["worker_started"] + w["span_s"] for w in workers),
               "frames_per_worker": [w["frames"] for w in workers],
               "devices": sorted({(r.get("device") or {}).get("description") or "?" for r in rows}),
+              "tracers": sorted({tracer(dataset, r) for r in rows}),
               "png": png_digests(dataset)}
     print(f"{name}: {seconds:.1f} s, {result['frames_per_min']:.1f} frames/min, frames per worker "
           f"{result['frames_per_worker']}", flush=True)
@@ -238,7 +245,8 @@ def report(results: list[dict], skipped: list[str], args, seconds: float) -> boo
     fake = " (fake GPUs on the CPU)" if args.device == "cpu" else ""
     lines = [f"bench_multigpu: {args.frames} frames, demo room, Kinect v2 × {args.resolution_scale:g}, "
              f"{args.spp} spp, path length {args.max_depth}, png+json, --device gpu{fake}; devices "
-             f"{sorted({d for r in results for d in r['devices']})}", ""] + table(results) + [""]
+             f"{sorted({d for r in results for d in r['devices']})}; tracer "
+             f"{sorted({t for r in results for t in r['tracers']})}", ""] + table(results) + [""]
     for cache_state, values in scalings.items():
         lines.append(f"{cache_state}: scaling 2 GPUs / 1 GPU = {', '.join(f'{v:.2f}×' for v in values)} "
                      f"(median {statistics.median(values):.2f}×)")
