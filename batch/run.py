@@ -245,12 +245,14 @@ class LocalExecutor:
             yield from finished
 
     def close(self, kill: bool = False) -> None:
+        """Stop the workers: idle ones at once (SIGTERM: an idle worker exits without the interpreter's
+        teardown, which held the end of every run back by a second or more), busy ones too with ``kill``
+        (they cancel their render and remove their partial folder), else they get 10 s to finish."""
         slots, self.slots = self.slots, []
         processes = [slot.process for slot in slots if slot.process is not None]
-        if kill:
-            for process in processes:
-                if process.is_alive():
-                    process.terminate()  # the worker cancels its render and removes its partial folder
+        for slot in slots:
+            if slot.process is not None and slot.process.is_alive() and (kill or slot.future is None):
+                slot.process.terminate()
         for slot in slots:
             slot.pool.shutdown(wait=False, cancel_futures=True)
         deadline = time.monotonic() + 10.0
