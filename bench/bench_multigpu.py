@@ -140,13 +140,16 @@ def one_run(n_gpus: int, cache_state: str, round_no: int, set_file: Path, work: 
 
 
 def warm_up(work: Path, args) -> None:
-    """Fill an empty ``--warm-cache`` with a 2-frame run on every GPU (each compiles for its own device)."""
+    """Fill an empty ``--warm-cache``: 2 frames on 1 GPU, then on 2 (the CPU stand-in compiles a tracer per
+    thread count; on GPUs the second run finds everything cached)."""
     if any(args.warm_cache.rglob("*")):
         return
     args.warm_cache.mkdir(parents=True, exist_ok=True)
-    seconds, _ = run_batch(write_set(work, 2, args), work / "datasets" / "warm-up", args.gpus[:2], args.warm_cache,
-                        args.out_dir / "warm-up.log", args)
-    print(f"warm-up (2 frames, empty cache {args.warm_cache}): {seconds:.1f} s", flush=True)
+    set_file = write_set(work, 2, args)
+    for n_gpus in (1, 2):
+        seconds, _ = run_batch(set_file, work / "datasets" / f"warm-up-{n_gpus}", args.gpus[:n_gpus], args.warm_cache,
+                               args.out_dir / f"warm-up-{n_gpus}gpu.log", args)
+        print(f"warm-up on {n_gpus} GPU(s) (2 frames, cache {args.warm_cache}): {seconds:.1f} s", flush=True)
 
 
 def plan(args) -> list[tuple[str, int]]:
