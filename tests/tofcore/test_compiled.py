@@ -272,29 +272,31 @@ from tofcore.sensor.modulation import phasor_correlations
 from tofcore.tracer.setup import TraceSettings, make_setup
 from tofcore.tracer import qmc
 scene, cam = tofcore.demo_scene("room", detail=4), Camera.from_fov(6, 5, 60.0)
-leds = [tofcore.LED(position_m=(0.03, 0, 0))]
+leds = [tofcore.LED(position_m=(0.03, 0, 0)), tofcore.LED(position_m=(-0.03, 0, 0))]
 shared = dict(world_from_sensor=tofcore.suggested_pose(scene), correlations=phasor_correlations([80e6]),
               max_depth=4, seed=3)
 counts = np.arange(30) % 4
 ref = tofcore.trace(scene, cam, leds, device="cpu", spp=3, progressive=False, allocate=lambda t, n: counts,
                     **shared)
-ctx = make_setup(scene, cam, leds, TraceSettings(**shared), backend.select_device("cpu"))
-packed = setup.pack(ctx)
-out = cuda.Sums(np.zeros((4, 30)), np.zeros((4, 2, 30)), np.zeros((qmc.REPLICATES, 4, 30)))
-n = cuda.trace_pass(cuda.upload(packed), out, np.zeros(30, np.int64), counts)
-for name in ("signal_sum", "correlation_sum", "replicate_sum"):
-    np.testing.assert_allclose(getattr(out, name), getattr(ref, name), rtol=1e-12, atol=1e-300, err_msg=name)
-assert n[1:4].tolist() == [ref.stats.bounce_rays, ref.stats.shadow_rays, ref.stats.light_rays], n
-assert n[0] == counts.sum() and ref.stats.camera_rays == counts.sum() + 30  # + the first-hit rays
-print("ok", n.tolist())
+packed = setup.pack(make_setup(scene, cam, leds, TraceSettings(**shared), backend.select_device("cpu")))
+for groups_of in (10 ** 6, 7):  # one group, and groups of at most 7 paths (several sample indices each)
+    cuda.MAX_GROUP_PATHS = groups_of
+    out = cuda.Sums(np.zeros((4, 30)), np.zeros((4, 2, 30)), np.zeros((qmc.REPLICATES, 4, 30)))
+    n = cuda.trace_pass(cuda.upload(packed, scene.bvh), out, np.zeros(30, np.int64), counts, threads_per_block=32)
+    for name in ("signal_sum", "correlation_sum", "replicate_sum"):
+        np.testing.assert_array_equal(getattr(out, name), getattr(ref, name), err_msg=f"{groups_of} {name}")
+    assert n[1:4].tolist() == [ref.stats.bounce_rays, ref.stats.shadow_rays, ref.stats.light_rays], n
+    assert n[0] == counts.sum() and ref.stats.camera_rays == counts.sum() + 30  # + the first-hit rays
+print("ok")
 """
 
 
 @needs_numba
 def test_cuda_build_of_the_kernels_traces_the_numpy_frame_in_the_simulator(tmp_path):
-    """The CUDA build (kernels.py under numba.cuda, one launch per sample index, uneven counts) run by
-    numba's CUDA simulator on the CPU equals the NumPy tracer: the GPU driver's indexing and sum order are
-    checked in CI; tests/tofcore/test_gpu.py checks the real device."""
+    """The CUDA build of kernels.py — the wavefront's stages, groups of several sample indices, uneven sample
+    counts, two LEDs — run by numba's CUDA simulator on the CPU gives the NumPy tracer's sums bit for bit
+    (the simulator runs Python's float64, the GPU's libm and FMAs aside) with the same rays: the driver's
+    indexing and sum order are checked in CI; tests/tofcore/test_gpu.py checks the device."""
     import os
     import subprocess
     import sys
@@ -304,3 +306,18 @@ def test_cuda_build_of_the_kernels_traces_the_numpy_frame_in_the_simulator(tmp_p
                          text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
     assert run.stdout.startswith("ok")
+
+
+@needs_numba
+def test_the_wavefronts_light_table_round_trips_a_light_vertex():
+    """store_light / load_light (the GPU wavefront's light table) compiled for the CPU: the same tuple back,
+    bit for bit (numba types the heterogeneous tuple as the CUDA build does)."""
+    from tofcore.compiled import kernels
+
+    surf = ((1.0, 2.0, 3.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.6, 0.8),
+            (0.5, 0.2, 0.0, 1.5, 0.0))
+    light = (True, surf, (0.0, -0.6, -0.8), 2.5, 0.125, 3.0e-2, 1e-6)
+    table = np.zeros((3, kernels.LIGHT_COLUMNS))
+    kernels.store_light(table, 1, light)
+    assert kernels.load_light(table, 1) == light
+    assert not table[[0, 2]].any()

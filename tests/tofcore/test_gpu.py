@@ -293,7 +293,7 @@ numba_cuda_only = pytest.mark.skipif(_numba_cuda_missing() is not None,
 @numba_cuda_only
 @pytest.mark.parametrize("sensor_name", list(SENSORS))
 def test_compiled_gpu_frame_equals_cpu_frame(sensor_name, monkeypatch):
-    """kernels.py compiled for CUDA, one path per thread, against the NumPy reference on the CPU."""
+    """kernels.py compiled for CUDA (the wavefront of tofcore.compiled.cuda) against the NumPy reference."""
     sensor = SENSORS[sensor_name]()
     scene = tofcore.demo_scene("box_on_wall")
     settings = dict(spp=4, max_depth=3, seed=7)
@@ -316,9 +316,10 @@ def test_compiled_gpu_sums_with_uneven_sample_counts_equal_cpu_sums(monkeypatch)
     counts = np.arange(24 * 18) % 5
     kwargs = dict(spp=4, max_depth=4, seed=3, progressive=False, allocate=lambda transport, n: counts,
                   correlations=phasor_correlations([80e6]))
-    ref = tofcore.trace(scene, cam, [tofcore.LED()], device="cpu", **kwargs)
+    leds = [tofcore.LED(position_m=(0.03, 0.0, 0.0)), tofcore.LED(position_m=(-0.03, 0.0, 0.0))]
+    ref = tofcore.trace(scene, cam, leds, device="cpu", **kwargs)
     monkeypatch.setenv("TOFCORE_TRACER", "compiled")
-    got = tofcore.trace(scene, cam, [tofcore.LED()], device="gpu", **kwargs)
+    got = tofcore.trace(scene, cam, leds, device="gpu", **kwargs)
     assert got.stats.tracer == "compiled"
     for name in ("signal_sum", "correlation_sum", "replicate_sum"):
         x, y = getattr(ref, name), backend.to_host(getattr(got, name))

@@ -75,7 +75,7 @@ def choose(ctx) -> Choice:
     if not ctx.device.is_gpu:
         return Choice("compiled", "", packed)
     from . import cuda
-    return Choice("compiled", "", packed, cuda.upload(packed))
+    return Choice("compiled", "", packed, cuda.upload(packed, ctx.scene.bvh))
 
 
 def cuda_unavailable() -> str:

@@ -1,18 +1,22 @@
-"""The compiled tracer on the GPU: the same source (kernels.py) compiled by numba.cuda, one path per thread.
+"""The compiled tracer on the GPU: the same source (kernels.py) compiled by numba.cuda, as a wavefront.
 
 :func:`load_kernels` executes ``kernels.py`` a second time under the module name
 ``tofcore.compiled.kernels_cuda``, for which every scalar function becomes a ``numba.cuda`` device
-function and :func:`tofcore.compiled.kernels.gpu_trace_samples` a kernel (:mod:`tofcore.compiled._target`).
-:func:`trace_pass` launches that kernel over groups of m sample indices, one path per thread: sample
-``s0 + l`` of a pixel goes to lane l of the pass's sums, so each lane of a pixel grows in sample order, no
-two threads ever add to one lane (no atomics: the same frame on every run), and small frames still give
-the GPU enough threads. Next-event estimates and light-vertex connections are kept apart as on the CPU;
-the lanes are added in lane order and then to the transport in the reference's order: a GPU frame is the
-CPU frame up to the GPU's libm, its fused multiply–adds and the lanes' rounding (tests/tofcore/test_gpu.py
-states the tolerance).
+function and the ``wf_*`` functions kernels (:mod:`tofcore.compiled._target`). :func:`trace_pass` runs
+the path in stages over groups of paths — start (camera and light rays), light vertices, then per depth
+shade, resolve — with the BVH's own CUDA traversal (:mod:`tofcore.gpu.traversal`, one thread per ray,
+bit for bit NumPy's) tracing every ray set in between, and gathers each pixel's addends in sample order:
+the pass's sums are the CPU's addend by addend, so a GPU frame is the CPU frame up to the GPU's libm and
+its fused multiply–adds in the shading code (tests/tofcore/test_gpu.py states the tolerance). No atomics:
+the same frame on every run.
+
+Why a wavefront (docs/benchmarks.md, issue 21): the whole path as one kernel (a megakernel) needed 255
+registers a thread and ran at 12.5 % occupancy with 13 of 32 threads of a warp active — 208–229 ms for
+the bench_peers frame, against 126 ms for these stages.
 
 The machine code is cached by numba (``cache=True``) beside the sources (``tofcore/compiled/__pycache__``)
-or under ``NUMBA_CACHE_DIR``: the first process on a machine compiles for ~30 s, later ones load it.
+or under ``NUMBA_CACHE_DIR``: the first process on a machine compiles for ~15–30 s, later ones load it
+(``tofcore warmup --device gpu``).
 """
 
 from __future__ import annotations
@@ -34,16 +38,19 @@ from ._target import CUDA_SUFFIX  # noqa: E402
 from .layout import N_COUNTERS  # noqa: E402
 
 THREADS_PER_BLOCK = 256
-"""Threads per block: at the kernel's 255 registers a thread, one block of 256 fills an H100 SM's register
-file; measured 208 ms a bench_peers frame against 237 ms at 128 and 257 ms at 64 (docs/benchmarks.md)."""
+"""Threads per block of the stage kernels (128 measured the same, docs/benchmarks.md)."""
+
+GROUP_BYTES = 512 << 20
+"""Device memory one group's per-path state may take: the group size follows from it (about 0.4–0.9 M paths;
+the Kinect v2 frame peaked at 2.3 GiB on the device with 768 MiB)."""
+
+MAX_GROUP_PATHS = 1 << 20
 
 _MODULE = None
-_VARIANTS: dict = {}
 
 
-def load_kernels(max_registers: int | None = None):
-    """(the CUDA build of kernels.py, its path kernel); ``max_registers`` limits the registers per thread
-    (None: the compiler's choice, the cached build; a limit compiles a variant, uncached, for benchmarks)."""
+def load_kernels():
+    """The CUDA build of kernels.py (loaded once per process)."""
     global _MODULE
     if _MODULE is None:
         name = __name__.rsplit(".", 1)[0] + ".kernels" + CUDA_SUFFIX
@@ -52,26 +59,24 @@ def load_kernels(max_registers: int | None = None):
         sys.modules[name] = module
         spec.loader.exec_module(module)
         _MODULE = module
-    if max_registers is None:
-        return _MODULE, _MODULE.gpu_trace_samples
-    if max_registers not in _VARIANTS:
-        _VARIANTS[max_registers] = cuda.jit(max_registers=max_registers)(_MODULE.gpu_trace_samples.py_func)
-    return _MODULE, _VARIANTS[max_registers]
+    return _MODULE
 
 
 @dataclass(frozen=True, eq=False)
 class DeviceScene:
-    """A render's packed arrays (:class:`tofcore.compiled.setup.Packed`) on the GPU, uploaded once."""
+    """A render's packed arrays (:class:`tofcore.compiled.setup.Packed`) on the GPU, uploaded once, and the
+    scene's BVH (its records are uploaded by :mod:`tofcore.gpu.traversal` at the first ray)."""
 
     scene: tuple
     settings: tuple
     n_correlations: int
     max_depth: int
+    bvh: object
 
 
-def upload(packed) -> DeviceScene:
+def upload(packed, bvh) -> DeviceScene:
     """Copy the packed scene, camera, LED and channel tables to the GPU."""
-    module, _ = load_kernels()
+    module = load_kernels()
     n_corr = len(packed.corr_kinds)
     if n_corr + 2 > module.GPU_MAX_CHANNELS:
         raise ValueError(f"the GPU tracer takes at most {module.GPU_MAX_CHANNELS - 2} correlation channels, "
@@ -82,15 +87,7 @@ def upload(packed) -> DeviceScene:
              dev(packed.frame), tuple(dev(np.ascontiguousarray(a)) for a in packed.leds), dev(packed.corr_kinds),
              dev(corr_table))
     settings = (packed.key, packed.max_depth, packed.independent, packed.light_paths)
-    return DeviceScene(scene, settings, n_corr, int(packed.max_depth))
-
-
-PATHS_PER_LAUNCH = 1 << 20
-"""Paths a launch aims at: enough threads to fill the GPU many times over (at 255 registers a thread an H100
-holds ~34 k), so small frames run several sample indices per launch, each in its own lane of the sums."""
-
-LANE_BYTES = 512 << 20
-"""Device memory the lanes of a pass's sums may take together."""
+    return DeviceScene(scene, settings, n_corr, int(packed.max_depth), bvh)
 
 
 def launch_plan(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -103,53 +100,105 @@ def launch_plan(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return order, more_than[:most]
 
 
-def lane_count(active: np.ndarray, n_pix: int, bytes_per_lane: int) -> int:
-    """Sample indices per launch m: about :data:`PATHS_PER_LAUNCH` paths, at most :data:`LANE_BYTES` of sums."""
-    if not len(active):
-        return 1
-    by_paths = -(-PATHS_PER_LAUNCH // max(int(active[0]), 1))
-    return int(max(1, min(len(active), by_paths, LANE_BYTES // max(bytes_per_lane, 1))))
+def groups(active: np.ndarray, limit: int) -> list[tuple[int, int]]:
+    """Consecutive sample-index ranges [s0, s1) of at most ``limit`` paths each (at least one index)."""
+    out, s0 = [], 0
+    while s0 < len(active):
+        s1, paths = s0 + 1, int(active[s0])
+        while s1 < len(active) and paths + int(active[s1]) <= limit:
+            paths += int(active[s1])
+            s1 += 1
+        out.append((s0, s1))
+        s0 = s1
+    return out
+
+
+def path_bytes(n_depth: int, n_corr: int, n_led: int) -> int:
+    """Device bytes of one path's state in a group (the arrays :func:`trace_pass` allocates per path)."""
+    slots = n_led + 1
+    return (8 * 3 + 2 + 8 * 13 + 4 + 28 + 8 * 28 + 16 * slots + slots * 29 + 8 * (n_corr + 2)
+            + 16 * n_depth * (1 + n_corr) + 8 * N_COUNTERS + 12)
 
 
 def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.ndarray,
-               threads_per_block: int = THREADS_PER_BLOCK, max_registers: int | None = None) -> np.ndarray:
+               threads_per_block: int = THREADS_PER_BLOCK) -> np.ndarray:
     """Trace samples [first[p], first[p] + counts[p]) of every pixel into ``out``'s sums on the GPU.
 
     ``out`` holds CuPy arrays ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P) and ``replicate_sum``
-    (R, J + 2, P) (a :class:`tofcore.tracer.transport.Transport` on the GPU). A launch traces m sample
-    indices (:func:`lane_count`), each into its own lane of the sums; the lanes are added in lane order,
-    then connections before next-event estimates as on the CPU. Returns the pass's ray counts
-    (N_COUNTERS,) on the host (one synchronisation per pass).
+    (R, J + 2, P) (a :class:`tofcore.tracer.transport.Transport` on the GPU); NumPy arrays under numba's
+    CUDA simulator (tests). Per group of sample indices (:func:`groups`): start every path, trace the
+    camera and light rays, the light vertices; per depth shade the live paths, trace the shadow rays that
+    need a test, resolve, trace the next rays; gather. Returns the pass's ray counts (N_COUNTERS,) on the host.
     """
     from .. import backend
 
-    _, kernel = load_kernels(max_registers)
-    xp = backend.namespace(out.signal_sum)  # CuPy; NumPy under numba's CUDA simulator (tests)
+    module = load_kernels()
+    xp = backend.namespace(out.signal_sum)
+    bvh, scene, settings = device_scene.bvh, device_scene.scene, device_scene.settings
     n_pix = int(np.asarray(counts).size)
     k_max, n_corr = device_scene.max_depth, device_scene.n_correlations
+    n_led = int(scene[4][0].shape[0])
+    slots = n_led + 1
     order, active = launch_plan(counts)
-    per_lane = 8 * n_pix * (2 * k_max * (1 + n_corr) + int(np.prod(out.replicate_sum.shape[:-1])) + N_COUNTERS)
-    m = lane_count(active, n_pix, per_lane)
-    nee_w, con_w = xp.zeros((m, k_max, n_pix)), xp.zeros((m, k_max, n_pix))
-    nee_wg, con_wg = xp.zeros((m, k_max, n_corr, n_pix)), xp.zeros((m, k_max, n_corr, n_pix))
-    replicate = xp.zeros((m,) + tuple(out.replicate_sum.shape))
-    counters = xp.zeros((m, N_COUNTERS, n_pix), np.int64)
-    sums = tuple(_kernel_array(a) for a in (nee_w, nee_wg, con_w, con_wg, replicate, counters))
+    sums = (xp.zeros((k_max, n_pix)), xp.zeros((k_max, n_corr, n_pix)), xp.zeros((k_max, n_pix)),
+            xp.zeros((k_max, n_corr, n_pix)), xp.zeros(out.replicate_sum.shape))
+    dev_sums = _kernel_arrays(sums)
+    rays_counted = xp.zeros(N_COUNTERS, np.int64)
     pixels = tuple(cuda.to_device(np.ascontiguousarray(a, dtype=np.int64)) for a in (order, first, counts))
-    for s0 in range(0, len(active), m):
-        offsets = np.concatenate([[0], np.cumsum(active[s0:s0 + m])]).astype(np.int64)
-        blocks = (int(offsets[-1]) + threads_per_block - 1) // threads_per_block
-        kernel[blocks, threads_per_block](device_scene.scene, device_scene.settings,
-                                          (*pixels, s0, cuda.to_device(offsets)), sums)
-    for lane in range(1, m):  # lane order, the same on every run
-        for a in (nee_w, nee_wg, con_w, con_wg, replicate, counters):
-            a[0] += a[lane]
-    out.signal_sum += con_w[0]          # the reference's order: connections, then next-event estimates
-    out.signal_sum += nee_w[0]
-    out.correlation_sum += con_wg[0]
-    out.correlation_sum += nee_wg[0]
-    out.replicate_sum += replicate[0]
-    return backend.to_host(counters[0].sum(axis=1))
+    limit = max(1, min(MAX_GROUP_PATHS, GROUP_BYTES // path_bytes(k_max, n_corr, n_led)))
+
+    def launch(kernel, n, *args):
+        kernel[(n + threads_per_block - 1) // threads_per_block, threads_per_block](*args)
+
+    for s0, s1 in groups(active, limit):
+        offsets = np.concatenate([[0], np.cumsum(active[s0:s1])]).astype(np.int64)
+        n = int(offsets[-1])
+        group = (*pixels, s0, cuda.to_device(offsets))
+        path = (xp.empty(n, np.int64), xp.empty(n, np.int64), xp.zeros(n, np.int8), xp.zeros(n, np.int8))
+        pstate = (xp.empty((n, 13)), xp.empty(n, np.int32))
+        rays = (xp.empty((n, 3), np.float32), xp.empty((n, 3), np.float32), xp.empty(n, np.int32),
+                xp.empty(n, np.float32))
+        light_rays = (xp.zeros((n, 3), np.float32), xp.zeros((n, 3), np.float32), xp.full(n, -1, np.int32))
+        light = xp.zeros((n, module.LIGHT_COLUMNS))
+        pend = (xp.zeros((n, slots)), xp.zeros((n, slots)))
+        shadow = (xp.zeros((n * slots, 3), np.float32), xp.zeros((n * slots, 3), np.float32),
+                  xp.zeros(n * slots, np.float32), xp.full(n * slots, -1, np.int32))
+        total = xp.zeros((n_corr + 2, n))
+        contrib = (xp.zeros((k_max, n)), xp.zeros((k_max, n_corr, n)), xp.zeros((k_max, n)),
+                   xp.zeros((k_max, n_corr, n)))
+        counters = xp.zeros((N_COUNTERS, n), np.int64)
+        k = _kernel_arrays
+        dev_path, dev_pstate, dev_rays, dev_shadow = k(path), k(pstate), k(rays), k(shadow)
+        dev_light, dev_total, dev_counters = k((light, total, counters))
+        dev_pend, dev_contrib = k(pend), k(contrib)
+        launch(module.wf_start, n, scene, settings, group, dev_path, dev_pstate, dev_rays, k(light_rays),
+               dev_counters)
+        if settings[3]:
+            h = bvh.intersect(light_rays[0], light_rays[1])
+            launch(module.wf_light, n, scene, settings, dev_path, k((h.prim, h.u, h.v)), dev_light)
+        # Every slot is traced every depth: an ended path's ray and a shadow slot without a test have t_max −1,
+        # which the traversal rejects at the root — no compaction, no host synchronisation to count them.
+        for depth in range(1, k_max + 1):
+            h = bvh.intersect(rays[0], rays[1], rays[3], ignore_prim=rays[2])
+            launch(module.wf_shade, n, scene, settings, depth, dev_path, dev_pstate, k((h.prim, h.u, h.v)),
+                   dev_light, dev_pend, dev_shadow, dev_rays, dev_counters)
+            occluded = bvh.occluded(shadow[0], shadow[1], shadow[2], ignore_prim=shadow[3])
+            launch(module.wf_resolve, n, scene, depth, dev_path, dev_pend, _kernel_array(occluded), dev_total,
+                   dev_contrib)
+        launch(module.wf_gather, int(offsets[1]), group, k(path)[1], dev_contrib, dev_total, dev_sums)
+        rays_counted += counters.sum(axis=1)
+    nee_w, nee_wg, con_w, con_wg, replicate = sums
+    out.signal_sum += con_w          # the reference's order: connections, then next-event estimates
+    out.signal_sum += nee_w
+    out.correlation_sum += con_wg
+    out.correlation_sum += nee_wg
+    out.replicate_sum += replicate
+    return backend.to_host(rays_counted)
+
+
+def _kernel_arrays(arrays: tuple) -> tuple:
+    """Arrays as the kernels take them (:func:`_kernel_array`), converted once per group, not per launch."""
+    return tuple(_kernel_array(a) for a in arrays)
 
 
 def _kernel_array(a):
@@ -167,27 +216,26 @@ class Sums:
     replicate_sum: object
 
 
-def trace_frame(packed, n_pix: int, spp: int, threads_per_block: int = THREADS_PER_BLOCK,
-                max_registers: int | None = None) -> dict:
+def trace_frame(packed, bvh, n_pix: int, spp: int, threads_per_block: int = THREADS_PER_BLOCK) -> dict:
     """One pass of ``spp`` samples of every pixel on the GPU, for benchmarks and checks.
 
     Returns host arrays ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P), ``replicate_sum``
-    (R, J + 2, P), ``counters`` (N_COUNTERS,), the seconds of the launches (``kernel_s``, synchronised) and
-    of the whole call (``seconds``: uploads, kernels, read-back).
+    (R, J + 2, P), ``counters`` (N_COUNTERS,), the seconds of the pass (``kernel_s``, synchronised) and
+    of the whole call (``seconds``: uploads, pass, read-back).
     """
     from .. import backend
     from ..tracer import qmc
 
     xp = np if numba.config.ENABLE_CUDASIM else backend.select_device("gpu").xp
     start = time.perf_counter()
-    device_scene = upload(packed)
+    device_scene = upload(packed, bvh)
     n_corr = device_scene.n_correlations
     out = Sums(xp.zeros((packed.max_depth, n_pix)), xp.zeros((packed.max_depth, n_corr, n_pix)),
                xp.zeros((qmc.REPLICATES, n_corr + 2, n_pix)))
     first, counts = np.zeros(n_pix, np.int64), np.full(n_pix, spp, np.int64)
     cuda.synchronize()
     launch = time.perf_counter()
-    counters = trace_pass(device_scene, out, first, counts, threads_per_block, max_registers)
+    counters = trace_pass(device_scene, out, first, counts, threads_per_block)
     cuda.synchronize()
     kernel_s = time.perf_counter() - launch
     return {"signal_sum": backend.to_host(out.signal_sum), "correlation_sum": backend.to_host(out.correlation_sum),

@@ -1119,42 +1119,299 @@ GPU_MAX_CHANNELS = 32
 """Correlation channels + 2 a GPU thread holds (local arrays need their size when compiling)."""
 
 
-@gpu_kernel
-def gpu_trace_samples(scene, settings, launch, sums):
-    """CUDA: one path per thread — thread i traces sample ``s0 + l`` of pixel ``order[i − offsets[l]]`` for
-    ``offsets[l] ≤ i < offsets[l + 1]``, and adds it to lane l of the pass's sums.
+# ------------------------------------------------------------------ GPU wavefront: the path in stages
+#
+# The same path as trace_path, cut where it traces rays: each kernel advances every path of a launch
+# group by one stage and leaves its rays in buffers that tofcore.gpu.traversal (a lean kernel, one thread
+# per ray, bit for bit the NumPy traversal) traces in between; tofcore.compiled.cuda.trace_pass drives
+# them. A group holds the paths of sample indices s0 ≤ s < s1 of a pass, path j of lane l = s − s0 being
+# pixel order[j − offsets[l]]. Per-path state in global memory (column or row j):
+#   path    = (pixel, sample, alive, shaded)                  int64 ×2, int8 ×2
+#   pstate  = (f (n, 13), prev_prim (n,))                     f: β, path length, prev pdf, prev delta,
+#                                                             prev point xyz, origin xyz, direction xyz
+#   rays    = (origin (n, 3) f32, direction (n, 3) f32, ignore (n,) i32, t_max (n,) f32)   the next
+#             closest-hit ray; t_max −1 for a path that has ended (the traversal leaves it at the root)
+#   hits    = (prim (n,) i32, u (n,) f32, v (n,) f32)
+#   light   = (n, 28) float64: the light tuple of light_vertex_at, flattened (LIGHT_* columns)
+#   pend    = (w (n, L + 1), tau (n, L + 1))                  next-event estimates (LED i) and the
+#                                                             connection (column L) before their shadow test
+#   shadow  = (origin (n(L+1), 3), direction, t_max, ignore)  their shadow rays; t_max −1: no test
+#   contrib = (nee_w (K, n), nee_wg (K, J, n), con_w (K, n), con_wg (K, J, n))   the path's one addend per
+#             bucket; total (J + 2, n) its channel totals; counters (N_COUNTERS, n) its rays
+# wf_gather adds the contributions per pixel in sample order: the pass's sums are the CPU's, addend by addend.
+LIGHT_FOUND, LIGHT_SURF, LIGHT_PARAMS, LIGHT_TO_LED, LIGHT_REST, LIGHT_COLUMNS = 0, 1, 16, 21, 24, 28
+NO_RAY = np.float32(-1.0)
+"""t_max of a ray slot that traces nothing (an ended path, an estimate that needs no shadow test)."""
 
-    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), counts (P,), s0, offsets (m + 1,)):
-    the host launches groups of m sample indices s0 = 0, m, 2m, … in turn, so lane l of a pixel receives
-    its samples s ≡ l (mod m) in sample order and no two threads add to one lane of one pixel.
-    ``sums`` = (nee_w (m, K, P), nee_wg (m, K, J, P), con_w (m, K, P), con_wg (m, K, J, P), replicate
-    (m, R, J + 2, P), counters (m, N_COUNTERS, P)): next-event estimates and light-vertex connections kept
-    apart as on the CPU (:func:`trace_pixels`); the host adds the lanes in lane order afterwards.
+
+@fn
+def store_vec(a, j, col, v):
+    a[j, col] = v[0]
+    a[j, col + 1] = v[1]
+    a[j, col + 2] = v[2]
+
+
+@fn
+def load_vec(a, j, col):
+    return a[j, col], a[j, col + 1], a[j, col + 2]
+
+
+@fn
+def store_light(out, j, light):
+    """Row j of the light table from a light tuple (light_vertex_at)."""
+    surf = light[1]
+    out[j, LIGHT_FOUND] = 1.0 if light[0] else 0.0
+    store_vec(out, j, LIGHT_SURF, surf[0])  # a heterogeneous tuple takes constant indices only
+    store_vec(out, j, LIGHT_SURF + 3, surf[1])
+    store_vec(out, j, LIGHT_SURF + 6, surf[2])
+    store_vec(out, j, LIGHT_SURF + 9, surf[3])
+    store_vec(out, j, LIGHT_SURF + 12, surf[4])
+    params = surf[5]
+    out[j, LIGHT_PARAMS] = params[0]
+    out[j, LIGHT_PARAMS + 1] = params[1]
+    out[j, LIGHT_PARAMS + 2] = params[2]
+    out[j, LIGHT_PARAMS + 3] = params[3]
+    out[j, LIGHT_PARAMS + 4] = params[4]
+    store_vec(out, j, LIGHT_TO_LED, light[2])
+    out[j, LIGHT_REST] = light[3]
+    out[j, LIGHT_REST + 1] = light[4]
+    out[j, LIGHT_REST + 2] = light[5]
+    out[j, LIGHT_REST + 3] = light[6]
+
+
+@fn
+def load_light(table, j):
+    """The light tuple of row j (store_light)."""
+    surf = (load_vec(table, j, LIGHT_SURF), load_vec(table, j, LIGHT_SURF + 3), load_vec(table, j, LIGHT_SURF + 6),
+            load_vec(table, j, LIGHT_SURF + 9), load_vec(table, j, LIGHT_SURF + 12),
+            (table[j, LIGHT_PARAMS], table[j, LIGHT_PARAMS + 1], table[j, LIGHT_PARAMS + 2],
+             table[j, LIGHT_PARAMS + 3], table[j, LIGHT_PARAMS + 4]))
+    return (table[j, LIGHT_FOUND] != 0.0, surf, load_vec(table, j, LIGHT_TO_LED), table[j, LIGHT_REST],
+            table[j, LIGHT_REST + 1], table[j, LIGHT_REST + 2], table[j, LIGHT_REST + 3])
+
+
+@fn
+def store_ray(rays, j, origin, direction, ignore):
+    o, d, ig = rays[0], rays[1], rays[2]
+    store_vec(o, j, 0, origin)
+    store_vec(d, j, 0, direction)
+    ig[j] = ignore
+
+
+@gpu_kernel
+def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
+    """Stage 1: each path's pixel and sample, its camera ray and its light ray.
+
+    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), counts (P,), s0, offsets (m + 1,)).
     """
-    i = cuda.grid(1)
+    j = cuda.grid(1)
     order, first, counts, s0, offsets = launch
     m = offsets.shape[0] - 1
-    if i >= offsets[m]:
+    if j >= offsets[m]:
         return
-    lane = 0
-    while i >= offsets[lane + 1]:
-        lane += 1
-    p = order[i - offsets[lane]]
-    s = s0 + lane
-    if s >= counts[p]:
+    lo = 0  # the lane l with offsets[l] <= j < offsets[l + 1]
+    hi = m
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if offsets[mid] <= j:
+            lo = mid
+        else:
+            hi = mid
+    p = order[j - offsets[lo]]
+    pixel, samples, alive, shaded = path
+    pixel[j] = p
+    sample = first[p] + s0 + lo
+    samples[j] = sample
+    shaded[j] = 0
+    alive[j] = 1
+    key, max_depth, independent, light_paths = settings
+    rng = (key, p, sample, independent)
+    origin, direction = camera_start(scene, rng)
+    f = pstate[0]
+    f[j, 0] = 1.0
+    f[j, 1] = 0.0
+    f[j, 2] = 0.0
+    f[j, 3] = 0.0
+    store_vec(f, j, 4, origin)
+    store_vec(f, j, 7, origin)
+    store_vec(f, j, 10, direction)
+    pstate[1][j] = -1
+    store_ray(rays, j, ray_query(origin, direction, 1), to_f32(direction), -1)
+    rays[3][j] = F32_INF
+    counters[0, j] += 1
+    if light_paths:
+        ray = light_ray(scene[3], scene[4], rng)
+        store_ray(light_rays, j, ray[4], ray[5], -1)
+        counters[3, j] += 1
+
+
+@gpu_kernel
+def wf_light(scene, settings, path, light_hits, light):
+    """Stage 2: the light vertex where each path's light ray hit (light_vertex_at), into the light table."""
+    j = cuda.grid(1)
+    pixel, samples = path[0], path[1]
+    if j >= pixel.shape[0]:
         return
-    nee_w, nee_wg, con_w, con_wg, replicate, counters = sums
-    sample = first[p] + s
-    total = cuda.local.array(GPU_MAX_CHANNELS, np.float64)
-    count = cuda.local.array(N_COUNTERS, np.int64)
-    for c in range(N_COUNTERS):
-        count[c] = 0
-    work = (count, cuda.local.array(STACK_SIZE, np.int64), cuda.local.array(STACK_SIZE, np.float32),
-            cuda.local.array(GPU_MAX_CHANNELS, np.float64))
-    trace_path(scene, settings, p, sample,
-               (nee_w[lane, :, p], nee_wg[lane, :, :, p], con_w[lane, :, p], con_wg[lane, :, :, p], total), work)
-    r = sample % replicate.shape[1]
-    for c in range(replicate.shape[2]):
-        replicate[lane, r, c, p] += total[c]
-    for c in range(N_COUNTERS):
-        counters[lane, c, p] += count[c]
+    key, max_depth, independent, light_paths = settings
+    ray = light_ray(scene[3], scene[4], (key, pixel[j], samples[j], independent))
+    prim, u, v = light_hits
+    store_light(light, j, light_vertex_at(scene[0], scene[4], ray, prim[j], u[j], v[j]))
+
+
+@gpu_kernel
+def wf_shade(scene, settings, depth, path, pstate, hits, light, pend, shadow, rays, counters):
+    """Stage 3 at ``depth``: the surface each live path hit, its next-event estimates and connection with
+    their shadow rays (pend, shadow), and its next ray (rays) — trace_path's loop body, minus traversal."""
+    j = cuda.grid(1)
+    pixel, samples, alive, shaded = path
+    if j >= pixel.shape[0]:
+        return
+    shaded[j] = 0
+    n_led = scene[4][0].shape[0]
+    slots = n_led + 1
+    for i in range(slots):
+        shadow[2][j * slots + i] = NO_RAY
+    if alive[j] == 0:
+        return
+    prim = hits[0][j]
+    if prim < 0:
+        alive[j] = 0
+        rays[3][j] = NO_RAY
+        return
+    geo, frame, leds = scene[0], scene[3], scene[4]
+    key, max_depth, independent, light_paths = settings
+    p = pixel[j]
+    f = pstate[0]
+    throughput, path_length, prev_pdf, prev_delta = f[j, 0], f[j, 1], f[j, 2], f[j, 3] != 0.0
+    prev_point, origin, direction = load_vec(f, j, 4), load_vec(f, j, 7), load_vec(f, j, 10)
+    surf = surface_at(geo, prim, hits[1][j], hits[2][j], origin, direction)
+    position, ng = surf[0], surf[1]
+    segment = norm(sub(position, prev_point))
+    path_length = path_length + segment
+    f[j, 1] = path_length
+    vertex = camera_vertex(geo, prim, surf, direction)
+    use_mis = light_paths and depth >= 2
+    bsdf_area_pdf = prev_pdf * dot(neg(direction), ng) / (segment * segment) if use_mis else 0.0
+    state = (throughput, depth, bsdf_area_pdf, prev_delta, use_mis)
+    pend_w, pend_tau = pend
+    for i in range(n_led):
+        w, dist, led = led_estimate(frame, leds, vertex, state, i)
+        pend_w[j, i] = w
+        pend_tau[j, i] = (path_length + dist) / SPEED_OF_LIGHT_M_S
+        k = j * slots + i
+        if w > 0:
+            if depth == 1 and leds[1][i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
+                counters[4, j] += 1
+            else:
+                o, d, t_max = shadow_ray(vertex[1], led, point_offset(led, SPAWN_RELATIVE))
+                store_ray((shadow[0], shadow[1], shadow[3]), k, o, d, prim)
+                shadow[2][k] = t_max
+                counters[2, j] += 1
+    k = j * slots + n_led
+    shaded[j] = 1
+    if depth == max_depth:
+        alive[j] = 0
+        rays[3][j] = NO_RAY
+        return
+    if light_paths:  # the connection to the light vertex (add_connection), column L
+        y = load_light(light, j)
+        w = 0.0
+        extra = 0.0
+        if y[0]:
+            w, extra = light_estimate(vertex, throughput, y)
+        pend_w[j, n_led] = w
+        pend_tau[j, n_led] = (path_length + extra) / SPEED_OF_LIGHT_M_S
+        if w > 0:
+            o, d, t_max = shadow_ray(vertex[1], y[1][0], y[6])
+            store_ray((shadow[0], shadow[1], shadow[3]), k, o, d, prim)
+            shadow[2][k] = t_max
+            counters[2, j] += 1
+        shaded[j] = 2
+    new_dir, weight, pdf, is_delta = next_direction(surf, vertex[2], (key, p, samples[j], independent), depth)
+    if not (weight > 0 and dot(new_dir, ng) > 0):
+        alive[j] = 0
+        rays[3][j] = NO_RAY
+        return
+    f[j, 0] = throughput * weight
+    f[j, 2] = pdf
+    f[j, 3] = 1.0 if is_delta else 0.0
+    store_vec(f, j, 4, position)
+    origin = vertex[1]
+    direction = divide(new_dir, norm(new_dir))
+    store_vec(f, j, 7, origin)
+    store_vec(f, j, 10, direction)
+    pstate[1][j] = prim
+    store_ray(rays, j, ray_query(origin, direction, depth + 1), to_f32(direction), prim)
+    rays[3][j] = F32_INF
+    counters[1, j] += 1
+
+
+@gpu_kernel
+def wf_resolve(scene, depth, path, pend, occluded, total, contrib):
+    """Stage 4 at ``depth``: each shaded path's unoccluded next-event estimates and connection, as
+    add_next_events and add_connection compute them, into its addends (contrib) and its totals."""
+    j = cuda.grid(1)
+    shaded = path[3]
+    if j >= shaded.shape[0] or shaded[j] == 0:
+        return
+    corr_kinds, corr_table = scene[5], scene[6]
+    nee_w, nee_wg, con_w, con_wg = contrib
+    pend_w, pend_tau = pend
+    n_led = pend_w.shape[1] - 1
+    n_corr = corr_kinds.shape[0]
+    wg = cuda.local.array(GPU_MAX_CHANNELS, np.float64)
+    for c in range(n_corr):
+        wg[c] = 0.0
+    w_sum = 0.0
+    for i in range(n_led):
+        w = 0.0 if occluded[j * (n_led + 1) + i] else pend_w[j, i]
+        tau = pend_tau[j, i]
+        w_sum += w
+        for c in range(n_corr):
+            wg[c] += correlation(corr_kinds[c], corr_table[c], tau) * w
+    k = depth - 1
+    nee_w[k, j] = w_sum
+    total[0, j] += w_sum
+    for c in range(n_corr):
+        nee_wg[k, c, j] = wg[c]
+        total[1 + c, j] += wg[c]
+    if shaded[j] == 2:
+        w = 0.0 if occluded[j * (n_led + 1) + n_led] else pend_w[j, n_led]
+        tau = pend_tau[j, n_led]
+        con_w[depth, j] = w
+        total[0, j] += w
+        for c in range(n_corr):
+            wg_c = correlation(corr_kinds[c], corr_table[c], tau) * w
+            con_wg[depth, c, j] = wg_c
+            total[1 + c, j] += wg_c
+
+
+@gpu_kernel
+def wf_gather(launch, samples, contrib, total, sums):
+    """Stage 5: add the group's paths to the pass's sums, one thread per pixel, its samples in sample order.
+
+    ``launch`` as in :func:`wf_start`; thread i serves pixel order[i] (the pixels of lane 0 include every
+    later lane's). ``sums`` = (nee_w (K, P), nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate
+    (R, J + 2, P)): each pixel's addends arrive in the order trace_pixels adds them on the CPU.
+    """
+    i = cuda.grid(1)
+    order, offsets = launch[0], launch[4]
+    if i >= offsets[1]:
+        return
+    p = order[i]
+    nee_w, nee_wg, con_w, con_wg = contrib
+    pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate = sums
+    n_depth, n_corr = nee_wg.shape[0], nee_wg.shape[1]
+    for lane in range(offsets.shape[0] - 1):
+        if i >= offsets[lane + 1] - offsets[lane]:
+            break
+        j = offsets[lane] + i
+        for k in range(n_depth):
+            pass_nee_w[k, p] += nee_w[k, j]
+            pass_con_w[k, p] += con_w[k, j]
+            for c in range(n_corr):
+                pass_nee_wg[k, c, p] += nee_wg[k, c, j]
+                pass_con_wg[k, c, p] += con_wg[k, c, j]
+        r = samples[j] % replicate.shape[0]
+        for c in range(replicate.shape[1]):
+            replicate[r, c, p] += total[c, j]
