@@ -665,8 +665,6 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
                 else:
                     progress.close()
                 result.workers = worker_timing(reported)
-                for line in timing_lines(result.workers):
-                    log(line)
         finally:
             with signals_deferred() as caught:
                 data.clean_partials()  # folders of workers stopped or lost (no worker of ours writes now)
@@ -712,5 +710,6 @@ def summary(result: RunResult, dataset: str | os.PathLike) -> str:
         lines.append("  retry them with --retry-failed once the cause is fixed")
     if result.interrupted is not None:
         lines.append(result.interrupted.message())
+    lines += timing_lines(result.workers)
     lines.append(f"dataset: {os.fspath(dataset)} (index.jsonl, README.md, frames/)")
     return "\n".join(lines)
