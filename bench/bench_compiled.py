@@ -190,6 +190,11 @@ def main() -> int:
         first = cuda.trace_frame(packed, bvh, width * height, a.spp)
         results["gpu_cold_s"] = time.perf_counter() - start
         runs = [cuda.trace_frame(packed, bvh, width * height, a.spp) for _ in range(a.repeat)]
+        cuda.PROFILE = True  # one more frame with a synchronisation after every stage: where the time goes
+        cuda.STAGE_SECONDS.clear()
+        cuda.trace_frame(packed, bvh, width * height, a.spp)
+        cuda.PROFILE = False
+        results["gpu_stage_ms"] = {k: round(1e3 * v, 2) for k, v in cuda.STAGE_SECONDS.items()}
         results["gpu_one_spp_ms"] = 1e3 * statistics.median(
             cuda.trace_frame(packed, bvh, width * height, 1)["kernel_s"] for _ in range(a.repeat))
         results["gpu_kernel_ms"] = 1e3 * statistics.median(r["kernel_s"] for r in runs)

@@ -4,12 +4,18 @@ Prints warm whole-pipeline times (median of 5), a 1-spp pass, the memory pool, a
 (where host time goes: launches and synchronisation), CPU/GPU agreement at full resolution and the time
 to 1 mm estimated depth error. Needs CuPy and a CUDA GPU: ``python bench/gpu_profile.py``.
 The benchmark beside the peers is ``bench/bench_gpu.py``.
+
+``python bench/gpu_profile.py --post`` prints only the split of the Kinect frame (16 spp) and of one
+1-spp pass into trace and post-trace milliseconds (median of 5 warm renders) with the device allocations
+of each part (a counting CuPy allocator), then exits.
 """
 
 import cProfile
+import importlib
 import io
 import pstats
 import statistics
+import sys
 import time
 
 import cupy as cp
@@ -35,6 +41,58 @@ def timed(n, **kwargs):
 
 scene = demo_scene("room")
 sensor = load_preset("kinect_v2")
+
+
+def post_trace_split(n: int = 5) -> None:
+    """Trace vs post-trace ms and device allocations per render (16 spp, and 1 spp: one pass)."""
+    render_module = importlib.import_module("tofcore.render")
+    pool = cp.get_default_memory_pool()
+    allocations = {"trace": 0, "post": 0}
+    part = ["post"]
+
+    def counting_malloc(size):
+        allocations[part[0]] += 1
+        return pool.malloc(size)
+
+    original = render_module.trace_progressive
+
+    def traced(*args, **kwargs):  # the allocations while the tracer runs count as "trace"
+        passes = original(*args, **kwargs)
+        while True:
+            part[0] = "trace"
+            try:
+                transport = next(passes)
+            except StopIteration:
+                return
+            finally:
+                part[0] = "post"
+            sync()  # the trace's kernels finished before the render reads its clock
+            yield transport
+
+    render_module.trace_progressive = traced
+    cp.cuda.set_allocator(counting_malloc)
+    for spp in (16, 1):
+        render(scene, sensor, spp=spp, max_depth=5, device="gpu")  # warm
+        rows = []
+        for _ in range(n):
+            allocations.update(trace=0, post=0)
+            sync()
+            t = time.perf_counter()
+            frame = render(scene, sensor, spp=spp, max_depth=5, device="gpu")
+            sync()
+            total = time.perf_counter() - t
+            rows.append((total, frame.stats["trace_seconds"], dict(allocations)))
+        total, trace_s, counts = sorted(rows, key=lambda r: r[0])[n // 2]
+        print(f"kinect room {spp:2d} spp: whole {total * 1e3:.1f} ms = trace {trace_s * 1e3:.1f} ms + post-trace "
+              f"{(total - trace_s) * 1e3:.1f} ms; device allocations: trace {counts['trace']}, "
+              f"post-trace {counts['post']}")
+    cp.cuda.set_allocator(pool.malloc)
+    render_module.trace_progressive = original
+
+
+if "--post" in sys.argv:
+    post_trace_split()
+    sys.exit(0)
 print("triangles", scene.triangle_count)
 t = time.perf_counter()
 f = render(scene, sensor, spp=16, max_depth=5, device="gpu")

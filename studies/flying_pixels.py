@@ -53,9 +53,9 @@ def rescatter(frame: tofcore.Frame, sensor: tofcore.Sensor, strength: float, mod
                                    negative_lobe=s.negative_lobe)
         raw = optics.apply_scattering(raw, kernel)
     raw = np.minimum(raw, sensor.readout.full_well_e)
-    dec = decode.decode(raw, modulation or sensor.modulation, min_amplitude_e=sensor.invalid.min_amplitude_e,
-                        saturation_e=sensor.readout.full_well_e, range_m=tuple(sensor.range_m),
-                        unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m)
+    dec = decode.decode(raw, modulation or sensor.modulation, decode.DecodeSettings(
+        min_amplitude_e=sensor.invalid.min_amplitude_e, saturation_e=sensor.readout.full_well_e,
+        range_m=tuple(sensor.range_m), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m))
     return decode.radial_to_z(dec.distance, frame.ray_directions).astype(np.float64)
 
 

@@ -97,7 +97,7 @@ def main() -> None:
            for name, m in (("square 20 MHz", sq20), ("square 30 MHz", sq30), ("sine 20 MHz", si20),
                            ("sine 30 MHz", si30))}
     syn["pulsed, no ambient"] = decode.systematic_error_curve(pulsed, dense[dense < d_max])[0]
-    kin = decode.decode(ideal_raw(kinect_mod, dense, 1000.0), kinect_mod, range_m=(0.0, 18.0))
+    kin = decode.decode(ideal_raw(kinect_mod, dense, 1000.0), kinect_mod, decode.DecodeSettings(range_m=(0.0, 18.0)))
     syn["Kinect v2 (80/16/120 MHz, 3 steps, unwrapped)"] = np.asarray(kin.distance) - dense
 
     # ---------------- rendered sweeps

@@ -12,6 +12,11 @@ arrays in a type that behaves as ``cupy.ndarray`` does where it matters:
   operation (CuPy raises TypeError there too); Python and NumPy scalars mix;
 * reductions return 0-d device arrays, not scalars.
 
+:func:`counting` counts what a real GPU would pay for: device arrays allocated (every new array an
+operation or an upload makes; views are free) and host synchronisations (every value read back:
+``bool()``/``float()``/``int()`` of a device array, ``.item()``, ``.tolist()``, ``.get()``,
+``asnumpy``).
+
 The CUDA kernels of :mod:`tofcore.gpu` cannot run here; tests replace them by
 their NumPy twins through :func:`install` (with a host round trip), so the
 rest of the GPU path is the code that runs on the GPU.
@@ -19,13 +24,46 @@ rest of the GPU path is the code that runs on the GPU.
 
 from __future__ import annotations
 
+import contextlib
 import enum
 import types
+from collections import Counter
 
 import numpy as np
 from numpy.lib.mixins import NDArrayOperatorsMixin
 
 __version__ = "fake"
+
+_COUNTS: list[Counter] = []  # the open counting() blocks
+
+
+@contextlib.contextmanager
+def counting():
+    """Count device arrays allocated (``"arrays"``, of which ``"uploads"``) and host syncs (``"syncs"``)
+    inside the block: ``with counting() as counts: ...; counts["arrays"]``."""
+    counts = Counter(arrays=0, uploads=0, syncs=0)
+    _COUNTS.append(counts)
+    try:
+        yield counts
+    finally:
+        _COUNTS.remove(counts)
+
+
+def _count(key: str) -> None:
+    for counts in _COUNTS:
+        counts[key] += 1
+
+
+@contextlib.contextmanager
+def _one_kernel():
+    """A CUDA kernel's NumPy twin runs inside: its host round trip is not counted, its output is one array."""
+    saved = list(_COUNTS)
+    _COUNTS.clear()
+    try:
+        yield
+    finally:
+        _COUNTS.extend(saved)
+        _count("arrays")
 
 
 class ndarray(NDArrayOperatorsMixin):  # noqa: N801 - mirrors cupy.ndarray
@@ -72,21 +110,26 @@ class ndarray(NDArrayOperatorsMixin):  # noqa: N801 - mirrors cupy.ndarray
         return (_wrap(x) for x in self._a)
 
     def __bool__(self):
+        _count("syncs")
         return bool(self._a)
 
     def __float__(self):
+        _count("syncs")
         return float(self._a)
 
     def __int__(self):
+        _count("syncs")
         return int(self._a)
 
     def __index__(self):
+        _count("syncs")
         return self._a.__index__()
 
     def __repr__(self):
         return f"fakecupy.ndarray({self._a!r})"
 
     def get(self):
+        _count("syncs")
         return self._a.copy()
 
     def __getattr__(self, name):
@@ -98,6 +141,8 @@ class ndarray(NDArrayOperatorsMixin):  # noqa: N801 - mirrors cupy.ndarray
 
         def method(*args, **kwargs):
             where = f"ndarray.{name}"
+            if name in ("item", "tolist"):
+                _count("syncs")
             return _wrap(attr(*_unwrap(args, where), **_unwrap(kwargs, where)))
 
         return method
@@ -121,8 +166,11 @@ def _unwrap(x, where: str):
 
 def _wrap(x):
     if isinstance(x, np.ndarray):
+        if x.base is None:  # a new array, not a view
+            _count("arrays")
         return ndarray(x)
     if isinstance(x, np.generic) and not isinstance(x, (np.str_, np.bytes_)):
+        _count("arrays")
         return ndarray(np.asarray(x))  # CuPy reductions give 0-d device arrays
     if isinstance(x, tuple):
         return type(x)(*(_wrap(v) for v in x)) if hasattr(x, "_fields") else tuple(_wrap(v) for v in x)
@@ -135,7 +183,12 @@ def _wrap(x):
 def asarray(x, dtype=None, order=None):
     """Upload: NumPy arrays are accepted here, as by ``cupy.asarray``."""
     if isinstance(x, ndarray):
-        return ndarray(x._a.astype(dtype, copy=False)) if dtype is not None else x
+        if dtype is None or x._a.dtype == np.dtype(dtype):
+            return x
+        _count("arrays")
+        return ndarray(x._a.astype(dtype))
+    _count("arrays")
+    _count("uploads")
     return ndarray(np.array(x, dtype=dtype, order=order, copy=True))
 
 
@@ -143,7 +196,10 @@ array = asarray
 
 
 def asnumpy(x):
-    return x._a.copy() if isinstance(x, ndarray) else np.asarray(x)
+    if isinstance(x, ndarray):
+        _count("syncs")
+        return x._a.copy()
+    return np.asarray(x)
 
 
 def ascontiguousarray(x, dtype=None):
@@ -185,7 +241,7 @@ def install(monkeypatch) -> None:
 
     from tofcore import backend
     from tofcore.scene import bvh, fresnel
-    from tofcore.sensor import modulation
+    from tofcore.sensor import modulation, noise
     from tofcore.tracer import qmc, rng
     from tofcore.gpu import fused, traversal
 
@@ -204,7 +260,8 @@ def install(monkeypatch) -> None:
         return asarray(tree._run(host(origins), host(directions), host(t_max), host(ignore_prim), True, 1, None))
 
     def uniform(key, pixel, sample, dim):
-        return asarray(rng.uniform(key, asnumpy(pixel), asnumpy(sample), dim))
+        with _one_kernel():
+            return asarray(rng.uniform(key, asnumpy(pixel), asnumpy(sample), dim))
 
     def scrambled_2d(key, pixel, sample, dim):
         return tuple(asarray(v) for v in qmc.scrambled_2d(key, asnumpy(pixel), asnumpy(sample), dim))
@@ -214,7 +271,9 @@ def install(monkeypatch) -> None:
 
     def twin(numpy_function):  # the kernel's NumPy twin, through a host round trip
         def run(*args, **kwargs):
-            return asarray(numpy_function(*(asnumpy(a) if isinstance(a, ndarray) else a for a in args), **kwargs))
+            with _one_kernel():
+                return asarray(numpy_function(*(asnumpy(a) if isinstance(a, ndarray) else a for a in args),
+                                              **kwargs))
         return run
 
     monkeypatch.setattr(traversal, "intersect", intersect)
@@ -225,3 +284,4 @@ def install(monkeypatch) -> None:
     monkeypatch.setattr(fused, "fresnel_dielectric", twin(fresnel.fresnel_dielectric))
     monkeypatch.setattr(fused, "fresnel_conductor", twin(fresnel.fresnel_conductor))
     monkeypatch.setattr(fused, "square_correlation", twin(modulation.square_correlation))
+    monkeypatch.setattr(fused, "poisson", twin(noise.poisson))

@@ -10,7 +10,7 @@ import pytest
 
 import tofcore
 from tofcore import LED, Camera, Material, Scene
-from tofcore.sensor.decode import decode
+from tofcore.sensor.decode import DecodeSettings, decode
 from tofcore.output.frame import Reason
 from tofcore.sensor.modulation import Modulation, ideal_raw
 from tofcore.sensor.presets import load_preset
@@ -107,7 +107,7 @@ SINE = Modulation(kind="cw_sine", frequencies_hz=(80e6,))
 def test_distance_exactly_at_and_at_ten_times_the_ambiguity_distance():
     d_amb = SINE.ambiguity_distances_m()[0]
     raw = ideal_raw(SINE, np.array([d_amb, 10 * d_amb, 10.5 * d_amb]), signal_e=1e4, ambient_e=100.0)
-    out = decode(raw, SINE, range_m=(0.0, d_amb))
+    out = decode(raw, SINE, DecodeSettings(range_m=(0.0, d_amb)))
     assert np.isfinite(out.distance[:2]).all()
     # A round trip of exactly n ambiguity distances aliases to 0 (or d_amb, the same phase) to 1e-9 m.
     assert (np.minimum(out.distance[:2], d_amb - out.distance[:2]) < 1e-6).all()
@@ -119,7 +119,7 @@ def test_120_mhz_phase_at_100_m():
     mod = Modulation(kind="cw_sine", frequencies_hz=(120e6,))
     d_amb = mod.ambiguity_distances_m()[0]
     d = np.array([100.0, 100.0 + 1e-5])
-    out = decode(ideal_raw(mod, d, signal_e=1e4), mod, range_m=(0.0, d_amb))
+    out = decode(ideal_raw(mod, d, signal_e=1e4), mod, DecodeSettings(range_m=(0.0, d_amb)))
     expected = np.mod(d, d_amb)
     np.testing.assert_allclose(out.distance, expected, atol=1e-6)
 
@@ -128,7 +128,8 @@ def test_pulse_delay_exactly_t0_and_2t0():
     t0 = 25e-9
     mod = Modulation(kind="pulsed", pulse_width_s=t0, exposure_s=(1e-3,), duty_cycle=0.1)
     d_t0, d_2t0 = C * t0 / 2, C * t0
-    out = decode(ideal_raw(mod, np.array([d_t0, d_2t0]), signal_e=1e4), mod, range_m=(0.0, d_t0 * 1.001))
+    out = decode(ideal_raw(mod, np.array([d_t0, d_2t0]), signal_e=1e4), mod,
+                 DecodeSettings(range_m=(0.0, d_t0 * 1.001)))
     np.testing.assert_allclose(out.distance[0], d_t0, rtol=1e-7)   # all light in C2: d = d_max (float32 output)
     assert out.reason[1] == Reason.NO_RETURN                        # the pulse missed both buckets
     assert np.isnan(out.distance[1])
@@ -136,6 +137,6 @@ def test_pulse_delay_exactly_t0_and_2t0():
 
 def test_saturation_is_flagged():
     raw = ideal_raw(SINE, np.array([1.0, 1.0]), signal_e=np.array([1e4, 1e6]))
-    out = decode(np.minimum(raw, 2e5), SINE, saturation_e=2e5)
+    out = decode(np.minimum(raw, 2e5), SINE, DecodeSettings(saturation_e=2e5))
     assert out.reason.tolist() == [Reason.VALID, Reason.SATURATED]
     assert np.isnan(out.distance[1]) and np.isfinite(out.amplitude).all()

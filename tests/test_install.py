@@ -122,7 +122,7 @@ def test_wheel_holds_every_module_the_presets_and_the_commands(wheel):
 
 def test_tofcore_help_and_presets(run, venv):
     out = _ok(run("tofcore", "--help"))
-    assert out.startswith("usage: tofcore ") and "{render,presets}" in out and "example:" in out
+    assert out.startswith("usage: tofcore ") and "{render,presets,warmup}" in out and "example:" in out
     assert "tofcore render --scene" in _ok(run("tofcore", "render", "--help"))
     names = [line.split()[0] for line in _ok(run("tofcore", "presets")).splitlines() if line.strip()]
     assert names == sorted(p.stem for p in (REPO / "presets").glob("*.toml"))

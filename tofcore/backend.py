@@ -268,6 +268,7 @@ KERNELS: dict[str, str] = {
     "tofcore.scene.fresnel.fresnel_dielectric": "tofcore.gpu.fused:fresnel_dielectric",
     "tofcore.scene.fresnel.fresnel_conductor": "tofcore.gpu.fused:fresnel_conductor",
     "tofcore.sensor.modulation.square_correlation": "tofcore.gpu.fused:square_correlation",
+    "tofcore.sensor.noise.poisson": "tofcore.gpu.fused:poisson",
     "tofcore.scene.bvh.BVH.intersect": "tofcore.gpu.traversal:intersect",
     "tofcore.scene.bvh.BVH.occluded": "tofcore.gpu.traversal:occluded",
 }

@@ -85,9 +85,15 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     """
     means, counts = transport.replicate_means()         # (R, J+2, H, W), (R, H, W)
     replicates = means.shape[0]
-    raw = namespace(means).stack([raw_images(m[1:1 + n_raw], m[-1], sensor) for m in means])
+    xp = namespace(means)
+    r, _, h, w = means.shape
+    # all replicates as one (J, R·H, W) image stack: one raw_images call instead of R
+    stacked = raw_images(means[:, 1:1 + n_raw].transpose(1, 0, 2, 3).reshape(n_raw, r * h, w),
+                         means[:, -1].reshape(r * h, w), sensor)
+    raw = stacked.reshape(n_raw, r, h, w).transpose(1, 0, 2, 3)             # (R, J, H, W)
     centre = raw.mean(axis=0)
-    grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation, sensor.processing.unwrap_weights)
+    grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation, sensor.processing.unwrap_weights,
+                                      check=False)
     if sensor.processing.phasor_filter == "none" or not sensor.modulation.is_cw:
         deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
     else:
@@ -95,16 +101,15 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     var = (deviation**2).sum(axis=0) / (replicates * (replicates - 1))
     ok = (counts.min(axis=0) >= 1) & (np.abs(grad).sum(axis=0) > 0)
     if sensor.modulation.is_cw:
-        xp = namespace(var)
         unambiguous = sensor.modulation.unambiguous_range_m()
-        d = xp.asarray(np.nan_to_num(transport.first_hit.distance_m, nan=0.5 * unambiguous))
+        d = np.nan_to_num(backend.device_copy(xp, transport.first_hit.distance_m), nan=0.5 * unambiguous)
         sd = np.sqrt(var)
         with np.errstate(divide="ignore", invalid="ignore"):
             wrap = _normal_tail(d / sd) + _normal_tail((unambiguous - d) / sd)
         var = var + np.where(sd > 0, wrap, 0.0) * unambiguous**2
     sigma = np.where(ok, np.sqrt(var), np.nan)
     if sensor.depth_output == "z":
-        sigma = sigma * namespace(sigma).asarray(np.abs(sensor.camera.pixel_center_directions()[..., 2]))
+        sigma = sigma * np.abs(backend.device_copy(xp, sensor.camera.pixel_center_directions())[..., 2])
     return sigma
 
 
@@ -123,24 +128,30 @@ def _filtered_deviation(delta, centre, sensor):
     """
     mod = sensor.modulation
     xp = namespace(delta)
-    unwrap_w = decoding.unwrap_weights(decoding.decode_cw(centre, mod), mod, sensor.processing.unwrap_weights)
-    deviation = 0.0
+    unwrap_w = decoding.unwrap_weights(decoding.decode_cw(centre, mod, check=False), mod,
+                                       sensor.processing.unwrap_weights)
+    mean_re, mean_im, d_re, d_im = [], [], [], []   # per frequency: Z̄ (H, W) and δZ (R, H, W)
     start = 0
-    for i, (f_hz, n) in enumerate(zip(mod.frequencies_hz, mod.phase_steps)):
+    for n in mod.phase_steps:
         theta = 2.0 * np.pi * np.arange(n) / n
         cos_k = xp.asarray(np.round(np.cos(theta), 15))[:, None, None]
         sin_k = xp.asarray(np.round(np.sin(theta), 15))[:, None, None]
-        mean_re = (cos_k * centre[start:start + n]).sum(axis=0)
-        mean_im = (sin_k * centre[start:start + n]).sum(axis=0)
-        weights = processing.bilateral_weights(mean_re, mean_im, min_amplitude=sensor.invalid.min_amplitude_e * n / 2)
-        z_re, z_im = processing.neighbour_mean(mean_re, weights), processing.neighbour_mean(mean_im, weights)
-        d_re = processing.neighbour_mean((cos_k[None] * delta[:, start:start + n]).sum(axis=1), weights)
-        d_im = processing.neighbour_mean((sin_k[None] * delta[:, start:start + n]).sum(axis=1), weights)
-        norm2 = z_re * z_re + z_im * z_im
-        d_phase = np.where(norm2 > 0, (z_re * d_im - z_im * d_re) / np.where(norm2 > 0, norm2, 1.0), 0.0)
-        deviation = deviation + unwrap_w[i] * SPEED_OF_LIGHT_M_S / (4.0 * np.pi * f_hz) * d_phase
+        mean_re.append((cos_k * centre[start:start + n]).sum(axis=0))
+        mean_im.append((sin_k * centre[start:start + n]).sum(axis=0))
+        d_re.append((cos_k[None] * delta[:, start:start + n]).sum(axis=1))
+        d_im.append((sin_k[None] * delta[:, start:start + n]).sum(axis=1))
         start += n
-    return deviation
+    # all frequencies at once: (F, H, W) phasors, (R, F, H, W) deviations, weights (3, 3, F, H − 2, W − 2)
+    mean_re, mean_im = xp.stack(mean_re), xp.stack(mean_im)
+    min_amplitude = sensor.invalid.min_amplitude_e * xp.asarray(np.asarray(mod.phase_steps, np.float64) / 2)
+    weights = processing.bilateral_weights(mean_re, mean_im, min_amplitude=min_amplitude.reshape(-1, 1, 1))
+    z_re, z_im = processing.neighbour_mean(mean_re, weights), processing.neighbour_mean(mean_im, weights)
+    d_re = processing.neighbour_mean(xp.stack(d_re, axis=1), weights)
+    d_im = processing.neighbour_mean(xp.stack(d_im, axis=1), weights)
+    norm2 = z_re * z_re + z_im * z_im
+    d_phase = np.where(norm2 > 0, (z_re * d_im - z_im * d_re) / np.where(norm2 > 0, norm2, 1.0), 0.0)
+    f_hz = xp.asarray(np.asarray(mod.frequencies_hz, np.float64))[:, None, None]
+    return (unwrap_w * SPEED_OF_LIGHT_M_S / (4.0 * np.pi * f_hz) * d_phase).sum(axis=1)
 
 
 def _normal_tail(x):
@@ -199,8 +210,9 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     transient_bin_m, transient_max_m : also keep the transient (time-resolved) histogram, bins of this
         width (m of optical path length LED → … → lens) up to this length; ``frame.transient`` is then
         (H, W, B) mean radiance per bin, bin b centred at (b + ½)·width (:meth:`Transport.transient`).
-    device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering and decoding on the GPU;
-        the random sensor noise is drawn on the CPU so that both devices give the same frame) or
+    device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering, noise and decoding on the
+        GPU; the noise is counter-based, :class:`~tofcore.sensor.noise.NoiseStream`, so both devices give
+        the same frame) or
         ``"auto"`` (the GPU when usable, else the CPU). The frame's arrays are NumPy either way;
         ``frame.stats["device"]`` records where it ran and, for ``"auto"``, why it fell back.
         GPU failures (no CuPy, no device, out of memory, CUDA errors) raise
@@ -266,11 +278,12 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
     correlations = sensor.modulation.correlation_bank()
     n_raw = len(correlations)
     reference = _checked_reference(s.reference_distance, sensor)
+    setup = frame_setup(sensor, plan, device.xp)
     log: list[dict] = []
     sigma = None  # the latest per-pixel depth error estimate, which the next pass's allocation reads
+    counts = None  # host copy of the transport's samples per pixel after the latest pass
 
     def allocate(transport: Transport, samples_per_pixel: int):
-        counts = backend.to_host(transport.sample_count)
         return None if sigma is None else allocate_samples(sigma, counts, samples_per_pixel)
 
     progressive = s.every_pass or s.time_budget_s is not None or s.target_error_m is not None
@@ -286,19 +299,20 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
         for transport in passes:
             elapsed = time.perf_counter() - start
             sigma = backend.to_host(depth_standard_error(transport, sensor, n_raw))
-            row = _convergence_row(transport, sensor, n_raw, sigma, reference, elapsed)
+            counts = backend.to_host(transport.sample_count)
+            row = _convergence_row(transport, sensor, n_raw, sigma, counts, reference, elapsed, setup)
             log.append(row)
             if s.progress is not None:
                 s.progress(dict(row, spp_max=s.spp))
             done = _stop(transport.stats.passes >= n_passes, row, s)
             if not (done or s.every_pass):
                 continue
-            frame = _frame(transport, sensor, pose, plan, s.seed, n_raw)
+            frame = _frame(transport, sensor, pose, plan, s.seed, n_raw, setup)
             frame.metadata["objects"] = object_table(scene)
             if transport.transient_sum is not None:
                 frame.transient = backend.to_host(transport.transient()).astype(np.float32)
                 frame.transient_bin_m = float(transport.transient_bin_m)
-            _add_render_stats(frame, transport, sigma, dict(s.__dict__, final=done, trace_seconds=elapsed,
+            _add_render_stats(frame, transport, sigma, counts, dict(s.__dict__, final=done, trace_seconds=elapsed,
                                                             seconds=time.perf_counter() - start, plan=plan.as_dict(),
                                                             convergence=list(log), device=device.as_dict()))
             yield frame
@@ -318,15 +332,14 @@ def _checked_reference(reference_distance, sensor) -> np.ndarray | None:
     return reference
 
 
-def _convergence_row(transport: Transport, sensor, n_raw: int, sigma: np.ndarray, reference,
-                     elapsed: float) -> dict:
+def _convergence_row(transport: Transport, sensor, n_raw: int, sigma: np.ndarray, counts: np.ndarray, reference,
+                     elapsed: float, setup: FrameSetup) -> dict:
     """One row of the convergence log: pass, seconds, spp, RMS estimated depth error, rays (and RMS error)."""
-    counts = backend.to_host(transport.sample_count)
     seen = np.isfinite(transport.first_hit.distance_m) & np.isfinite(sigma)
     row = {"pass": transport.stats.passes, "seconds": elapsed, "spp": int(round(counts.mean())),
            "est_depth_error_m": _rms(sigma[seen]), "rays": transport.stats.rays}
     if reference is not None:
-        current = backend.to_host(_decode_clean(transport, sensor, transport.max_depth, n_raw).distance)
+        current = backend.to_host(_decode_clean(transport, sensor, n_raw, setup).distance)
         both = np.isfinite(current) & np.isfinite(reference)
         row["rms_error_m"] = _rms(current[both] - reference[both])
     return row
@@ -346,9 +359,9 @@ def _stop(last_pass: bool, row: dict, s: RenderSettings) -> bool:
     return done
 
 
-def _add_render_stats(frame: Frame, transport: Transport, sigma: np.ndarray, run: dict) -> None:
-    """The render's own error, samples and statistics on the frame (``run``: the settings and timings)."""
-    counts = backend.to_host(transport.sample_count)
+def _add_render_stats(frame: Frame, transport: Transport, sigma: np.ndarray, counts: np.ndarray, run: dict) -> None:
+    """The render's own error, samples (``counts``, host) and statistics on the frame (``run``: the settings
+    and timings)."""
     cam_shape = frame.depth.shape
     frame.render_error = sigma.astype(np.float32)
     frame.samples = counts.reshape(cam_shape).astype(np.int32)
@@ -405,17 +418,45 @@ def _rms(values: np.ndarray) -> float | None:
     return float(np.sqrt(np.mean(np.square(values)))) if values.size else None
 
 
-def _decode_clean(transport: Transport, sensor, max_k: int, n_raw: int):
-    """Decode the noise-free, scatter-free raw images of bounces ≤ max_k (ground-truth decompositions).
+@dataclass(frozen=True, eq=False)
+class FrameSetup:
+    """What every pass and frame of one render shares after the trace, checked and built once per render."""
+
+    camera: decoding.DecodeSettings  # the camera's decoding: thresholds, range, unwrapping, phasor filter
+    clean: decoding.DecodeSettings   # ground truth: no thresholds, no range limit, no spatial filter
+    psf: np.ndarray | None           # the lens-scattering kernel (host; uploaded once), None without scattering
+
+
+def frame_setup(sensor, plan: Plan, xp=np) -> FrameSetup:
+    """The :class:`FrameSetup` of ``sensor`` for a render on the array module ``xp``."""
+    full_well = sensor.readout.full_well_e
+    scale = _range_scale(sensor)
+    camera = decoding.DecodeSettings(
+        min_amplitude_e=sensor.invalid.min_amplitude_e, min_amplitude_snr=sensor.invalid.min_amplitude_snr,
+        read_noise_e=sensor.noise.read_noise_e, gain_noise=sensor.noise.gain_noise,
+        saturation_e=full_well if sensor.invalid.invalidate_saturated else None, range_m=tuple(sensor.range_m),
+        range_scale=None if scale is None else xp.asarray(scale),
+        unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m, unwrap_weights=sensor.processing.unwrap_weights,
+        phasor_filter=sensor.processing.phasor_filter)
+    clean = decoding.DecodeSettings(unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
+                                    unwrap_weights=sensor.processing.unwrap_weights)
+    psf = None
+    if plan.scattering:
+        s = sensor.scattering
+        psf = optics.psf_kernel(s.model, strength=s.strength, radius_px=s.radius_px,
+                                negative_lobe=s.negative_lobe, sigmas_px=s.sigmas_px, weights=s.weights)
+    return FrameSetup(camera=camera, clean=clean, psf=psf)
+
+
+def _decode_clean(transport: Transport, sensor, n_raw: int, setup: FrameSetup):
+    """Decode the noise-free, scatter-free raw images of all bounces (the convergence log's current depth).
 
     The camera's frequency weights apply; its spatial phasor filter does not (ground truth is per pixel)."""
-    raw = raw_images(transport.correlation(max_k)[:n_raw], transport.ambient(), sensor)
-    return decoding.decode(raw, sensor.modulation, min_amplitude_e=0.0, saturation_e=None,
-                           range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
-                           unwrap_weights=sensor.processing.unwrap_weights)
+    raw = raw_images(transport.correlation()[:n_raw], transport.ambient(), sensor)
+    return decoding.decode(raw, sensor.modulation, setup.clean, check=False)
 
 
-def _decode_clean_per_k(transport: Transport, sensor, n_raw: int):
+def _decode_clean_per_k(transport: Transport, sensor, n_raw: int, setup: FrameSetup):
     """(K, H, W) noise-free decoded distance for every max path length k = 1..K, decoded as one batch.
 
     The raw images of bounces ≤ k are the running sums over the bounce buckets; the K images are
@@ -428,9 +469,7 @@ def _decode_clean_per_k(transport: Transport, sensor, n_raw: int):
     k, h, w = cumulative.shape[1:]
     ambient = xp.broadcast_to(transport.ambient(), (k, h, w)).reshape(k * h, w)
     raw = raw_images(cumulative.reshape(-1, k * h, w), ambient, sensor)
-    decoded = decoding.decode(raw, sensor.modulation, min_amplitude_e=0.0, saturation_e=None,
-                              range_m=(0.0, np.inf), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
-                              unwrap_weights=sensor.processing.unwrap_weights)
+    decoded = decoding.decode(raw, sensor.modulation, setup.clean, check=False)
     return decoded.distance.reshape(k, h, w)
 
 
@@ -442,53 +481,64 @@ def _range_scale(sensor) -> np.ndarray | None:
     return np.abs(sensor.camera.pixel_center_directions()[..., 2]).astype(np.float64)
 
 
-def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int, n_raw: int) -> Frame:
+def _read_back(images: dict) -> dict:
+    """The frame's device images on the host in one copy (float32, stacked; one synchronisation instead of
+    one per image); NumPy images pass through."""
+    xp = namespace(*images.values())
+    if xp is np:
+        return images
+    planes = {name: image.reshape((-1,) + image.shape[-2:]) for name, image in images.items()}
+    host = backend.to_host(xp.concatenate([p.astype(np.float32) for p in planes.values()]))
+    out, start = {}, 0
+    for name, p in planes.items():
+        out[name] = host[start:start + p.shape[0]].reshape(images[name].shape)
+        start += p.shape[0]
+    return out
+
+
+def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int, n_raw: int,
+           setup: FrameSetup) -> Frame:
+    """The frame of the transport so far, computed on the transport's device and read back once."""
     mod = sensor.modulation
     cam = sensor.camera
     raw = raw_images(transport.correlation()[:n_raw], transport.ambient(), sensor)
-    if plan.scattering:
-        s = sensor.scattering
-        kernel = optics.psf_kernel(s.model, strength=s.strength, radius_px=s.radius_px,
-                                   negative_lobe=s.negative_lobe, sigmas_px=s.sigmas_px, weights=s.weights)
-        raw = optics.apply_scattering(raw, kernel)
-    noise_rng = np.random.default_rng(np.random.SeedSequence([seed, 0x70F]))  # apart from the tracer's stream
     xp = namespace(raw)
-    if plan.raw_noise:  # drawn on the CPU from one stream, so both devices give the same frame
-        noisy = noise_models.add_raw_noise(backend.to_host(raw), read_noise_e=sensor.noise.read_noise_e, rng=noise_rng)
+    if setup.psf is not None:
+        raw = optics.apply_scattering(raw, setup.psf)
+    stream = noise_models.NoiseStream.from_seed(seed)  # apart from the tracer's; the same numbers on every device
+    if plan.raw_noise:
+        raw = noise_models.add_raw_noise(raw, read_noise_e=sensor.noise.read_noise_e, rng=stream, check=False)
         if sensor.noise.gain_noise > 0:  # Keller's β (eq. 3.1), after the shot and read noise of the same stream
-            noisy = noise_models.keller_amplitude_noise(noisy, alpha_e=0.0, beta=sensor.noise.gain_noise, rng=noise_rng)
-        raw = xp.asarray(noisy)
-    full_well = sensor.readout.full_well_e
-    raw = np.minimum(raw, full_well)
-    decoded = decoding.decode(raw, mod, min_amplitude_e=sensor.invalid.min_amplitude_e,
-                              min_amplitude_snr=sensor.invalid.min_amplitude_snr,
-                              read_noise_e=sensor.noise.read_noise_e, gain_noise=sensor.noise.gain_noise,
-                              saturation_e=full_well if sensor.invalid.invalidate_saturated else None,
-                              range_m=tuple(sensor.range_m), unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
-                              unwrap_weights=sensor.processing.unwrap_weights,
-                              phasor_filter=sensor.processing.phasor_filter, range_scale=_range_scale(sensor))
-    decoded = decoding.Decoded(**{k: backend.to_host(v) for k, v in vars(decoded).items()})
-    raw = backend.to_host(raw)
-    distance = np.asarray(decoded.distance, dtype=np.float64)
-    valid = np.asarray(decoded.valid, dtype=bool)
+            raw = noise_models.keller_amplitude_noise(raw, alpha_e=0.0, beta=sensor.noise.gain_noise, rng=stream,
+                                                      check=False)
+    raw = np.minimum(raw, sensor.readout.full_well_e)
+    decoded = decoding.decode(raw, mod, setup.camera, check=False)
+    distance = decoded.distance.astype(np.float64)
     if plan.distance_noise:
         # Eq. 2.43 takes the signal A and the non-signal charge B; the decoded offset (eq. 2.41) is A + B
         # for the ideal raw images simulated here (tests/tofcore/test_noise.py derives the mapping).
-        amplitude = np.asarray(decoded.amplitude, dtype=np.float64)
-        sigma = noise_models.li_sigma_m(amplitude, np.asarray(decoded.offset, np.float64) - amplitude,
+        amplitude = decoded.amplitude.astype(np.float64)
+        sigma = noise_models.li_sigma_m(amplitude, decoded.offset.astype(np.float64) - amplitude,
                                         max(mod.frequencies_hz), sensor.noise.modulation_contrast)
-        distance = np.where(valid, noise_models.add_distance_noise(distance, sigma, noise_rng), np.nan)
-
+        distance = np.where(decoded.valid, noise_models.add_distance_noise(distance, sigma, stream, check=False),
+                            np.nan)
     directions = cam.pixel_center_directions()
-    per_k = backend.to_host(_decode_clean_per_k(transport, sensor, n_raw).astype(np.float32))
+    depth = decoding.radial_to_z(distance, backend.device_copy(xp, directions)) if sensor.depth_output == "z" \
+        else distance.astype(np.float32)
+    images = _read_back({
+        "depth": depth, "distance": distance.astype(np.float32), "amplitude": decoded.amplitude,
+        "offset": decoded.offset, "intensity": decoded.intensity, "confidence": decoded.confidence,
+        "reason": decoded.reason, "raw": raw.astype(np.float32),
+        "per_k": _decode_clean_per_k(transport, sensor, n_raw, setup).astype(np.float32)})
+    reason = images["reason"].astype(np.uint8)
+    per_k = images["per_k"]
     gt = transport.first_hit.distance_m
     as_depth = (lambda d: decoding.radial_to_z(d, directions)) if sensor.depth_output == "z" else (lambda d: d)
     return Frame(
-        depth=np.asarray(as_depth(distance), np.float32), distance=distance.astype(np.float32),
-        amplitude=np.asarray(decoded.amplitude, np.float32), offset=np.asarray(decoded.offset, np.float32),
-        intensity=np.asarray(decoded.intensity, np.float32), valid=valid,
-        reason=np.asarray(decoded.reason, dtype=np.uint8),
-        confidence=np.asarray(decoded.confidence, np.float32), raw=raw.astype(np.float32),
+        depth=images["depth"], distance=images["distance"],
+        amplitude=images["amplitude"], offset=images["offset"],
+        intensity=images["intensity"], valid=reason == int(decoding.Reason.VALID), reason=reason,
+        confidence=images["confidence"], raw=images["raw"],
         raw_labels=tuple(mod.raw_labels()), gt_distance=gt.astype(np.float32),
         gt_depth=np.asarray(as_depth(gt), np.float32), direct_distance=per_k[0], distance_per_k=per_k,
         ray_directions=directions, object_id=transport.first_hit.object_id, depth_output=sensor.depth_output,

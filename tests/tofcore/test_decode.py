@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from tofcore.sensor.decode import (
-    decode, decode_cw, decode_pulsed, default_unwrap_tolerance_m, phase_amplitude_offset, radial_to_z,
+    DecodeSettings, decode, decode_cw, decode_pulsed, default_unwrap_tolerance_m, phase_amplitude_offset, radial_to_z,
     systematic_error_curve, unwrap,
 )
 from tofcore.errors import ConfigError
@@ -123,7 +123,7 @@ def test_disagreeing_frequencies_fail_to_unwrap():
     assert out.reason[0] == Reason.UNWRAPPING_FAILED and np.isnan(out.distance[0]) and out.confidence[0] == 0
     assert unwrap(decode_cw(raw, m), m).residual[0] > 2 * default_unwrap_tolerance_m(m)
     # a larger tolerance accepts it with a low confidence
-    loose = decode(raw, m, unwrap_tolerance_m=0.5)
+    loose = decode(raw, m, DecodeSettings(unwrap_tolerance_m=0.5))
     assert loose.valid[0] and 0 < loose.confidence[0] < 0.75
 
 
@@ -187,7 +187,7 @@ def _reason_fixture():
 
 def test_reasons_and_no_nan_outside_invalid_pixels():
     m, raw = _reason_fixture()
-    out = decode(raw, m, min_amplitude_e=10.0, saturation_e=20_000.0, range_m=(0.5, 8.0))
+    out = decode(raw, m, DecodeSettings(min_amplitude_e=10.0, saturation_e=20_000.0, range_m=(0.5, 8.0)))
     expected = [Reason.VALID, Reason.NO_RETURN, Reason.NO_RETURN, Reason.LOW_AMPLITUDE, Reason.SATURATED,
                 Reason.OUT_OF_RANGE, Reason.VALID]
     assert out.reason.tolist() == expected and out.reason.dtype == np.uint8
@@ -203,7 +203,7 @@ def test_reasons_and_no_nan_outside_invalid_pixels():
 def test_reason_precedence():
     m, raw = _reason_fixture()
     # a saturated and weak pixel is SATURATED; a weak, out-of-range pixel is LOW_AMPLITUDE
-    out = decode(raw, m, min_amplitude_e=1e6, saturation_e=20_000.0, range_m=(0.5, 1.0))
+    out = decode(raw, m, DecodeSettings(min_amplitude_e=1e6, saturation_e=20_000.0, range_m=(0.5, 1.0)))
     assert out.reason.tolist() == [Reason.LOW_AMPLITUDE, Reason.NO_RETURN, Reason.NO_RETURN, Reason.LOW_AMPLITUDE,
                                    Reason.SATURATED, Reason.LOW_AMPLITUDE, Reason.LOW_AMPLITUDE]
 
@@ -211,7 +211,7 @@ def test_reason_precedence():
 def test_pulsed_reasons():
     m = Modulation(kind="pulsed", pulse_width_s=50e-9)
     raw = np.array([[0.0, 300.0, 0.0], [0.0, 100.0, 400.0]])
-    out = decode(raw, m, range_m=(0.0, 7.0))
+    out = decode(raw, m, DecodeSettings(range_m=(0.0, 7.0)))
     assert out.reason.tolist() == [Reason.NO_RETURN, Reason.VALID, Reason.OUT_OF_RANGE]  # Q1 = 0: d = d_max
     np.testing.assert_allclose(out.distance[1], C * 50e-9 / 2 * 0.25, rtol=1e-6)
     assert np.isfinite(out.amplitude).all() and out.amplitude.tolist() == [0.0, 400.0, 400.0]
@@ -224,9 +224,22 @@ def test_decode_rejects_bad_inputs():
     with pytest.raises(ConfigError, match="raw must be finite"):
         decode(np.full((4, 2), np.nan), m)
     with pytest.raises(ConfigError, match=r"range_m must satisfy 0 <= min < max .*got \(5.0, 1.0\)"):
-        decode(np.ones((4, 2)), m, range_m=(5.0, 1.0))
+        decode(np.ones((4, 2)), m, DecodeSettings(range_m=(5.0, 1.0)))
     with pytest.raises(ConfigError, match="tolerance_m must be > 0"):
-        decode(np.ones((4, 2)), m, unwrap_tolerance_m=0.0)
+        decode(np.ones((4, 2)), m, DecodeSettings(unwrap_tolerance_m=0.0))
+
+
+def test_decode_settings_are_checked_once_and_name_the_field():
+    with pytest.raises(ConfigError,
+                       match=r"DecodeSettings: phasor_filter must be one of \['none', 'bilateral'\], got 'box'"):
+        DecodeSettings(phasor_filter="box")
+    with pytest.raises(ConfigError, match=r"DecodeSettings: min_amplitude_e must be a finite number >= 0, got -1.0"):
+        DecodeSettings(min_amplitude_e=-1.0)
+    with pytest.raises(ConfigError, match=r"DecodeSettings: saturation_e must be > 0 \(electrons\) or None, got 0"):
+        DecodeSettings(saturation_e=0)
+    with pytest.raises(ConfigError, match="decode: settings must be a DecodeSettings, got dict"):
+        decode(np.ones((4, 2)), Modulation(kind="cw_sine", frequencies_hz=(20e6,)), {"range_m": (0.0, 1.0)})
+    assert DecodeSettings().replace(range_m=[0.5, 2]).range_m == (0.5, 2.0)
 
 
 # ------------------------------------------------------------------ z-depth
@@ -404,15 +417,15 @@ def test_range_applies_to_the_scaled_distance():
     m = Modulation(kind="cw_sine", frequencies_hz=(80e6, 16e6, 120e6), phase_steps=(3, 3, 3))
     raw = ideal_raw(m, np.array([0.52, 0.52]), 1000.0)
     scale = np.array([1.0, np.cos(np.radians(20.0))])
-    radial = decode(raw, m, range_m=(0.5, 4.5))
-    z = decode(raw, m, range_m=(0.5, 4.5), range_scale=scale)
+    radial = decode(raw, m, DecodeSettings(range_m=(0.5, 4.5)))
+    z = decode(raw, m, DecodeSettings(range_m=(0.5, 4.5), range_scale=scale))
     assert radial.valid.tolist() == [True, True]
     assert z.valid.tolist() == [True, False] and z.reason[1] == Reason.OUT_OF_RANGE
 
 
 # ------------------------------------------------------------------ noise-floor amplitude threshold
 from tofcore.sensor.decode import amplitude_noise_e, decode  # noqa: E402
-from tofcore.sensor.noise import add_raw_noise, keller_amplitude_noise  # noqa: E402
+from tofcore.sensor.noise import NoiseStream, add_raw_noise, keller_amplitude_noise  # noqa: E402
 
 
 @pytest.mark.parametrize("k", [2.0, 3.0])
@@ -421,11 +434,11 @@ def test_unmodulated_pixels_pass_the_noise_floor_threshold_at_the_rayleigh_rate(
     is Rayleigh(σ_A) with σ_A = √(2v/N), v = B + σ_read² + (βB)², so exp(−k²/2) of the pixels reach k σ_A.
     Tolerance: 5 binomial standard deviations of the 200 000-pixel share."""
     mod = Modulation(kind="cw_sine", frequencies_hz=(80e6,), phase_steps=(3,))
-    rng = np.random.default_rng(7)
+    rng = NoiseStream.from_seed(7)
     n, ambient_e, read_e, beta = 200_000, 4000.0, 20.0, 0.012
     raw = add_raw_noise(np.full((3, n), ambient_e), read_noise_e=read_e, rng=rng)
     raw = keller_amplitude_noise(raw, alpha_e=0.0, beta=beta, rng=rng)
-    out = decode(raw, mod, min_amplitude_snr=k, read_noise_e=read_e, gain_noise=beta)
+    out = decode(raw, mod, DecodeSettings(min_amplitude_snr=k, read_noise_e=read_e, gain_noise=beta))
     expected = np.exp(-k * k / 2.0)
     passed = np.mean(out.reason != Reason.LOW_AMPLITUDE)
     assert abs(passed - expected) < 5.0 * np.sqrt(expected * (1.0 - expected) / n), (passed, expected)
@@ -437,5 +450,6 @@ def test_unmodulated_pixels_pass_the_noise_floor_threshold_at_the_rayleigh_rate(
 def test_noise_floor_threshold_keeps_a_signal_well_above_it():
     mod = Modulation(kind="cw_sine", frequencies_hz=(80e6,), phase_steps=(3,))
     raw = ideal_raw(mod, np.array([1.0]), 3000.0, 4000.0)  # σ_A ≈ 75 e-
-    assert decode(raw, mod, min_amplitude_snr=3.0, read_noise_e=20.0, gain_noise=0.012).valid.all()
-    assert not decode(raw, mod, min_amplitude_snr=30.0, read_noise_e=20.0, gain_noise=0.012).valid.any()
+    assert decode(raw, mod, DecodeSettings(min_amplitude_snr=3.0, read_noise_e=20.0, gain_noise=0.012)).valid.all()
+    assert not decode(raw, mod, DecodeSettings(min_amplitude_snr=30.0, read_noise_e=20.0,
+                                               gain_noise=0.012)).valid.any()

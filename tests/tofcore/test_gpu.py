@@ -325,3 +325,43 @@ def test_compiled_gpu_sums_with_uneven_sample_counts_equal_cpu_sums(monkeypatch)
         x, y = getattr(ref, name), backend.to_host(getattr(got, name))
         close = np.isclose(y, x, rtol=1e-9, atol=1e-12 * np.abs(x).max(initial=0.0))
         assert close.mean() >= 1 - FRAME_TOLERANCE["max_disagreeing"], name
+
+
+# ------------------------------------------------------------------ device work after the trace
+POST_TRACE_BUDGET = {
+    # Counted on the CuPy stand-in for a Kinect v2 frame (3 frequencies, bilateral filter, scattering, raw
+    # noise), everything after the trace: error estimate, convergence row, raw images, scattering, noise,
+    # decoding, ground truth per path length, the read-back. When set (2026-11-25): 744 device arrays and
+    # 3 host syncs (main before: 2,057 arrays and 21 syncs, the noise drawn on the host; the unwrap loop
+    # alone ~1,000 arrays). Now: error estimate ~400, decoding ~270 (camera and per-k ground truth), noise
+    # ~35 (the Poisson counts one fused kernel, tofcore.gpu.fused.poisson). The syncs: the error estimate
+    # and the sample counts per pass (the adaptive allocation runs on the host), the frame's one stacked
+    # read-back. The budget leaves ~20 % for changes.
+    "arrays": 900,
+    "syncs": 3,
+}
+
+
+def test_post_trace_device_work_per_frame_is_bounded(monkeypatch):
+    """Device arrays and host synchronisations after the trace, per frame, within :data:`POST_TRACE_BUDGET`
+    (an upper bound with margin, not a timing; ``bench/bench_post.py`` prints them for the full frame)."""
+    import importlib
+
+    fakecupy.install(monkeypatch)
+    render_module = importlib.import_module("tofcore.render")
+    sensor = small(load_preset("kinect_v2"))
+    scene = tofcore.demo_scene("room")
+    transport = tofcore.trace(scene, sensor.camera, sensor.leds, world_from_sensor=tofcore.suggested_pose(scene),
+                              correlations=sensor.modulation.correlation_bank(), spp=4, max_depth=3, device="gpu")
+
+    def stored(*args, **kwargs):
+        yield transport
+
+    monkeypatch.setattr(render_module, "trace_progressive", stored)
+    with fakecupy.counting() as counts:
+        frame = render(scene, sensor, spp=4, max_depth=3, device="gpu")
+    print(f"\npost-trace on the fake GPU: {counts['arrays']} device arrays ({counts['uploads']} uploads), "
+          f"{counts['syncs']} host syncs")
+    assert isinstance(frame.depth, np.ndarray) and frame.valid.any()
+    assert counts["syncs"] <= POST_TRACE_BUDGET["syncs"]
+    assert counts["arrays"] <= POST_TRACE_BUDGET["arrays"]

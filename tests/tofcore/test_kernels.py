@@ -23,7 +23,7 @@ import pytest
 import tofcore
 from tofcore import backend
 from tofcore.scene import fresnel
-from tofcore.sensor import modulation
+from tofcore.sensor import modulation, noise
 from tofcore.tracer import qmc, rng
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
@@ -79,6 +79,12 @@ def _cases(name: str) -> list[tuple[tuple, int | None]]:
         tau = np.concatenate([g.uniform(0, 2e-7, 1_000_000), [0.0, 1 / 80e6, -1e-9]])
         return [((tau, f, o, d), (0,)) for f, o, d in ((80e6, 0.0, 0.5), (16e6, 1 / 3, 0.5), (120e6, 2 / 3, 0.3),
                                                        (30e6, 0.75, 0.7))]
+    if name.endswith("noise.poisson"):
+        g = np.random.default_rng(5)  # every branch: inversion, PTRS near 10 (most rejections), Gaussian
+        mean = np.concatenate([g.uniform(0.0, 10.0, 300_000), g.uniform(10.0, 12.0, 300_000),
+                               np.exp(g.uniform(np.log(12.0), np.log(1e12), 400_000)),
+                               [0.0, 9.999999999999998, 10.0, 1e10, 1e300 ** 0 * 3e15]])
+        return [((mean, noise.NoiseStream.from_seed(seed).key, dim), (0,)) for seed, dim in ((0, 0), (7, 64))]
     if name.endswith("BVH.intersect"):
         bvh, o, d, _ = _random_rays()
         return [((bvh, o, d), (1, 2))]
@@ -117,7 +123,7 @@ NAMES = sorted(backend.KERNELS)
 def test_every_reference_with_a_device_twin_is_in_the_table():
     """No stray marks: every function that dispatches to a kernel is a key of the table (walks the modules)."""
     marked = set()
-    for module in (rng, qmc, fresnel, modulation, importlib.import_module("tofcore.scene.bvh")):
+    for module in (rng, qmc, fresnel, modulation, noise, importlib.import_module("tofcore.scene.bvh")):
         for _, obj in inspect.getmembers(module):
             candidates = [obj] + ([m for _, m in inspect.getmembers(obj)] if inspect.isclass(obj) else [])
             marked |= {c.device_twin for c in candidates if isinstance(getattr(c, "device_twin", None), str)}

@@ -58,7 +58,8 @@ def test_frequency_weighted_decode_is_exact_without_noise():
     d = np.array([0.6, 1.7, 3.9, 4.4])
     raw = ideal_raw(mod, d, 1000.0)
     for weights in ("inverse_variance", "frequency"):
-        np.testing.assert_allclose(decode.decode(raw, mod, unwrap_weights=weights).distance, d, atol=1e-5)
+        decoded = decode.decode(raw, mod, decode.DecodeSettings(unwrap_weights=weights))
+        np.testing.assert_allclose(decoded.distance, d, atol=1e-5)
 
 
 def test_bad_processing_names_the_field_and_choices():

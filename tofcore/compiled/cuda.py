@@ -46,7 +46,23 @@ the Kinect v2 frame peaked at 2.3 GiB on the device with 768 MiB)."""
 
 MAX_GROUP_PATHS = 1 << 20
 
+STAGE_SECONDS: dict[str, float] = {}
+"""Seconds per stage summed over the passes traced while :data:`PROFILE` is on (benchmarks only: each stage
+then ends with a device synchronisation)."""
+
+PROFILE = False
+
 _MODULE = None
+
+
+def _stage_done(name: str, since: float) -> float:
+    """With :data:`PROFILE` on, wait for the device and add the time since ``since`` to stage ``name``."""
+    if not PROFILE:
+        return since
+    cuda.synchronize()
+    now = time.perf_counter()
+    STAGE_SECONDS[name] = STAGE_SECONDS.get(name, 0.0) + now - since
+    return now
 
 
 def load_kernels():
@@ -171,22 +187,31 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
         dev_path, dev_pstate, dev_rays, dev_shadow = k(path), k(pstate), k(rays), k(shadow)
         dev_light, dev_total, dev_counters = k((light, total, counters))
         dev_pend, dev_contrib = k(pend), k(contrib)
+        t = _stage_done("allocate", time.perf_counter())
         launch(module.wf_start, n, scene, settings, group, dev_path, dev_pstate, dev_rays, k(light_rays),
                dev_counters)
+        t = _stage_done("start", t)
         if settings[3]:
             h = bvh.intersect(light_rays[0], light_rays[1])
+            t = _stage_done("trace", t)
             launch(module.wf_light, n, scene, settings, dev_path, k((h.prim, h.u, h.v)), dev_light)
+            t = _stage_done("light", t)
         # Every slot is traced every depth: an ended path's ray and a shadow slot without a test have t_max −1,
         # which the traversal rejects at the root — no compaction, no host synchronisation to count them.
         for depth in range(1, k_max + 1):
             h = bvh.intersect(rays[0], rays[1], rays[3], ignore_prim=rays[2])
+            t = _stage_done("trace", t)
             launch(module.wf_shade, n, scene, settings, depth, dev_path, dev_pstate, k((h.prim, h.u, h.v)),
                    dev_light, dev_pend, dev_shadow, dev_rays, dev_counters)
+            t = _stage_done("shade", t)
             occluded = bvh.occluded(shadow[0], shadow[1], shadow[2], ignore_prim=shadow[3])
+            t = _stage_done("trace shadows", t)
             launch(module.wf_resolve, n, scene, depth, dev_path, dev_pend, _kernel_array(occluded), dev_total,
                    dev_contrib)
+            t = _stage_done("resolve", t)
         launch(module.wf_gather, int(offsets[1]), group, k(path)[1], dev_contrib, dev_total, dev_sums)
         rays_counted += counters.sum(axis=1)
+        _stage_done("gather", t)
     nee_w, nee_wg, con_w, con_wg, replicate = sums
     out.signal_sum += con_w          # the reference's order: connections, then next-event estimates
     out.signal_sum += nee_w

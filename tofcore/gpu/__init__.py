@@ -16,6 +16,7 @@ module                      kernel                                          NumP
 :mod:`.fused`               dielectric and conductor Fresnel                ``fresnel.fresnel_dielectric`` /
                                                                             ``fresnel.fresnel_conductor``
 :mod:`.fused`               square-wave correlation g_j(τ)                  ``modulation.square_correlation``
+:mod:`.fused`               Poisson shot-noise counts (inversion / PTRS)    ``noise.poisson``
 ==========================  ==============================================  ==================================
 
 The kernels take their shared constants (BVH record layout, hash constants, replicate count) from the

@@ -11,13 +11,19 @@ each bit-identical to its NumPy twin (integer arithmetic; float operations in th
   the Kinect room frame), 11 and 12 operations each in NumPy.
 * :func:`square_correlation` — :func:`tofcore.sensor.modulation.square_correlation`, per raw image and
   contribution: 7 operations in NumPy.
+* :func:`poisson` — :func:`tofcore.sensor.noise.poisson`, the sensor's shot noise: inversion (45 terms) or
+  PTRS (up to 24 rejection rounds) per element; as masked array code on a device ~1,900 operations a frame.
+  Integer hashing is exact; ``exp``, ``log`` and ``cos`` are CUDA's (≤ 1–2 ulp from glibc's), so a count
+  can differ from NumPy's only where a comparison falls within a few ulp (never seen on 10⁶ counts).
 """
 
 from __future__ import annotations
 
 import functools
+import math
 
 from .. import backend
+from ..sensor import noise as _noise
 from ..tracer import qmc
 from ..tracer import rng as _rng
 
@@ -199,3 +205,89 @@ def square_correlation(tau_s, f_hz: float, offset_fraction: float, duty: float):
     cp = backend.namespace(tau_s)
     return _square_correlation_kernel(cp)(cp.asarray(tau_s, cp.float64), float(f_hz), float(offset_fraction),
                                           0.25 + 0.5 * duty, max(0.0, duty - 0.5), min(duty, 0.5), float(duty))
+
+
+@functools.lru_cache(maxsize=None)
+def _poisson_kernel(cp):
+    c = {k: f"{int(getattr(_rng, k)):#x}ULL" for k in ("_GOLDEN", "_MIX_PIXEL", "_MIX_DIM", "_M1", "_M2")}
+    table = ", ".join(repr(float(v)) for v in _noise._LOG_FACTORIAL)
+    preamble = f"""
+    __device__ double tofcore_u_open(unsigned long long key, long long i, long long dim) {{
+        unsigned long long x = key ^ ((unsigned long long)i * {c['_MIX_PIXEL']})
+                                   ^ ((unsigned long long)dim * {c['_MIX_DIM']});
+        for (int round = 0; round < 2; ++round) {{
+            x += {c['_GOLDEN']};
+            x = (x ^ (x >> 30)) * {c['_M1']};
+            x = (x ^ (x >> 27)) * {c['_M2']};
+            x = x ^ (x >> 31);
+        }}
+        return (double)(x >> 11) * (1.0 / 9007199254740992.0) + {2.0 ** -54!r};
+    }}
+    __device__ double tofcore_log_factorial(double k) {{
+        const double table[16] = {{{table}}};
+        if (k < 16.0) return table[(int)k];
+        const double x = k + 1.0;
+        const double inv = 1.0 / x;
+        const double inv2 = inv * inv;
+        return (x - 0.5) * log(x) - x + {_noise.HALF_LOG_2PI!r}
+               + inv * ({1.0 / 12.0!r} - inv2 * ({1.0 / 360.0!r} - inv2 * ({1.0 / 1260.0!r} - inv2 / 1680.0)));
+    }}
+    """
+    body = f"""
+    const long long first = dim0;
+    double count = 0.0;
+    bool pending = false;
+    if (lam < {_noise.PTRS_MIN_MEAN!r}) {{
+        const double u = tofcore_u_open(key, i, first);
+        double p = exp(-lam), cdf = p;
+        for (int k = 1; k <= {_noise.INVERSION_TERMS}; ++k) {{
+            count = count + (u > cdf ? 1.0 : 0.0);
+            p = p * lam / (double)k;
+            cdf = cdf + p;
+        }}
+    }} else if (lam < {_noise.GAUSSIAN_MIN_MEAN!r}) {{
+        const double b = 0.931 + 2.53 * sqrt(lam);
+        const double a = -0.059 + 0.02483 * b;
+        const double log_inv_alpha = log(1.1239 + 1.1328 / (b - 3.4));
+        const double v_r = 0.9277 - 3.6224 / (b - 2.0);
+        const double log_lam = log(lam);
+        pending = true;
+        for (int r = 0; r < {_noise.PTRS_ROUNDS} && pending; ++r) {{
+            const double u = tofcore_u_open(key, i, first + 1 + 2 * r) - 0.5;
+            const double v = tofcore_u_open(key, i, first + 2 + 2 * r);
+            const double us = 0.5 - fabs(u);
+            double k = floor((2.0 * a / us + b) * u + lam + 0.43);
+            k = k < -1.0 ? -1.0 : k;
+            bool accepted = us >= 0.07 && v <= v_r;
+            if (!accepted && k >= 0.0 && !(us < 0.013 && v > us)) {{
+                const double hat = log(v) + log_inv_alpha - log(a / (us * us) + b);
+                accepted = hat <= -lam + k * log_lam - tofcore_log_factorial(k);
+            }}
+            if (accepted) {{
+                count = k < 0.0 ? 0.0 : k;
+                pending = false;
+            }}
+        }}
+    }} else {{
+        pending = true;
+    }}
+    if (pending) {{
+        const long long z_dim = first + 1 + 2 * {_noise.PTRS_ROUNDS};
+        const double u1 = tofcore_u_open(key, i, z_dim), u2 = tofcore_u_open(key, i, z_dim + 1);
+        const double z = sqrt(-2.0 * log(u1)) * cos(2.0 * {math.pi!r} * u2);
+        const double x = floor(lam + sqrt(lam) * z + 0.5);
+        count = x < 0.0 ? 0.0 : x;
+    }}
+    counts = count;
+    """
+    return cp.ElementwiseKernel("float64 lam, uint64 key, int64 dim0", "float64 counts", body,
+                                "tofcore_poisson", preamble=preamble, options=_NO_FMA)
+
+
+def poisson(mean, key, dim: int, *, check: bool = True):
+    """:func:`tofcore.sensor.noise.poisson` for a CuPy array of means: the same loop per element, one kernel."""
+    cp = backend.namespace(mean)
+    lam = cp.ascontiguousarray(cp.asarray(mean, cp.float64))
+    if check and not bool(cp.all(lam >= 0.0) & cp.all(cp.isfinite(lam))):
+        raise _noise.ConfigError("poisson: mean must be finite and >= 0")
+    return _poisson_kernel(cp)(lam, cp.uint64(int(key)), int(dim))

@@ -3,7 +3,7 @@
 Inputs are raw images (R, *shape) in electrons, ordered as :meth:`Modulation.raw_labels`; maths is float64,
 image outputs of :func:`decode` are float32. Invalid pixels are NaN in ``distance`` and carry a
 :class:`Reason`; amplitude, offset and intensity stay finite everywhere (they are
-measurements, not depths).
+measurements, not depths). The settings of :func:`decode` are one :class:`DecodeSettings`:
 
 ==========================  ====  =========  ==================================================================
 name                        unit  default    meaning
@@ -26,13 +26,14 @@ name                        unit  default    meaning
 ==========================  ====  =========  ==================================================================
 
 Reason precedence (the first that applies wins): SATURATED, NO_RETURN, LOW_AMPLITUDE, UNWRAPPING_FAILED,
-OUT_OF_RANGE (parameters of :func:`decode`) — from "data clipped" (saturation flattens every bucket to full
+OUT_OF_RANGE (fields of :class:`DecodeSettings`) — from "data clipped" (saturation flattens every bucket to full
 well, which would otherwise read as no modulation, i.e. no return), through "no data" and "too weak to
 trust", to "a trusted distance that the sensor does not report".
 """
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from dataclasses import dataclass
@@ -49,6 +50,11 @@ NO_RETURN_RELATIVE_AMPLITUDE = 1e-9
 """A ≤ this · B counts as A = 0 (atan2(0, 0)): far above float64 round-off of the DFT sums (~1e-16 N B),
 far below any physical modulation contrast."""
 MAX_UNWRAP_CANDIDATES = 10_000
+UNWRAP_BLOCK_VALUES = {"numpy": 1 << 18, "device": 1 << 24}
+"""Most values (N candidates × F frequencies × pixels) of one unwrapping temporary; larger images are
+unwrapped in blocks of pixels. NumPy: 2 MiB of float64, temporaries that stay in the caches (a 512 × 424
+Kinect v2 frame is 38 blocks); a device: 128 MiB, few launches and a bounded footprint (the frame is one
+block, its five ground-truth images together three)."""
 
 
 class Reason(enum.IntEnum):
@@ -128,7 +134,7 @@ def phase_amplitude_offset(samples: np.ndarray) -> tuple[np.ndarray, np.ndarray,
     return phase, 2.0 / n * np.hypot(real, imag), q.mean(axis=0)
 
 
-def decode_cw(raw: np.ndarray, modulation: Modulation) -> CwDecoding:
+def decode_cw(raw: np.ndarray, modulation: Modulation, *, check: bool = True) -> CwDecoding:
     """Phase, amplitude, offset and wrapped distance of every frequency of a CW sensor.
 
     Parameters
@@ -141,8 +147,9 @@ def decode_cw(raw: np.ndarray, modulation: Modulation) -> CwDecoding:
     Per frequency :func:`phase_amplitude_offset`, then eq. 2.39 and 2.34:
     :math:`d_f = c \\varphi / (4 \\pi f) \\in [0, c/(2f))`. A square source gives the same formulas with
     the systematic error of a triangle correlation sampled at N points (see :func:`systematic_error_curve`).
+    ``check``: that ``raw`` is finite, as in :func:`decode`.
     """
-    raw = _check_raw(raw, modulation)
+    raw = _check_raw(raw, modulation, finite=check)
     if not modulation.is_cw:
         raise ConfigError(f"decode_cw: modulation.kind must be 'cw_square' or 'cw_sine', got {modulation.kind!r}")
     results = []
@@ -208,22 +215,40 @@ def unwrap(cw: CwDecoding, modulation: Modulation, *, tolerance_m: float | None 
     wrapped = cw.wrapped_distance
     xp = namespace(wrapped)
     weight = unwrap_weights(cw, modulation, weights)
-
-    best_r2 = xp.full(wrapped.shape[1:], np.inf)
-    best_d = xp.zeros(wrapped.shape[1:])
-    for n in range(n_candidates):
-        candidate = wrapped[h] + n * d_amb[h]
-        unwrapped = np.empty_like(wrapped)
-        for i in range(wrapped.shape[0]):
-            unwrapped[i] = wrapped[i] + np.round((candidate - wrapped[i]) / d_amb[i]) * d_amb[i]
-        mean = (weight * unwrapped).sum(axis=0)
-        r2 = (weight * (unwrapped - mean) ** 2).sum(axis=0)
-        better = r2 < best_r2
-        best_r2 = np.where(better, r2, best_r2)
-        best_d = np.where(better, mean, best_d)
+    n_freq, shape = wrapped.shape[0], wrapped.shape[1:]
+    wrapped, weight = wrapped.reshape(n_freq, -1), weight.reshape(n_freq, -1)
+    offsets = xp.asarray(np.arange(n_candidates) * d_amb[h])[:, None]      # (N, 1): n d_amb,h
+    d_amb_i = xp.asarray(d_amb)[None, :, None]                             # (1, F, 1)
+    pixels = wrapped.shape[1]
+    block = max(1, UNWRAP_BLOCK_VALUES["numpy" if xp is np else "device"] // (n_candidates * n_freq))
+    if pixels <= block:
+        best_r2, best_d = _best_wrap(wrapped, weight, offsets, d_amb_i, h)
+    else:
+        best_r2, best_d = xp.empty(pixels), xp.empty(pixels)
+        for first in range(0, pixels, block):
+            part = slice(first, first + block)
+            best_r2[part], best_d[part] = _best_wrap(wrapped[:, part], weight[:, part], offsets, d_amb_i, h)
+    best_r2, best_d = best_r2.reshape(shape), best_d.reshape(shape)
     residual = np.sqrt(best_r2)
     return Unwrapped(distance=np.mod(best_d, unambiguous), residual=residual,
                      confidence=np.clip(1.0 - residual / tolerance_m, 0.0, 1.0), failed=residual > tolerance_m)
+
+
+def _best_wrap(wrapped, weight, offsets, d_amb_i, h: int):
+    """(r², D̄) of the best candidate of :func:`unwrap` for pixels (F, P), all N candidates at once.
+
+    Arrays (N, F, P): every candidate's nearest wrap of every frequency; the candidate axis is
+    reduced by ``argmin``, whose first minimum is the first candidate with the smallest r² (as a
+    scan over the candidates with a strict ``<`` would pick). Inputs are finite (from raw images that
+    :func:`decode` checked), so no r² is NaN.
+    """
+    xp = namespace(wrapped)
+    candidate = wrapped[h][None] + offsets                                   # (N, P)
+    unwrapped = wrapped[None] + np.round((candidate[:, None] - wrapped[None]) / d_amb_i) * d_amb_i
+    mean = (weight[None] * unwrapped).sum(axis=1)                            # (N, P)
+    r2 = (weight[None] * (unwrapped - mean[:, None]) ** 2).sum(axis=1)
+    best = xp.argmin(r2, axis=0)[None]
+    return xp.take_along_axis(r2, best, axis=0)[0], xp.take_along_axis(mean, best, axis=0)[0]
 
 
 def unwrap_weights(cw: CwDecoding, modulation: Modulation, scheme: str = "inverse_variance") -> np.ndarray:
@@ -244,7 +269,8 @@ def unwrap_weights(cw: CwDecoding, modulation: Modulation, scheme: str = "invers
     return weight / weight.sum(axis=0)
 
 
-def distance_gradient(raw: np.ndarray, modulation: Modulation, weights: str = "inverse_variance") -> np.ndarray:
+def distance_gradient(raw: np.ndarray, modulation: Modulation, weights: str = "inverse_variance", *,
+                      check: bool = True) -> np.ndarray:
     r"""(R, *shape) derivative of the decoded distance with respect to each raw image, metres per electron.
 
     The linearisation of :func:`decode` at ``raw`` — what a small error in the raw images (Monte Carlo
@@ -260,8 +286,9 @@ def distance_gradient(raw: np.ndarray, modulation: Modulation, weights: str = "i
     \partial\varphi_i/\partial Q_{i,k}`. Pulsed (eq. 2.36): :math:`d = s\,Q_2/(Q_1+Q_2)`, s = c t0/2:
     :math:`\partial d/\partial Q_1 = -s Q_2/(Q_1+Q_2)^2`, :math:`\partial d/\partial Q_2 = s Q_1/(Q_1+Q_2)^2`.
     Zero where a frequency has no modulated signal (A ≤ 10⁻⁹ B, as decode's NO_RETURN test).
+    ``check``: that ``raw`` is finite, as in :func:`decode`.
     """
-    raw = _check_raw(raw, modulation)
+    raw = _check_raw(raw, modulation, finite=check)
     xp = namespace(raw)
     grad = xp.zeros(raw.shape)
     if not modulation.is_cw:
@@ -270,7 +297,7 @@ def distance_gradient(raw: np.ndarray, modulation: Modulation, weights: str = "i
         grad[0] = np.where(total > 0, -scale * raw[1], 0.0)
         grad[1] = np.where(total > 0, scale * raw[0], 0.0)
         return grad
-    weight = unwrap_weights(decode_cw(raw, modulation), modulation, weights)
+    weight = unwrap_weights(decode_cw(raw, modulation, check=False), modulation, weights)
     start = 0
     for i, (f_hz, n) in enumerate(zip(modulation.frequencies_hz, modulation.phase_steps)):
         theta = 2.0 * np.pi * np.arange(n) / n
@@ -289,7 +316,7 @@ def distance_gradient(raw: np.ndarray, modulation: Modulation, weights: str = "i
 
 
 # ------------------------------------------------------------------ pulsed
-def decode_pulsed(raw: np.ndarray, modulation: Modulation) -> np.ndarray:
+def decode_pulsed(raw: np.ndarray, modulation: Modulation, *, check: bool = True) -> np.ndarray:
     """Distance of a two-bucket pulsed sensor, eq. 2.36: d = (c t0 / 2) · Q2 / (Q1 + Q2).
 
     Parameters
@@ -304,9 +331,9 @@ def decode_pulsed(raw: np.ndarray, modulation: Modulation) -> np.ndarray:
     Notes
     -----
     Ambient light adds the same charge a to both buckets and biases the ratio:
-    :math:`d = \\tfrac{c t_0}{2} (S\\tau/t_0 + a)/(S + 2a)` (SPEC §3, thesis §6.4).
+    :math:`d = \\tfrac{c t_0}{2} (S\\tau/t_0 + a)/(S + 2a)` (SPEC §3, thesis §6.4). ``check``: as in :func:`decode`.
     """
-    raw = _check_raw(raw, modulation)
+    raw = _check_raw(raw, modulation, finite=check)
     if modulation.is_cw:
         raise ConfigError(f"decode_pulsed: modulation.kind must be 'pulsed', got {modulation.kind!r}")
     total = raw[0] + raw[1]
@@ -334,52 +361,92 @@ def amplitude_noise_e(offset: np.ndarray, steps: int, read_noise_e: float = 0.0,
     return np.sqrt(2.0 / steps * (b + read_noise_e ** 2 + (gain_noise * b) ** 2))
 
 
-def decode(raw: np.ndarray, modulation: Modulation, *, min_amplitude_e: float = 0.0,
-           min_amplitude_snr: float = 0.0, read_noise_e: float = 0.0, gain_noise: float = 0.0,
-           saturation_e: float | None = None, range_m: tuple[float, float] = (0.0, math.inf),
-           unwrap_tolerance_m: float | None = None, unwrap_weights: str = "inverse_variance",
-           phasor_filter: str = "none", range_scale: np.ndarray | None = None) -> Decoded:
+@dataclass(frozen=True, eq=False)
+class DecodeSettings:
+    """What :func:`decode` does besides the maths: thresholds, range, unwrapping, the camera's filter.
+
+    Fields as in the module docstring's table; checked once, here (``ConfigError`` naming the field).
+    """
+
+    min_amplitude_e: float = 0.0
+    min_amplitude_snr: float = 0.0
+    read_noise_e: float = 0.0
+    gain_noise: float = 0.0
+    saturation_e: float | None = None
+    range_m: tuple[float, float] = (0.0, math.inf)
+    range_scale: np.ndarray | None = None
+    unwrap_tolerance_m: float | None = None
+    unwrap_weights: str = "inverse_variance"
+    phasor_filter: str = "none"
+
+    def __post_init__(self) -> None:
+        for name in ("min_amplitude_e", "min_amplitude_snr", "read_noise_e", "gain_noise"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float, np.number)) and not isinstance(value, bool)
+                    and 0.0 <= value < math.inf):
+                raise ConfigError(f"DecodeSettings: {name} must be a finite number >= 0, got {value!r}")
+        if self.saturation_e is not None and not (isinstance(self.saturation_e, (int, float, np.number))
+                                                  and self.saturation_e > 0):
+            raise ConfigError(f"DecodeSettings: saturation_e must be > 0 (electrons) or None, "
+                              f"got {self.saturation_e!r}")
+        object.__setattr__(self, "range_m", _check_range(self.range_m))
+        tolerance = self.unwrap_tolerance_m
+        if tolerance is not None and not (isinstance(tolerance, (int, float, np.number)) and tolerance > 0):
+            raise ConfigError(f"DecodeSettings: unwrap_tolerance_m must be > 0 (metres) or None, got {tolerance!r}")
+        check_choice(self.unwrap_weights, UNWRAP_WEIGHTS, "DecodeSettings", "unwrap_weights")
+        check_choice(self.phasor_filter, PHASOR_FILTERS, "DecodeSettings", "phasor_filter")
+
+    def replace(self, **changes) -> DecodeSettings:
+        """A copy with ``changes`` (checked again)."""
+        return dataclasses.replace(self, **changes)
+
+
+def decode(raw: np.ndarray, modulation: Modulation, settings: DecodeSettings | None = None, *,
+           check: bool = True) -> Decoded:
     """Decode raw images into radial distance, amplitude, offset, intensity, confidence and validity.
 
     Parameters
     ----------
     raw : (R, *shape) raw images in electrons, ordered as ``modulation.raw_labels()``.
     modulation : the sensor's :class:`Modulation`.
-    min_amplitude_e, min_amplitude_snr, read_noise_e, gain_noise, saturation_e, range_m, unwrap_tolerance_m,
-        unwrap_weights, phasor_filter, range_scale : see the module docstring table; the filter works on the last two axes (an image) of a CW sensor, its
-        amplitude threshold is ``min_amplitude_e``.
+    settings : :class:`DecodeSettings` (default: all defaults). The phasor filter works on the last two axes
+        (an image) of a CW sensor; its amplitude threshold is ``min_amplitude_e``.
+    check : check that ``raw`` is finite (a read-back on a GPU); a render, whose raw images are finite by
+        construction, passes False.
 
     Returns
     -------
     :class:`Decoded`; reasons in the precedence of the module docstring.
     """
-    raw = _check_raw(raw, modulation)
-    range_min, range_max = _check_range(range_m)
-    if saturation_e is not None and not saturation_e > 0:
-        raise ConfigError(f"decode: saturation_e must be > 0 (electrons) or None, got {saturation_e!r}")
-    check_choice(phasor_filter, PHASOR_FILTERS, "decode", "phasor_filter")
+    s = DecodeSettings() if settings is None else settings
+    if not isinstance(s, DecodeSettings):
+        raise ConfigError(f"decode: settings must be a DecodeSettings, got {type(s).__name__}")
+    raw = _check_raw(raw, modulation, finite=check)
+    range_min, range_max = s.range_m
+    xp = namespace(raw)
     if modulation.is_cw:
-        cw = decode_cw(raw, modulation)
-        if phasor_filter == "bilateral":
-            cw = filtered_phases(cw, modulation, min_amplitude_e)
-        result = unwrap(cw, modulation, tolerance_m=unwrap_tolerance_m, weights=unwrap_weights)
+        cw = decode_cw(raw, modulation, check=False)
+        if s.phasor_filter == "bilateral":
+            cw = filtered_phases(cw, modulation, s.min_amplitude_e)
+        result = unwrap(cw, modulation, tolerance_m=s.unwrap_tolerance_m, weights=s.unwrap_weights)
         h = int(np.argmax(modulation.frequencies_hz))
         distance, amplitude, offset = result.distance, cw.amplitude[h], cw.offset[h]
         confidence, unwrap_failed = result.confidence, result.failed
         no_return = np.any(cw.amplitude <= NO_RETURN_RELATIVE_AMPLITUDE * cw.offset, axis=0)
-        noise_floor = min_amplitude_snr * amplitude_noise_e(offset, modulation.phase_steps[h], read_noise_e, gain_noise)
-        low_amplitude = (amplitude < min_amplitude_e) | (amplitude < noise_floor)
+        noise_floor = s.min_amplitude_snr * amplitude_noise_e(offset, modulation.phase_steps[h], s.read_noise_e,
+                                                              s.gain_noise)
+        low_amplitude = (amplitude < s.min_amplitude_e) | (amplitude < noise_floor)
     else:
-        distance = decode_pulsed(raw, modulation)
+        distance = decode_pulsed(raw, modulation, check=False)
         amplitude = raw[0] + raw[1]
         offset = 0.5 * amplitude
         no_return = ~(amplitude > 0)
-        low_amplitude = amplitude < min_amplitude_e
-        confidence = namespace(raw).ones(amplitude.shape)
-        unwrap_failed = namespace(raw).zeros(amplitude.shape, dtype=bool)
-    saturated = (np.any(raw >= saturation_e, axis=0) if saturation_e is not None
-                 else namespace(raw).zeros(amplitude.shape, dtype=bool))
-    ranged = distance if range_scale is None else distance * namespace(distance).asarray(range_scale)
+        low_amplitude = amplitude < s.min_amplitude_e
+        confidence = xp.ones(amplitude.shape)
+        unwrap_failed = xp.zeros(amplitude.shape, dtype=bool)
+    saturated = (np.any(raw >= s.saturation_e, axis=0) if s.saturation_e is not None
+                 else xp.zeros(amplitude.shape, dtype=bool))
+    ranged = distance if s.range_scale is None else distance * xp.asarray(s.range_scale)
     with np.errstate(invalid="ignore"):  # NaN distances of no-return pixels compare False
         out_of_range = ~((ranged >= range_min) & (ranged <= range_max))
     reason = _first_reason([(saturated, Reason.SATURATED), (no_return, Reason.NO_RETURN),
@@ -451,12 +518,13 @@ def systematic_error_curve(modulation: Modulation, distances_m: np.ndarray) -> n
 
 
 # ------------------------------------------------------------------ checks
-def _check_raw(raw: np.ndarray, modulation: Modulation) -> np.ndarray:
+def _check_raw(raw: np.ndarray, modulation: Modulation, *, finite: bool = True) -> np.ndarray:
+    """``raw`` as float64 with its shape checked; and that it is finite (a read-back on a GPU) if ``finite``."""
     raw = asarray(raw, dtype=np.float64)
     if raw.ndim < 1 or raw.shape[0] != modulation.raw_count:
         raise ConfigError(f"decode: raw must have {modulation.raw_count} raw images on axis 0 "
                           f"({', '.join(modulation.raw_labels())}), got shape {raw.shape}")
-    if not np.isfinite(raw).all():
+    if finite and not bool(np.isfinite(raw).all()):
         raise ConfigError("decode: raw must be finite electrons, got a NaN or inf value")
     return raw
 
@@ -465,7 +533,7 @@ def _check_range(range_m: tuple[float, float]) -> tuple[float, float]:
     try:
         range_min, range_max = (float(x) for x in range_m)
     except (TypeError, ValueError):
-        raise ConfigError(f"decode: range_m must be (min, max) in metres, got {range_m!r}") from None
+        raise ConfigError(f"DecodeSettings: range_m must be (min, max) in metres, got {range_m!r}") from None
     if not 0.0 <= range_min < range_max:
-        raise ConfigError(f"decode: range_m must satisfy 0 <= min < max (metres), got {range_m!r}")
+        raise ConfigError(f"DecodeSettings: range_m must satisfy 0 <= min < max (metres), got {range_m!r}")
     return range_min, range_max

@@ -25,24 +25,57 @@ parameter                  unit  meaning
 ``beta``                   1     Keller's β ≥ 0: noise proportional to the raw value
 =========================  ====  ==============================================================
 
-All randomness comes from the caller's ``numpy.random.Generator``: the same
-generator state gives the same noise.
+All randomness comes from a :class:`NoiseStream`: counter-based, every number
+the hash of (key, element index, draw) (:mod:`tofcore.tracer.rng`), so one seed
+gives the same noise on the CPU and on the GPU, and the same stream state gives
+the same noise.
 """
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 
-from ..backend import asarray
+from ..backend import asarray, device_twin, namespace
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..errors import ConfigError
+from ..tracer import rng as counter_rng
+
+_DIMS_PER_DRAW = 64
+"""Hash dimensions each draw of a stream owns (a Poisson draw uses 1 + 2 × 24 rounds + 2 = 51)."""
 
 
-def _check_rng(where: str, rng) -> None:
-    if not isinstance(rng, np.random.Generator):
-        raise ConfigError(f"{where}: rng must be a numpy.random.Generator, got {rng!r}")
+@dataclass
+class NoiseStream:
+    """Counter-based random numbers for sensor noise, the same on every device.
+
+    Every draw (:meth:`uniforms`) takes the next block of hash dimensions; within it, the number of
+    element i of an array is :func:`tofcore.tracer.rng.uniform` of (key, i, 0, dimension). So a
+    value depends on the key, the order of the draws and the element's flat index only: not on the
+    device, the chunking, or which other elements are drawn.
+    """
+
+    key: np.uint64
+    draws: int = 0
+
+    @classmethod
+    def from_seed(cls, seed: int) -> NoiseStream:
+        """The sensor-noise stream of a render with ``seed``, apart from the tracer's (its own key)."""
+        if not isinstance(seed, (int, np.integer)) or isinstance(seed, bool) or seed < 0:
+            raise ConfigError(f"NoiseStream: seed must be an integer >= 0, got {seed!r}")
+        return cls(np.uint64(np.random.SeedSequence([int(seed), 0x70F]).generate_state(1, np.uint64)[0]))
+
+    def next_draw(self) -> int:
+        """The first hash dimension of the next draw (each draw owns :data:`_DIMS_PER_DRAW` of them)."""
+        self.draws += 1
+        return (self.draws - 1) * _DIMS_PER_DRAW
+
+
+def _check_stream(where: str, rng) -> None:
+    if not isinstance(rng, NoiseStream):
+        raise ConfigError(f"{where}: rng must be a tofcore.sensor.noise.NoiseStream, got {rng!r}")
 
 
 def _check_non_negative(where: str, name: str, value) -> None:
@@ -50,14 +83,155 @@ def _check_non_negative(where: str, name: str, value) -> None:
         raise ConfigError(f"{where}: {name} must be a finite number >= 0, got {value!r}")
 
 
-def add_raw_noise(raw: np.ndarray, *, read_noise_e: float, rng: np.random.Generator) -> np.ndarray:
-    """Shot noise and read noise on raw images (any shape), in electrons; float64 in, float64 out.
+def _uniform_open(stream: NoiseStream, index, zeros, dim: int):
+    """Uniforms in (0, 1): the hash's 53-bit [0, 1) value + 2⁻⁵⁴ (no 0 for logarithms, no 1)."""
+    return counter_rng.uniform(stream.key, index, zeros, dim) + 2.0 ** -54
+
+
+def _normal(stream: NoiseStream, index, zeros, dim: int):
+    """Standard normals by Box–Muller, :math:`z = \\sqrt{-2 \\ln u_1} \\cos 2\\pi u_2` (exact in
+    distribution), from dimensions ``dim`` and ``dim + 1``."""
+    u1, u2 = _uniform_open(stream, index, zeros, dim), _uniform_open(stream, index, zeros, dim + 1)
+    return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * np.pi * u2)
+
+
+def _indices(shape, xp):
+    """(flat element index, zeros), int64 arrays of ``shape``: the counters of the elements."""
+    size = int(np.prod(shape, dtype=np.int64))
+    return xp.arange(size, dtype=np.int64).reshape(shape), xp.zeros(shape, np.int64)
+
+
+def standard_normal(shape, stream: NoiseStream, xp=np):
+    """(shape) standard normals of the next draw of ``stream``, on the array module ``xp``."""
+    index, zeros = _indices(tuple(shape), xp)
+    return _normal(stream, index, zeros, stream.next_draw())
+
+
+#: Below this mean, Poisson counts by inversion of the cumulative pmf; from it, PTRS.
+PTRS_MIN_MEAN = 10.0
+#: Terms of the inversion: P(X ≥ 45) < 4.9e-16 for every mean below :data:`PTRS_MIN_MEAN` (X is capped there).
+INVERSION_TERMS = 45
+#: Rejection rounds of PTRS; each accepts with probability 1/α ≥ 0.75 for means ≥ 10 (0.75 at 10, rising to
+#: 0.89; Hörmann 1993, measured in tests/tofcore/test_noise.py), so a count is still open after them with
+#: probability < 0.25²⁴ ≈ 3.6e-15.
+PTRS_ROUNDS = 24
+#: From this mean on, N(λ, λ) rounded (its total-variation distance to the Poisson is ~ λ^-1/2 < 1e-5);
+#: PTRS's log-pmf loses precision to cancellation far above any full well.
+GAUSSIAN_MIN_MEAN = 1e10
+
+HALF_LOG_2PI = 0.5 * math.log(2.0 * math.pi)
+#: ln k! for k = 0..15; Stirling's series from 16 on (:func:`_log_factorial`).
+_LOG_FACTORIAL = np.array([math.lgamma(k + 1.0) for k in range(16)])
+
+
+def _log_factorial(k: np.ndarray) -> np.ndarray:
+    """ln k! of integer-valued floats k ≥ 0: a table below 16, Stirling's series for ln Γ(k + 1) from
+    there (4 terms: truncation error < 1/(1188 x⁹) < 1e-13 at x = k + 1 ≥ 17)."""
+    x = np.maximum(k, 15.0) + 1.0
+    inv = 1.0 / x
+    inv2 = inv * inv
+    series = (x - 0.5) * np.log(x) - x + HALF_LOG_2PI \
+        + inv * (1.0 / 12.0 - inv2 * (1.0 / 360.0 - inv2 * (1.0 / 1260.0 - inv2 / 1680.0)))
+    return np.where(k < 16.0, _LOG_FACTORIAL[np.minimum(k, 15.0).astype(np.int64)], series)
+
+
+@device_twin(on="mean")
+def poisson(mean, key: np.uint64, dim: int, *, check: bool = True):
+    """Poisson counts (float64) of means ``mean`` ≥ 0, one per element, from hash dimensions ``dim`` … ``dim``
+    + 50 of ``key`` (a draw of a :class:`NoiseStream`: ``poisson(q, stream.key, stream.next_draw())``).
+
+    Notes
+    -----
+    Exact in distribution up to the stated tails, the same numbers on every backend:
+
+    * mean < :data:`PTRS_MIN_MEAN`: inversion, :math:`X = \\#\\{k < 45 : F(k) < u\\}` with
+      :math:`F(k) = \\sum_{j \\le k} e^{-\\lambda} \\lambda^j / j!` (X capped at 45: P < 4.9e-16);
+    * otherwise PTRS, Hörmann's transformed rejection with squeeze (W. Hörmann, "The transformed
+      rejection method for generating Poisson random variables", Insurance: Mathematics and Economics
+      12, 1993; the method of NumPy's own sampler for these means), in up to :data:`PTRS_ROUNDS`
+      rounds of two uniforms each; a count still open after them (P < 3.6e-15) and means from
+      :data:`GAUSSIAN_MIN_MEAN` on take :math:`\\lfloor \\lambda + \\sqrt\\lambda\\, z + \\tfrac12 \\rfloor`.
+
+    The numbers of element i are uniforms of (key, i, dimension): the draw's first dimension for the
+    inversion, the next two per PTRS round, the two after the last round for the Gaussian. So NumPy
+    draws round by round only the elements still open, and the device twin
+    (:func:`tofcore.gpu.fused.poisson`) runs the same loop per element in one kernel: both give the
+    same counts.
+    """
+    lam = asarray(mean, dtype=np.float64)
+    if check and not bool(np.all(lam >= 0.0) & np.all(np.isfinite(lam))):
+        raise ConfigError("poisson: mean must be finite and >= 0")
+    stream = NoiseStream(key)
+    shape = lam.shape
+    lam = lam.ravel()
+    index, zeros = _indices(lam.shape, np)
+    counts = np.zeros(lam.shape)
+    small = np.flatnonzero(lam < PTRS_MIN_MEAN)
+    counts[small] = _inversion(lam[small], _uniform_open(stream, index[small], zeros[small], dim))
+    open_ = np.flatnonzero((lam >= PTRS_MIN_MEAN) & (lam < GAUSSIAN_MIN_MEAN))
+    for r in range(PTRS_ROUNDS):
+        if not open_.size:
+            break
+        u = _uniform_open(stream, index[open_], zeros[open_], dim + 1 + 2 * r)
+        v = _uniform_open(stream, index[open_], zeros[open_], dim + 2 + 2 * r)
+        k, accepted = _ptrs(lam[open_], *_ptrs_hat(lam[open_]), u, v)
+        counts[open_[accepted]] = k[accepted]
+        open_ = open_[~accepted]
+    rest = np.union1d(open_, np.flatnonzero(lam >= GAUSSIAN_MIN_MEAN))
+    z = _normal(stream, index[rest], zeros[rest], dim + 1 + 2 * PTRS_ROUNDS)
+    counts[rest] = np.maximum(np.floor(lam[rest] + np.sqrt(lam[rest]) * z + 0.5), 0.0)
+    return counts.reshape(shape)
+
+
+def _inversion(lam, u):
+    """Poisson(λ) by inversion of the cumulative pmf, λ < :data:`PTRS_MIN_MEAN`: #{k < 45 : F(k) < u}."""
+    p = np.exp(-lam)
+    cdf = p
+    count = np.zeros_like(lam)
+    for k in range(1, INVERSION_TERMS + 1):
+        count = count + (u > cdf)
+        p = p * lam / k
+        cdf = cdf + p
+    return count
+
+
+def _ptrs_hat(lam):
+    """The per-mean constants of PTRS's hat function (Hörmann 1993, Table 1): b, a, ln(1/α), v_r, ln λ."""
+    b = 0.931 + 2.53 * np.sqrt(lam)
+    return b, -0.059 + 0.02483 * b, np.log(1.1239 + 1.1328 / (b - 3.4)), 0.9277 - 3.6224 / (b - 2.0), np.log(lam)
+
+
+def _ptrs(lam, b, a, log_inv_alpha, v_r, log_lam, u, v):
+    """One round of PTRS (λ ≥ 10): (candidate count k, accepted), from uniforms u, v in (0, 1).
+
+    .. math:: u_s = \\tfrac12 - |u - \\tfrac12|, \\quad k = \\lfloor (2a/u_s + b)(u - \\tfrac12) + \\lambda
+              + 0.43 \\rfloor; \\quad \\text{accept if } u_s \\ge 0.07,\\ v \\le v_r \\text{ (squeeze), else if }
+              \\ln v - \\ln\\alpha - \\ln(a/u_s^2 + b) \\le -\\lambda + k \\ln\\lambda - \\ln k!
+
+    (and k ≥ 0, not (u_s < 0.013 and v > u_s)). The log test runs only where the squeeze does not decide.
+    """
+    u = u - 0.5
+    us = 0.5 - np.abs(u)
+    k = np.maximum(np.floor((2.0 * a / us + b) * u + lam + 0.43), -1.0)
+    squeeze = (us >= 0.07) & (v <= v_r)
+    test = np.flatnonzero(~squeeze & (k >= 0.0) & ~((us < 0.013) & (v > us)))  # the squeeze does not decide
+    ks = k[test]
+    hat = np.log(v[test]) + log_inv_alpha[test] - np.log(a[test] / (us[test] * us[test]) + b[test])
+    accepted = squeeze.copy()
+    accepted[test] = hat <= -lam[test] + ks * log_lam[test] - _log_factorial(ks)
+    return np.maximum(k, 0.0), accepted
+
+
+def add_raw_noise(raw: np.ndarray, *, read_noise_e: float, rng: NoiseStream, check: bool = True) -> np.ndarray:
+    """Shot noise and read noise on raw images (any shape, any backend), in electrons; float64 out.
 
     Parameters
     ----------
     raw : noise-free charge q, e⁻, e.g. (R, H, W) after lens scattering.
     read_noise_e : σ_read, e⁻.
-    rng : the generator; draws the Poisson counts of all pixels, then the read noise.
+    rng : the :class:`NoiseStream`; two draws: the Poisson counts (:func:`poisson`), then the read noise.
+    check : validate the parameters and that ``raw`` is finite (a read-back on a GPU); a render checks
+        its sensor once and passes False.
 
     Returns
     -------
@@ -66,34 +240,23 @@ def add_raw_noise(raw: np.ndarray, *, read_noise_e: float, rng: np.random.Genera
 
     Notes
     -----
-    Exact Poisson counts at every charge NumPy's sampler takes (λ up to ~9.2e18
-    e⁻, far beyond any full well; no switch to the Gaussian N(q, q) at high
-    counts, so no threshold to tune); above that, N(q, q), drawn after the
-    Poisson counts so that frames without such charges keep their noise.
-    Negative charge, which negative PSF lobes can leave in a dark pixel next to
-    a bright one, has no photons: its shot noise is that of zero. The clip at 0
-    (a pixel cannot hold negative charge) biases the mean only where
-    q ≲ 3 σ_read. Saturation (full well) is the sensor's business, after this.
+    Poisson counts exact in distribution at every charge a sensor holds (:func:`poisson`; no switch to
+    N(q, q) below 1e10 e⁻). Negative charge, which negative PSF lobes can leave in a dark pixel next
+    to a bright one, has no photons: its shot noise is that of zero. The clip at 0 (a pixel cannot
+    hold negative charge) biases the mean only where q ≲ 3 σ_read. Saturation (full well) is the
+    sensor's business, after this.
     """
     where = "add_raw_noise"
-    _check_non_negative(where, "read_noise_e", read_noise_e)
-    _check_rng(where, rng)
     charge = asarray(raw, dtype=np.float64)
-    if not np.isfinite(charge).all():
-        raise ConfigError(f"{where}: raw must be finite, got {np.count_nonzero(~np.isfinite(charge))} "
-                          f"non-finite values")
-    mean = np.maximum(charge, 0.0)
-    huge = mean > _POISSON_MAX_LAM
-    if not huge.any():
-        shot = rng.poisson(mean).astype(np.float64)
-    else:  # far beyond any full well: NumPy's sampler refuses λ this large; N(q, q) is exact to ~1e-9 there
-        shot = rng.poisson(np.where(huge, 0.0, mean)).astype(np.float64)
-        shot[huge] = mean[huge] + np.sqrt(mean[huge]) * rng.standard_normal(int(np.count_nonzero(huge)))
-    return np.maximum(shot + read_noise_e * rng.standard_normal(charge.shape), 0.0)
-
-
-#: Largest λ ``numpy.random.Generator.poisson`` accepts (int64 max minus 10 σ); above it, a Gaussian draw.
-_POISSON_MAX_LAM = float(np.iinfo(np.int64).max - 10 * np.sqrt(np.iinfo(np.int64).max))
+    if check:
+        _check_non_negative(where, "read_noise_e", read_noise_e)
+        _check_stream(where, rng)
+        if not np.isfinite(charge).all():
+            raise ConfigError(f"{where}: raw must be finite, got {int(np.count_nonzero(~np.isfinite(charge)))} "
+                              f"non-finite values")
+    shot = poisson(np.maximum(charge, 0.0), rng.key, rng.next_draw(), check=False)
+    read = standard_normal(charge.shape, rng, namespace(charge))
+    return np.maximum(shot + read_noise_e * read, 0.0)
 
 
 def li_sigma_m(amplitude, offset, f_hz: float, modulation_contrast: float) -> np.ndarray:
@@ -151,47 +314,50 @@ def li_sigma_m(amplitude, offset, f_hz: float, modulation_contrast: float) -> np
     return np.where(np.isnan(a) | np.isnan(b), np.nan, sigma)
 
 
-def add_distance_noise(distance, sigma, rng: np.random.Generator) -> np.ndarray:
+def add_distance_noise(distance, sigma, rng: NoiseStream, *, check: bool = True) -> np.ndarray:
     """Gaussian distance noise: d + σ n, n ~ N(0, 1) per pixel; NaN where σ is +inf or NaN.
 
     Parameters
     ----------
-    distance : d, m (array; NaN stays NaN).
+    distance : d, m (array, any backend; NaN stays NaN).
     sigma : σ ≥ 0, m, broadcast with ``distance`` (e.g. from :func:`li_sigma_m`).
-    rng : the generator; one standard normal per element of the broadcast shape.
+    rng : the :class:`NoiseStream`; one draw, a standard normal per element of the broadcast shape.
+    check : validate ``rng`` and σ ≥ 0 (a read-back on a GPU).
 
     Returns
     -------
     float64 array of the broadcast shape.
     """
     where = "add_distance_noise"
-    _check_rng(where, rng)
     d = asarray(distance, dtype=np.float64)
     s = asarray(sigma, dtype=np.float64)
-    if np.any(s < 0.0):
-        raise ConfigError(f"{where}: sigma must be >= 0 (m), got minimum {float(np.nanmin(s))!r}")
+    if check:
+        _check_stream(where, rng)
+        if bool(np.any(s < 0.0)):
+            raise ConfigError(f"{where}: sigma must be >= 0 (m), got minimum {float(np.nanmin(s))!r}")
     shape = np.broadcast_shapes(d.shape, s.shape)
     known = np.isfinite(s)
-    noise = np.where(known, s, 0.0) * rng.standard_normal(shape)
+    noise = np.where(known, s, 0.0) * standard_normal(shape, rng, namespace(d, s))
     return np.where(known, d + noise, np.nan)
 
 
-def keller_amplitude_noise(raw: np.ndarray, *, alpha_e: float, beta: float,
-                           rng: np.random.Generator) -> np.ndarray:
+def keller_amplitude_noise(raw: np.ndarray, *, alpha_e: float, beta: float, rng: NoiseStream,
+                           check: bool = True) -> np.ndarray:
     """Keller's intensity-dependent noise on every raw image (thesis eq. 3.1), e⁻; float64 out.
 
     .. math:: A_{noisy,i} = A_i + \\alpha\\, n + A_i\\, \\beta\\, n, \\qquad n \\sim N(0, 1)
 
-    per raw image i and pixel, one n for both terms, so the standard deviation
-    is :math:`\\alpha + \\beta A_i`; the result is clipped at 0 like
-    :func:`add_raw_noise`. The thesis writes :math:`n \\in [-1, 1]` yet calls n
-    normally distributed; a standard normal is used. α and β are calibrated
-    against a real camera, not derived from physics.
+    per raw image i and pixel, one n for both terms (one draw of the :class:`NoiseStream` ``rng``), so
+    the standard deviation is :math:`\\alpha + \\beta A_i`; the result is clipped at 0 like
+    :func:`add_raw_noise`. The thesis writes :math:`n \\in [-1, 1]` yet calls n normally distributed;
+    a standard normal is used. α and β are calibrated against a real camera, not derived from physics.
+    ``check``: validate the parameters (False: the caller did, once).
     """
     where = "keller_amplitude_noise"
-    _check_non_negative(where, "alpha_e", alpha_e)
-    _check_non_negative(where, "beta", beta)
-    _check_rng(where, rng)
+    if check:
+        _check_non_negative(where, "alpha_e", alpha_e)
+        _check_non_negative(where, "beta", beta)
+        _check_stream(where, rng)
     value = asarray(raw, dtype=np.float64)
-    n = rng.standard_normal(value.shape)
+    n = standard_normal(value.shape, rng, namespace(value))
     return np.maximum(value + alpha_e * n + value * beta * n, 0.0)

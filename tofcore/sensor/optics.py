@@ -41,7 +41,7 @@ import math
 
 import numpy as np
 
-from ..backend import asarray, namespace
+from ..backend import asarray, device_copy, namespace
 from ..errors import ConfigError
 from ..native import optional_module
 
@@ -292,8 +292,12 @@ def apply_scattering(raw: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     against a direct sum.
     """
     raw = asarray(raw, dtype=np.float64)
-    kernel = namespace(raw).asarray(kernel, dtype=np.float64)
-    if kernel.ndim != 2 or kernel.shape[0] % 2 == 0 or kernel.shape[1] % 2 == 0 or not np.isfinite(kernel).all():
+    kernel = asarray(kernel, dtype=np.float64)
+    # a host kernel is checked here and uploaded once per array (device_copy); a device kernel's values are
+    # the caller's business (checking them would read them back)
+    finite = not isinstance(kernel, np.ndarray) or bool(np.isfinite(kernel).all())
+    kernel = device_copy(namespace(raw), kernel) if isinstance(kernel, np.ndarray) else kernel
+    if kernel.ndim != 2 or kernel.shape[0] % 2 == 0 or kernel.shape[1] % 2 == 0 or not finite:
         raise ConfigError(f"apply_scattering: kernel must be a finite 2-D array with odd sides, "
                           f"got shape {kernel.shape!r}")
     if raw.ndim < 2 or raw.shape[-1] == 0 or raw.shape[-2] == 0:

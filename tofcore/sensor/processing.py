@@ -29,7 +29,7 @@ import math
 
 import numpy as np
 
-from ..backend import namespace
+from ..backend import device_copy, namespace
 from ..errors import ConfigError
 
 UNWRAP_WEIGHTS = ("inverse_variance", "frequency")
@@ -60,7 +60,7 @@ def frequency_weights(frequencies_hz, shape: tuple[int, ...], xp=np) -> np.ndarr
     return xp.broadcast_to(f_hz / f_hz.sum(), (f_hz.shape[0],) + tuple(shape))
 
 
-def bilateral_phasor_filter(real: np.ndarray, imag: np.ndarray, *, min_amplitude: float = 0.0) -> tuple:
+def bilateral_phasor_filter(real: np.ndarray, imag: np.ndarray, *, min_amplitude=0.0) -> tuple:
     r"""libfreenect2's joint bilateral filter of one frequency's phasors over each pixel's 3 × 3 neighbours.
 
     Parameters
@@ -91,12 +91,15 @@ def bilateral_phasor_filter(real: np.ndarray, imag: np.ndarray, *, min_amplitude
     return neighbour_mean(re, weights), neighbour_mean(im, weights)
 
 
-def bilateral_weights(real: np.ndarray, imag: np.ndarray, *, min_amplitude: float = 0.0) -> np.ndarray | None:
+def bilateral_weights(real: np.ndarray, imag: np.ndarray, *, min_amplitude=0.0) -> np.ndarray | None:
     """(3, 3, ..., H − 2, W − 2) normalised weights of :func:`bilateral_phasor_filter` for every inner pixel
     (neighbour offset dy, dx first); None for an image smaller than 3 × 3 (nothing is filtered).
 
     With the weights of the noise-free phasors held fixed, :func:`neighbour_mean` is the filter's
     linearisation: what it does to small errors of the pixels (e.g. the render's Monte Carlo error).
+    ``min_amplitude`` as in :func:`bilateral_phasor_filter`, a number or an array broadcast against the
+    phasors (e.g. one threshold per frequency, shape (F, 1, 1)). The nine neighbours are one stacked array
+    (:func:`_neighbours`), so the filter is a fixed handful of array operations whatever the image.
     """
     re, im = _phasor_pair(real, imag)
     xp = namespace(re)
@@ -105,20 +108,16 @@ def bilateral_weights(real: np.ndarray, imag: np.ndarray, *, min_amplitude: floa
         return None
     norm = np.hypot(re, im)
     safe = np.where(norm > 0, norm, 1.0)
-    unit_re, unit_im = re / safe, im / safe
-    strong = norm >= min_amplitude
-    centre = (..., slice(1, -1), slice(1, -1))
-    bilateral = strong[centre]
-    weights = xp.zeros((3, 3) + re[centre].shape)
-    for dy in (-1, 0, 1):
-        for dx in (-1, 0, 1):
-            other = (..., slice(1 + dy, height - 1 + dy), slice(1 + dx, width - 1 + dx))
-            dist = 0.5 * (1.0 - (unit_re[centre] * unit_re[other] + unit_im[centre] * unit_im[other]))
-            weight = BILATERAL_KERNEL[1 + dy, 1 + dx] * np.exp(-BILATERAL_EXPONENT * np.where(bilateral, dist, 0.0))
-            if dy or dx:  # the centre always counts, without a range term
-                weight = np.where(strong[other] | ~bilateral, weight, 0.0)
-            weights[1 + dy, 1 + dx] = weight
-    return weights / weights.sum(axis=(0, 1))
+    unit_re, unit_im = _neighbours(re / safe), _neighbours(im / safe)     # (9, ..., H − 2, W − 2)
+    strong = _neighbours(norm >= min_amplitude)
+    bilateral = strong[_CENTRE]
+    dist = 0.5 * (1.0 - (unit_re[_CENTRE] * unit_re + unit_im[_CENTRE] * unit_im))
+    kernel = device_copy(xp, _KERNEL_TAPS).reshape((9,) + (1,) * (dist.ndim - 1))
+    weights = kernel * np.exp(-BILATERAL_EXPONENT * np.where(bilateral, dist, 0.0))
+    # the centre always counts, without a range term; a neighbour only if strong (or the centre is weak)
+    weights = np.where(device_copy(xp, _IS_CENTRE).reshape(kernel.shape) | strong | ~bilateral, weights, 0.0)
+    weights = weights / weights.sum(axis=0)
+    return weights.reshape((3, 3) + weights.shape[1:])
 
 
 def neighbour_mean(image: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
@@ -129,12 +128,26 @@ def neighbour_mean(image: np.ndarray, weights: np.ndarray | None) -> np.ndarray:
     if weights is None:
         return out
     height, width = out.shape[-2:]
-    acc = 0.0
+    acc = 0.0  # 18 operations whatever the image; no (9, ...) stack of a large image in memory
     for dy in (-1, 0, 1):
         for dx in (-1, 0, 1):
             acc = acc + weights[1 + dy, 1 + dx] * out[..., 1 + dy:height - 1 + dy, 1 + dx:width - 1 + dx]
     out[..., 1:-1, 1:-1] = acc
     return out
+
+
+#: The 3 × 3 neighbourhood as offsets (dy, dx), row-major; index 4 is the pixel itself.
+_OFFSETS = tuple((dy, dx) for dy in (-1, 0, 1) for dx in (-1, 0, 1))
+_CENTRE = 4
+_KERNEL_TAPS = BILATERAL_KERNEL.reshape(9)
+_IS_CENTRE = np.arange(9) == _CENTRE
+
+
+def _neighbours(image: np.ndarray) -> np.ndarray:
+    """(9, ..., H − 2, W − 2): every inner pixel's 3 × 3 neighbours of ``image`` (..., H, W), stacked in
+    :data:`_OFFSETS` order (one array, instead of one operation per neighbour)."""
+    height, width = image.shape[-2:]
+    return namespace(image).stack([image[..., 1 + dy:height - 1 + dy, 1 + dx:width - 1 + dx] for dy, dx in _OFFSETS])
 
 
 def _phasor_pair(real, imag) -> tuple[np.ndarray, np.ndarray]:
