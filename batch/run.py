@@ -247,20 +247,32 @@ class LocalExecutor:
     def close(self, kill: bool = False) -> None:
         """Stop the workers: idle ones at once (SIGTERM: an idle worker exits without the interpreter's
         teardown, which held the end of every run back by a second or more), busy ones too with ``kill``
-        (they cancel their render and remove their partial folder), else they get 10 s to finish."""
+        (they cancel their render and remove their partial folder), else they get 10 s to finish.
+
+        The processes are taken from each pool, not from the slot: a signal right after a submit can
+        stop the run before the slot has noted its new process. Each pool's manager thread is joined
+        last, so that it has closed its wake-up pipe before the interpreter's exit hook writes to it
+        (a race that printed ``OSError: Bad file descriptor`` at exit).
+        """
         slots, self.slots = self.slots, []
-        processes = [slot.process for slot in slots if slot.process is not None]
-        for slot in slots:
-            if slot.process is not None and slot.process.is_alive() and (kill or slot.future is None):
-                slot.process.terminate()
+        owned = [(slot, list((getattr(slot.pool, "_processes", None) or {}).values()),
+                  getattr(slot.pool, "_executor_manager_thread", None)) for slot in slots]
+        for slot, processes, _ in owned:
+            for process in processes:
+                if process.is_alive() and (kill or slot.future is None):
+                    process.terminate()
         for slot in slots:
             slot.pool.shutdown(wait=False, cancel_futures=True)
         deadline = time.monotonic() + 10.0
-        for process in processes:
-            process.join(timeout=max(0.0, deadline - time.monotonic()))
-            if process.is_alive():
-                process.kill()
-                process.join(timeout=5.0)
+        for _, processes, _ in owned:
+            for process in processes:
+                process.join(timeout=max(0.0, deadline - time.monotonic()))
+                if process.is_alive():
+                    process.kill()
+                    process.join(timeout=5.0)
+        for _, _, manager in owned:
+            if manager is not None:
+                manager.join(timeout=5.0)
 
 
 class DaskExecutor:
