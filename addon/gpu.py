@@ -229,8 +229,9 @@ class Installer:
     ``"cancelled"``; ``message``: one line (the error, or what was installed).
     """
 
-    def __init__(self, command: list[str], staging: str, target: str) -> None:
+    def __init__(self, command: list[str], staging: str, target: str, what: str = "CuPy") -> None:
         self.command = list(command)
+        self.what = what  # the package's name in messages
         self.staging, self.target = staging, target
         self.lines: list[str] = []
         self.state = "running"
@@ -273,7 +274,7 @@ class Installer:
             del self.lines[:-200]
         returncode = self._proc.wait()
         if self._cancel.is_set():
-            self.state, self.message = "cancelled", "CuPy installation cancelled; nothing changed"
+            self.state, self.message = "cancelled", f"{self.what} installation cancelled; nothing changed"
             return
         if returncode != 0:
             self.state, self.message = "error", pip_error(self.lines, returncode)
@@ -282,15 +283,15 @@ class Installer:
             replace_folder(self.staging, self.target)
         except OSError as err:
             self.state = "error"
-            self.message = (f"cannot replace {self.target} ({err.strerror or err}); the CuPy in it is in use: "
+            self.message = (f"cannot replace {self.target} ({err.strerror or err}); the {self.what} in it is in use: "
                             f"restart Blender, then install again")
             return
         installed = next((ln.strip() for ln in reversed(self.lines) if ln.startswith("Successfully installed")),
-                         "Successfully installed CuPy")
+                         f"Successfully installed {self.what}")
         self.state, self.message = "done", installed
 
     def start(self) -> None:
-        self.thread = threading.Thread(target=self.run, name="tof-install-cupy", daemon=True)
+        self.thread = threading.Thread(target=self.run, name=f"tof-install-{self.what.lower()}", daemon=True)
         self.thread.start()
 
     def join(self, timeout: float | None = None) -> None:

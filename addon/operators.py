@@ -39,7 +39,8 @@ While a camera's ``live_preview`` is on, a ``depsgraph_update_post`` handler
 and the settings' update callbacks call :func:`schedule_live_preview`: a
 debounced ``bpy.app.timers`` callback (``preview_delay_s`` of the preferences,
 0.5 s by default) starts a low-resolution job (``preview_scale`` ×
-resolution, ``preview_spp``), cancelling the previous one; a second timer
+resolution, ``preview_spp``, the depth denoised with ``preview_denoise``:
+:mod:`tofcore.sensor.denoise`), cancelling the previous one; a second timer
 drains its queue into the same images. Nothing is written.
 
 Every failure the user can cause is reported: no active camera, a camera
@@ -65,7 +66,7 @@ from mathutils import Matrix
 
 import tofcore
 
-from . import export, gpu, images, mapping, preferences, sensors
+from . import compiled, export, gpu, images, mapping, preferences, sensors
 
 #: Custom property that marks an LED empty; its value is the LED number (1-based).
 LED_KEY = "tof_led"
@@ -250,7 +251,8 @@ def prepare_render(context, report, *, preview: bool = False, numbered: bool = F
     quality = sensors.render_settings(settings)
     out_dir, formats = None, ()
     if preview:
-        quality.update(spp=int(settings.preview_spp), time_budget_s=None, target_error_m=None)
+        quality.update(spp=int(settings.preview_spp), time_budget_s=None, target_error_m=None,
+                       preview_denoise=bool(settings.preview_denoise))
     else:
         out_dir = (output_folder(settings.output_dir, context.scene.frame_current, numbered=numbered)
                    if settings.output_dir.strip() else None)
@@ -319,6 +321,8 @@ def _apply_pass(frame) -> None:
     device = frame.stats.get("device") or {}
     last_result.update(device=device.get("description", ""), device_name=device.get("name", ""),
                        fallback_reason=device.get("fallback_reason"))
+    transport = frame.stats.get("transport") or {}
+    last_result["transport"] = {key: transport.get(key) for key in ("tracer", "tracer_reason", "parallel")}
 
 
 def device_report(frame, report) -> None:
@@ -326,6 +330,7 @@ def device_report(frame, report) -> None:
     is a WARNING naming why."""
     device = frame.stats.get("device") or {}
     gpu.note_device(device)
+    compiled.note_tracer(frame.stats.get("transport"))
     if device.get("fallback_reason"):
         report({'WARNING'}, gpu.fallback_warning(device["fallback_reason"]))
     parallel = (frame.stats.get("transport") or {}).get("parallel", "")
@@ -373,8 +378,9 @@ def _summary(frame, written: dict, job: RenderJob) -> str:
     where = f"{len(written)} files written to {job.out_dir}" if written else "no files written (no formats)"
     device = (frame.stats.get("device") or {}).get("description")
     on = f" on {device}" if device else ""
+    tracer = compiled.tracer_text(frame.stats.get("transport"))
     return (f"ToF render of {job.camera!r}: {where}; {frame.stats['spp']} spp, "
-            f"est. depth error {error_text}, {frame.stats['seconds']:.1f} s{on}")
+            f"est. depth error {error_text}, {frame.stats['seconds']:.1f} s{on}" + (f"; {tracer}" if tracer else ""))
 
 
 def _redraw(context) -> None:

@@ -16,7 +16,7 @@ from __future__ import annotations
 import bpy
 from bpy.types import Panel
 
-from . import gpu, operators, presets, sensors
+from . import compiled, gpu, operators, presets, sensors
 from .animation import TOF_OT_render_animation
 from .operators import TOF_OT_add_camera, TOF_OT_apply_sensor, TOF_OT_cancel_render, TOF_OT_render
 
@@ -49,6 +49,9 @@ def draw_result(layout, camera_name: str | None = None) -> None:
                   else 'DESKTOP')
     if result.get("fallback_reason"):
         box.label(text=gpu.fallback_warning(result["fallback_reason"]), icon='ERROR')
+    tracer = compiled.tracer_text(result.get("transport"))
+    if tracer:
+        box.label(text=tracer, icon='SETTINGS')
     if result.get("files"):
         box.label(text=f"{result['files']} files in {result.get('out_dir', '')}", icon='FILE_FOLDER')
     if "resolution" in result:
@@ -179,6 +182,7 @@ class TOF_PT_camera_preview(_CameraPanel, Panel):
         layout.active = settings.enabled and settings.live_preview
         layout.prop(settings, "preview_scale")
         layout.prop(settings, "preview_spp")
+        layout.prop(settings, "preview_denoise")
 
 
 class TOF_PT_material(Panel):

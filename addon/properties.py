@@ -18,7 +18,7 @@ property               unit    default     meaning
 ``use_range_m``        –       False       override the valid range
 ``range_m``            m       preset      (min, max) valid distance
 ``spp``                –       64          most samples per pixel
-``time_budget_s``      s       0           stop before a pass that would end later (0: no budget)
+``time_budget_s``      s       0           render in about this long, set-up to frame (0: no budget)
 ``target_error_mm``    mm      0           stop at this estimated RMS depth error (0: no target)
 ``max_depth``          –       5           surface vertices per path (1 = direct light only)
 ``seed``               –       0           random seed (same seed, same frame)
@@ -28,6 +28,7 @@ property               unit    default     meaning
 ``live_preview``       –       False       re-render at low resolution whenever the scene or sensor changes
 ``preview_scale``      1       0.25        preview resolution as a fraction of the sensor's
 ``preview_spp``        –       8           most samples per pixel of a preview
+``preview_denoise``    –       True        amplitude-guided bilateral filter on the preview's depth
 =====================  ======  ==========  ===================================================================
 
 Property names follow the ``tofcore`` field names (``range_m``, ``depth_output``,
@@ -121,7 +122,8 @@ class TofCameraSettings(PropertyGroup):
         description="Most samples (paths) per pixel; a time budget or target error may stop earlier")
     time_budget_s: FloatProperty(
         name="Time Budget", default=0.0, min=0.0, soft_max=600.0, update=updates.settings_changed,
-        description="Stop before a pass that would end after this many seconds of tracing (0: no budget)")
+        description="Render in about this many seconds, set-up to final frame: the last passes are sized to "
+                    "use it (0: no budget)")
     target_error_mm: FloatProperty(
         name="Target Error", default=0.0, min=0.0, soft_max=100.0, update=updates.settings_changed,
         description="Stop once the estimated RMS depth error (Monte Carlo) is at most this, in millimetres "
@@ -154,6 +156,10 @@ class TofCameraSettings(PropertyGroup):
     preview_spp: IntProperty(
         name="Preview Samples", default=8, min=1, soft_max=64, update=updates.settings_changed,
         description="Most samples (paths) per pixel of a live preview")
+    preview_denoise: BoolProperty(
+        name="Denoise Preview", default=True, update=updates.settings_changed,
+        description="Smooth the live preview's depth with a joint bilateral filter guided by the amplitude "
+                    "image: less render noise, a small bias at depth edges. Never applied to Render ToF")
 
 
 class TofMaterialSettings(PropertyGroup):

@@ -72,7 +72,7 @@ key                 type             default                      meaning
 ==================  =============  =======  ==========================================================
 ``spp``             int >= 1       64       most samples per pixel
 ``max_depth``       int >= 1       5        surface vertices per path (1 = direct light only)
-``time_budget_s``   number > 0, s  none     stop before a pass that would end after this much tracing
+``time_budget_s``   number > 0, s  none     render each frame in about this long (set-up to frame)
 ``target_error_m``  number > 0, m  none     stop once the estimated RMS depth error is at most this
 ==================  =============  =======  ==========================================================
 

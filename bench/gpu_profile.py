@@ -5,7 +5,7 @@ Prints warm whole-pipeline times (median of 5), a 1-spp pass, the memory pool, a
 to 1 mm estimated depth error. Needs CuPy and a CUDA GPU: ``python bench/gpu_profile.py``.
 The benchmark beside the peers is ``bench/bench_gpu.py``.
 
-``python bench/gpu_profile.py --post`` prints only the split of the Kinect frame (16 spp) and of one
+``PYTHONPATH=. python3 bench/gpu_profile.py --post`` prints only the split of the Kinect frame (16 spp) and of one
 1-spp pass into trace and post-trace milliseconds (median of 5 warm renders) with the device allocations
 of each part (a counting CuPy allocator), then exits.
 """

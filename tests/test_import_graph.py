@@ -25,7 +25,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("tofcore.constants", "tofcore.errors", "tofcore.progress", "tofcore.units", "tofcore.native", "tofcore.console",
      "tofcore._interrupt"),
     ("tofcore.backend", "tofcore.limits"),
-    ("tofcore.scene",),
+    # tracer.rng, the counter-based hash, stands below the tracer and the sensor: the tracer's samplers and
+    # the sensor's noise (tofcore.sensor.noise) draw from it, so one seed gives the same numbers on both devices
+    ("tofcore.scene", "tofcore.tracer.rng"),
     ("tofcore.tracer", "tofcore.sensor", "tofcore.plan"),
     ("tofcore.output", "tofcore.gpu", "tofcore.compiled"),
     ("tofcore.render",),

@@ -305,7 +305,8 @@ def cmd_render(args: argparse.Namespace) -> int:
                        time_budget_s=args.time_budget, target_error_m=args.target_error, ambient=ambient,
                        progress=progress, device=device, sampler=args.sampler,
                        adaptive=args.adaptive, light_paths=args.light_paths,
-                       transient_bin_m=args.transient_bin, transient_max_m=transient_max)
+                       transient_bin_m=args.transient_bin, transient_max_m=transient_max,
+                       preview_denoise=args.preview_denoise)
     try:
         files = write_frame(frame, args.out, formats=formats, exr_half=args.exr_half,
                             exr_channels=args.exr_channels)
@@ -345,7 +346,8 @@ def summary(frame) -> str:
     lines = [
         f"samples per pixel:          {stats['spp']} (mean over the pixels)",
         f"render time:                {stats['seconds']:.1f} s ({stats['transport']['rays_per_second'] / 1e6:.2f} "
-        f"M rays/s)",
+        f"M rays/s)" + (f", {100 * stats['seconds'] / stats['time_budget_s']:.0f} % of the {stats['time_budget_s']:g} s "
+                        f"budget" if stats.get("time_budget_s") else ""),
         f"render noise (estimated):   {'–' if est is None else f'{est * 1000:.2f} mm'} RMS Monte Carlo error of the "
         f"depth over the pixels that see a surface",
         f"sensor noise:               {'on (shot and read noise, as the preset says)' if noise else 'off'}",
@@ -354,6 +356,8 @@ def summary(frame) -> str:
         f"invalid pixels by reason:   {reasons}",
         f"depth error vs ground truth: {rms} RMS over the valid pixels ({' + '.join(causes)})",
     ]
+    if stats.get("preview_denoise"):
+        lines.append("preview denoise:            on (depth and distance smoothed, tofcore/sensor/denoise.py)")
     return "\n".join(lines)
 
 
@@ -428,7 +432,7 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--resolution", type=resolution_type, default=None, metavar="WxH",
                    help="image size in pixels, e.g. 128x106 (the same as --width 128 --height 106)")
     r.add_argument("--time-budget", type=seconds_type, default=None, metavar="S",
-                   help="stop tracing after about S seconds")
+                   help="render for about S seconds (set-up to final frame): the passes are sized to use it")
     r.add_argument("--target-error", type=length_type, default=None, metavar="LENGTH",
                    help=f"stop once the estimated RMS depth error (Monte Carlo) is at most this: 5mm, 0.5cm, "
                         f"0.005m; a bare number is in {BARE_LENGTH_UNIT}, as in the Blender add-on")
@@ -436,6 +440,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="constant ambient radiance, W m^-2 sr^-1")
     r.add_argument("--no-noise", action="store_true",
                    help="no sensor noise (shot and read noise off): the render's own Monte Carlo noise only")
+    r.add_argument("--preview-denoise", action="store_true",
+                   help="smooth depth and distance with an amplitude-guided joint bilateral filter: less render "
+                        "noise, some bias at depth edges (for previews, not for datasets)")
     r.add_argument("--eye", type=vector3_type, default=None, metavar="X,Y,Z",
                    help="sensor position, world metres (with --target; default: the scene's suggested view)")
     r.add_argument("--target", type=vector3_type, default=None, metavar="X,Y,Z", help="point looked at (with --eye)")

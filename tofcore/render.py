@@ -48,12 +48,14 @@ from .plan import Plan, make_plan
 from .scene.ambient import Ambient
 from .scene.scene import Scene
 from .sensor import decode as decoding
+from .sensor import denoise
 from .sensor import noise as noise_models
 from .sensor import optics
 from .sensor import processing
 from .sensor.raw import raw_images
 from .tracer.estimator import allocate_samples
-from .tracer.trace import pass_schedule, trace_progressive
+from .tracer.budget import TimeBudget
+from .tracer.trace import next_pass_size, trace_progressive
 from .tracer.transport import Transport
 
 
@@ -179,7 +181,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                        workers: int | None = None, chunk_size: int | None = None,
                        every_pass: bool = True, device: str | backend.Device = "cpu",
                        adaptive: bool = True, sampler: str = "sobol", light_paths: bool = True,
-                       transient_bin_m: float | None = None, transient_max_m: float | None = None) -> Iterator[Frame]:
+                       transient_bin_m: float | None = None, transient_max_m: float | None = None,
+                       preview_denoise: bool = False) -> Iterator[Frame]:
     """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
 
     The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
@@ -193,7 +196,9 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
         the render first.
     max_depth : surface vertices per path (1 = direct light only).
     seed : non-negative int; the same seed gives the same frame (tracing, then sensor noise).
-    time_budget_s : stop before a pass that would end after this many seconds of tracing.
+    time_budget_s : seconds for the whole render (set-up to final frame): the passes are sized from their
+        measured cost so that the budget is used (:mod:`tofcore.tracer.budget`); the frame then has the
+        samples that fit, up to ``spp``. Not reproducible across machines.
     target_error_m : stop once the RMS estimated depth standard error (Monte Carlo) is at most this.
     ambient : unmodulated background light.
     reference_distance : (H, W) converged radial distance to log the RMS error against, per pass.
@@ -210,6 +215,10 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     transient_bin_m, transient_max_m : also keep the transient (time-resolved) histogram, bins of this
         width (m of optical path length LED → … → lens) up to this length; ``frame.transient`` is then
         (H, W, B) mean radiance per bin, bin b centred at (b + ½)·width (:meth:`Transport.transient`).
+    preview_denoise : for interactive previews only: smooth ``depth`` and ``distance`` with a joint bilateral
+        filter guided by the amplitude (:mod:`tofcore.sensor.denoise`), which removes render noise at the
+        price of a bias at depth edges (``studies/preview_denoise.py`` measures it). Never for datasets
+        unless wanted; ``frame.stats["preview_denoise"]`` records the filter's parameters (None: off).
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering, noise and decoding on the
         GPU; the noise is counter-based, :class:`~tofcore.sensor.noise.NoiseStream`, so both devices give
         the same frame) or
@@ -221,12 +230,15 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     """
     _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor,
                     transient_bins=transient_bins(transient_bin_m, transient_max_m))
+    if not isinstance(preview_denoise, bool):
+        raise ConfigError(f"render: preview_denoise must be True or False, got {preview_denoise!r}")
     dev = backend.select_device(device)
     settings = RenderSettings(spp=spp, max_depth=max_depth, seed=seed, time_budget_s=time_budget_s,
                               target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,
                               progress=progress, cancel=cancel, workers=workers, chunk_size=chunk_size,
                               every_pass=every_pass, adaptive=adaptive, sampler=sampler, light_paths=light_paths,
-                              transient_bin_m=transient_bin_m, transient_max_m=transient_max_m)
+                              transient_bin_m=transient_bin_m, transient_max_m=transient_max_m,
+                              preview_denoise=preview_denoise)
     if not dev.is_gpu:
         yield from _render_passes(scene, sensor, pose, settings, dev)
         return
@@ -264,6 +276,7 @@ class RenderSettings:
     light_paths: bool
     transient_bin_m: float | None
     transient_max_m: float | None
+    preview_denoise: bool = False
 
 
 def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device: backend.Device) -> Iterator[Frame]:
@@ -287,39 +300,72 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
         return None if sigma is None else allocate_samples(sigma, counts, samples_per_pixel)
 
     progressive = s.every_pass or s.time_budget_s is not None or s.target_error_m is not None
-    n_passes = len(pass_schedule(s.spp, progressive))
-    start = time.perf_counter()
+    budget = None if s.time_budget_s is None else TimeBudget(s.time_budget_s)
+    nominal, next_n = 0, next_pass_size(0, s.spp, progressive)  # samples per pixel asked for; the next pass's
+    start = _clock()
+    cycle_start, traced = start, 0.0  # the current pass cycle's start, mean samples per pixel traced before it
     passes = trace_progressive(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
                                correlations=correlations, ambient=s.ambient if plan.ambient else None,
                                spp=s.spp, max_depth=s.max_depth, seed=s.seed, workers=s.workers,
                                chunk_size=s.chunk_size, cancel=s.cancel, device=device, progressive=progressive,
                                sampler=s.sampler, light_paths=s.light_paths, allocate=allocate if s.adaptive else None,
-                               transient_bin_m=s.transient_bin_m, transient_max_m=s.transient_max_m)
+                               transient_bin_m=s.transient_bin_m, transient_max_m=s.transient_max_m,
+                               pass_size=lambda transport, scheduled: next_n)
     try:
         for transport in passes:
-            elapsed = time.perf_counter() - start
+            nominal += next_n
+            elapsed = _clock() - start
             sigma = backend.to_host(depth_standard_error(transport, sensor, n_raw))
+            if budget is not None:
+                budget.estimate_s = _clock() - start - elapsed
             counts = backend.to_host(transport.sample_count)
             row = _convergence_row(transport, sensor, n_raw, sigma, counts, reference, elapsed, setup)
             log.append(row)
             if s.progress is not None:
                 s.progress(dict(row, spp_max=s.spp))
-            done = _stop(transport.stats.passes >= n_passes, row, s)
+            next_n = next_pass_size(nominal, s.spp, progressive) if nominal < s.spp else 0
+            if budget is not None and next_n:
+                now, mean_spp = _clock(), float(counts.mean())
+                budget.record(mean_spp - traced, now - cycle_start)
+                cycle_start, traced = now, mean_spp
+                next_n = budget.next_pass(next_n, now - start)
+            done = next_n == 0 or _target_reached(row, s.target_error_m)
             if not (done or s.every_pass):
                 continue
+            frame_start = _clock()
             frame = _frame(transport, sensor, pose, plan, s.seed, n_raw, setup)
             frame.metadata["objects"] = object_table(scene)
             if transport.transient_sum is not None:
                 frame.transient = backend.to_host(transport.transient()).astype(np.float32)
                 frame.transient_bin_m = float(transport.transient_bin_m)
             _add_render_stats(frame, transport, sigma, counts, dict(s.__dict__, final=done, trace_seconds=elapsed,
-                                                            seconds=time.perf_counter() - start, plan=plan.as_dict(),
+                                                            seconds=_clock() - start, plan=plan.as_dict(),
                                                             convergence=list(log), device=device.as_dict()))
+            if s.preview_denoise:
+                _denoise(frame)
+            if budget is not None:
+                budget.frame_s = _clock() - frame_start
             yield frame
             if done:
                 return
     finally:  # also on an exception or Ctrl-C between passes: the workers' shared memory is released now
         passes.close()
+
+
+_clock = time.perf_counter  # the render's clock (seconds); tests replace it to check the budgeted passes
+
+
+def _denoise(frame: Frame) -> None:
+    """The preview filter on the frame's output depth (:mod:`tofcore.sensor.denoise`); the radial distance
+    follows it (distance = z / ω_z for a z-depth camera)."""
+    frame.depth = denoise.preview_denoise(frame.depth, frame.amplitude, frame.render_error)
+    if frame.depth_output == "z":
+        with np.errstate(invalid="ignore", divide="ignore"):
+            frame.distance = (frame.depth / np.abs(frame.ray_directions[..., 2])).astype(np.float32)
+    else:
+        frame.distance = frame.depth.copy()
+    frame.stats["preview_denoise"] = {"filter": "joint bilateral, amplitude-guided", "radius_px": denoise.RADIUS_PX,
+                                      "amplitude_sigma": denoise.AMPLITUDE_SIGMA, "depth_sigmas": denoise.DEPTH_SIGMAS}
 
 
 def _checked_reference(reference_distance, sensor) -> np.ndarray | None:
@@ -345,18 +391,10 @@ def _convergence_row(transport: Transport, sensor, n_raw: int, sigma: np.ndarray
     return row
 
 
-def _stop(last_pass: bool, row: dict, s: RenderSettings) -> bool:
-    """Whether the render ends after this pass: the last pass, the target error reached, or the time budget
-    would run out during the next pass (the pass schedule doubles up to 16 samples)."""
-    done = last_pass
-    if s.target_error_m is not None and row["est_depth_error_m"] is not None \
-            and row["est_depth_error_m"] <= s.target_error_m:
-        done = True
-    if s.time_budget_s is not None and not done:
-        samples, elapsed = row["spp"], row["seconds"]
-        next_samples = min(samples, 16, s.spp - samples)
-        done = elapsed + elapsed / samples * next_samples > s.time_budget_s
-    return done
+def _target_reached(row: dict, target_error_m: float | None) -> bool:
+    """Whether the RMS estimated depth error of this pass is at most the target."""
+    return target_error_m is not None and row["est_depth_error_m"] is not None \
+        and row["est_depth_error_m"] <= target_error_m
 
 
 def _add_render_stats(frame: Frame, transport: Transport, sigma: np.ndarray, counts: np.ndarray, run: dict) -> None:
@@ -371,6 +409,7 @@ def _add_render_stats(frame: Frame, transport: Transport, sigma: np.ndarray, cou
         "time_budget_s": run["time_budget_s"], "target_error_m": run["target_error_m"], "plan": run["plan"],
         "convergence": run["convergence"], "transport": transport.stats.as_dict(), "device": run["device"],
         "sampler": run["sampler"], "adaptive": run["adaptive"], "light_paths": run["light_paths"],
+        "preview_denoise": None,
         "samples_per_pixel": {"min": int(counts.min()), "median": float(np.median(counts)),
                               "max": int(counts.max())},
     })

@@ -488,6 +488,8 @@ def test_live_preview_handler_and_render(tof, tmp_path):
     job = operators.start_live_preview(bpy.context)
     assert job is not None and job.kind == "preview" and job.out_dir is None
     assert (job.sensor.camera.width, job.sensor.camera.height) == (32, 24)
+    assert job.settings["preview_denoise"] is True                    # the preview filter (Denoise Preview)
+    assert "preview_denoise" not in operators.prepare_render(bpy.context, Reports()).settings   # never Render ToF
     job.join(60.0)
     assert operators.poll_live_preview() is False and operators.active_preview_job() is None
     assert tuple(bpy.data.images["ToF Depth"].size) == (32, 24)
@@ -684,9 +686,48 @@ def test_render_default_device_is_cpu(prefs, tmp_path, render_calls):
     assert result == {'FINISHED'} and render_calls == ["cpu"]
     assert not reports.of("WARNING") and not reports.of("ERROR")
     device = f"CPU (NumPy {np.__version__})"
-    assert reports.of("INFO")[0].endswith(f" on {device}")
+    assert f" on {device}" in reports.of("INFO")[0]
     assert operators.last_result["device"] == device and operators.last_result["fallback_reason"] is None
     assert all(bpy.data.images[name][images.DEVICE_KEY] == device for name in images.IMAGE_NAMES.values())
+
+
+@pytest.mark.parametrize("wanted", ["auto", "numpy"])
+def test_render_reports_the_tracer(prefs, tmp_path, monkeypatch, wanted):
+    """Which tracer ran, and why NumPy where it did, is in the summary, the panel's result and the numba box."""
+    from addon import compiled
+
+    monkeypatch.setenv("TOFCORE_TRACER", wanted)
+    add_plane_and_cube()
+    add_tof_camera(output_dir=str(tmp_path))
+    result, reports = run_execute(operators.TOF_OT_render)
+    assert result == {'FINISHED'}, reports.items
+    transport = operators.last_result["transport"]
+    expected = "compiled" if wanted == "auto" and compiled_importable() else "numpy"
+    assert transport["tracer"] == expected
+    text = compiled.tracer_text(transport)
+    assert reports.of("INFO")[0].endswith(f"; {text}")
+    if expected == "compiled":
+        assert text.startswith("Tracer: compiled (numba, ") and text.endswith(" threads)")
+        assert compiled.status_line(compiled.last_tracer())[1] == 'CHECKMARK'
+    else:
+        assert text == "Tracer: NumPy (TOFCORE_TRACER=numpy)" if wanted == "numpy" else text.startswith("Tracer: NumPy")
+        assert compiled.last_tracer()["tracer"] == "numpy"
+    from addon import panels
+
+    class Layout(RecordingLayout):
+        def label(self, text="", icon='NONE', **kwargs):
+            self.log.append(("label", text, icon))
+            return self
+
+    log: list = []
+    panels.draw_result(Layout(log))
+    assert ("label", text, 'SETTINGS') in log
+
+
+def compiled_importable() -> bool:
+    from tofcore.compiled import numba_version
+
+    return numba_version() is not None
 
 
 def test_render_auto_without_gpu_falls_back_to_cpu(prefs, tmp_path, render_calls):
@@ -785,7 +826,7 @@ def test_render_on_gpu_stand_in(prefs, tmp_path, monkeypatch, render_calls):
     result, reports = run_execute(operators.TOF_OT_render)
     assert result == {'FINISHED'} and render_calls == ["gpu"], reports.items
     description = "fake GPU (NumPy behind CuPy's rules)"
-    assert reports.of("INFO")[0].endswith(f" on {description}") and not reports.of("WARNING")
+    assert f" on {description}" in reports.of("INFO")[0] and not reports.of("WARNING")
     assert operators.last_result["device"] == description and operators.last_result["device_name"] == "gpu"
     assert bpy.data.images["ToF Depth"][images.DEVICE_KEY] == description
     assert gpu.status().device == description

@@ -1,4 +1,5 @@
-"""Add-on preferences: the device switch, the GPU box, "Install CuPy for GPU rendering" and "Check GPU".
+"""Add-on preferences: the device switch, the GPU box, "Install CuPy for GPU rendering", "Check GPU" and
+"Install numba for the compiled tracer".
 
 Runs in the PyPI ``bpy`` module. Nothing is downloaded: the installer's pip is replaced by a stand-in
 (this Python printing what pip prints and writing a CuPy dist-info), whose command line is otherwise
@@ -25,7 +26,7 @@ import fakecupy  # noqa: E402
 
 import addon  # noqa: E402
 from addon_helpers import Reports  # noqa: E402
-from addon import gpu, preferences  # noqa: E402
+from addon import compiled, gpu, preferences  # noqa: E402
 
 
 
@@ -47,8 +48,8 @@ def prefs(clean_bpy, monkeypatch, tmp_path):
 
 def run_execute(operator_class, context=None):
     """``operator_class.execute`` on a stand-in operator that collects its reports: (result, Reports)."""
-    op = SimpleNamespace(report=Reports())
-    for name in ("execute", "_start"):
+    op = SimpleNamespace(report=Reports(), what=getattr(operator_class, "what", ""))
+    for name in ("execute", "_start", "prepare", "finish"):
         if hasattr(operator_class, name):
             setattr(op, name, getattr(operator_class, name).__get__(op))
     return op.execute(context or bpy.context), op.report
@@ -130,9 +131,10 @@ def test_preferences_draw_gpu_box(prefs):
     assert gpu._status is None                   # nothing computed before the preferences are drawn
     preferences.TofPreferences.draw(SimpleNamespace(layout=RecordingLayout(log), bl_rna=prefs.bl_rna), bpy.context)
     drawn = [name for kind, name, _ in log if kind in ("prop", "operator")]
-    assert drawn == ["default_output_dir", "workers", "preview_delay_s", "device", "cupy_package",
-                     "tof.install_cupy", "tof.check_gpu"]
+    assert drawn == ["default_output_dir", "workers", "preview_delay_s", "device", "tof.install_numba",
+                     "cupy_package", "tof.install_cupy", "tof.check_gpu"]
     labels = [(text, icon) for kind, text, icon in log if kind == "label"]
+    labels = labels[labels.index(("GPU (CuPy)", 'SETTINGS')):]          # the GPU box (the numba box first)
     if not gpu.installed_cupy() and gpu.platform_problem() is None:
         assert labels[1] == ("CuPy is not installed in Blender's Python: GPU rendering needs it (Install CuPy for "
                              "GPU rendering)", 'INFO')
@@ -195,7 +197,7 @@ def fake_pip(prefs, monkeypatch, tmp_path):
         commands.append(line)
         return [sys.executable, str(script), *line[3:]]       # pip's arguments, the stand-in's program
 
-    monkeypatch.setattr(preferences, "_online_problem", lambda: None)
+    monkeypatch.setattr(preferences, "_online_problem", lambda what: None)
     monkeypatch.setattr(gpu, "cupy_install_command", command)
     return commands
 
@@ -257,3 +259,103 @@ def test_check_gpu_on_stand_in(prefs, monkeypatch):
     assert result == {'FINISHED'}
     assert reports.of("INFO") == ["GPU ready: fake GPU (NumPy behind CuPy's rules)"]
     assert gpu.status().line() == ("Ready: fake GPU (NumPy behind CuPy's rules)", 'CHECKMARK')
+
+
+# --------------------------------------------------------------------------- Install numba for the compiled tracer
+
+FAKE_NUMBA_PIP = """
+import os, sys
+target = sys.argv[sys.argv.index("--target") + 1]
+requirements = sys.argv[sys.argv.index("--no-warn-script-location") + 1:]
+print("Collecting " + requirements[0], flush=True)
+if "--no-deps" not in sys.argv or not target.endswith(".partial"):
+    print("ERROR: unexpected command line"); sys.exit(3)
+for name in ("numba-0.68.1", "llvmlite-0.50.0"):
+    os.makedirs(os.path.join(target, name + ".dist-info"))
+print("Successfully installed llvmlite-0.50.0 numba-0.68.1", flush=True)
+"""
+
+
+@pytest.fixture
+def numba_pip(prefs, monkeypatch, tmp_path):
+    """numba's folder a temporary one, online, pip replaced by a stand-in; returns the command lines built."""
+    folder = str(tmp_path / "site-packages-numba")
+    monkeypatch.setattr(preferences, "numba_folder", lambda: folder)
+    script = tmp_path / "fake_numba_pip.py"
+    script.write_text(textwrap.dedent(FAKE_NUMBA_PIP), encoding="utf-8")
+    commands = []
+    real = compiled.numba_install_command
+
+    def command(python, target, **kwargs):
+        assert python == sys.executable and kwargs["pip"] == [sys.executable, "-m", "pip"]
+        line = real(python, target, **kwargs)
+        commands.append(line)
+        return [sys.executable, str(script), *line[3:]]
+
+    monkeypatch.setattr(preferences, "_online_problem", lambda what: None)
+    monkeypatch.setattr(compiled, "numba_install_command", command)
+    return commands
+
+
+def test_install_numba_runs_pip_into_its_own_folder(prefs, numba_pip):
+    folder = preferences.numba_folder()
+    result, reports = run_execute(preferences.TOF_OT_install_numba)
+    assert result == {'FINISHED'}, reports.items
+    (command,) = numba_pip
+    assert command[command.index("--target") + 1] == folder + ".partial"
+    assert command[-2:] == list(compiled.REQUIREMENTS)
+    assert sorted(os.listdir(folder)) == ["llvmlite-0.50.0.dist-info", "numba-0.68.1.dist-info"]
+    assert sys.path[-1] == folder and folder != preferences.cupy_folder()
+    assert not reports.of("ERROR")
+    message = reports.of("WARNING" if "numba" in sys.modules else "INFO")
+    assert message[0].startswith("Successfully installed llvmlite-0.50.0 numba-0.68.1")
+
+
+def test_install_numba_refused_when_offline(prefs, monkeypatch, tmp_path):
+    monkeypatch.setattr(preferences, "numba_folder", lambda: str(tmp_path / "numba"))
+    if bpy.app.online_access:
+        pytest.skip("online access is on: this test never downloads")
+    result, reports = run_execute(preferences.TOF_OT_install_numba)
+    assert result == {'CANCELLED'}
+    assert reports.of("ERROR") == ["Cannot install numba: Online access is off: allow it in Preferences > System > "
+                                   "Network > Allow Online Access, or install numba by hand (README, The compiled "
+                                   "tracer)"]
+    assert not (tmp_path / "numba").exists()
+
+
+def test_one_install_at_a_time(prefs, numba_pip):
+    installer = preferences.prepare_numba_install(Reports())
+    preferences._install.installer, preferences._install.what = installer, "numba"
+    try:
+        assert not preferences.TOF_OT_install_cupy.poll(bpy.context) or gpu.platform_problem()
+        assert preferences.TOF_OT_install_cupy.install_problem() in ("numba is being installed (Esc cancels)",
+                                                                     gpu.platform_problem())
+        assert preferences.compiled_status_line()[1] == 'SORTTIME'
+        assert preferences.status_line()[1] != 'SORTTIME'          # the GPU box is not the one installing
+    finally:
+        preferences._install.installer = None
+
+
+def test_preferences_draw_numba_box(prefs, monkeypatch):
+    monkeypatch.setattr(compiled, "_last", {})
+    log: list = []
+    preferences.draw_compiled(RecordingLayout(log))
+    labels = [(text, icon) for kind, text, icon in log if kind == "label"]
+    assert labels[0] == ("Compiled CPU tracer (numba)", 'SETTINGS')
+    assert labels[-1][0] == f"Installs into {preferences.numba_folder()}"
+    assert ("operator", "tof.install_numba", None) in log
+    version = compiled.installed_numba()
+    status = " ".join(text for text, _ in labels[1:-1])
+    if version is None:
+        assert status.startswith("numba is not installed: renders use the NumPy tracer")
+    else:
+        assert status.startswith(f"numba {version} installed: the first render compiles the tracer")
+        compiled.note_tracer({"tracer": "numpy", "tracer_reason": "ambient light (the compiled tracer has none)"})
+        assert compiled.status_line(compiled.last_tracer()) == (
+            f"numba {version} installed, but the last render used NumPy: ambient light (the compiled tracer has "
+            f"none)", 'INFO')
+
+
+def test_numba_folder_beside_cupys():
+    assert compiled.site_packages_dir("addon") == os.path.join(os.path.dirname(gpu.site_packages_dir("addon")),
+                                                               "site-packages-numba")

@@ -70,6 +70,8 @@ def test_a_mesh_scene_with_output_options_writes_what_the_tools_read(tmp_path):
     assert ref.objects == {0: {"name": "crate", "materials": ["cardboard"]}}
     histogram, bin_m = ref.transient
     assert bin_m == 0.05 and np.array_equal(histogram, hist)
+    # a dataset's depth is never the preview denoiser's (tofcore.sensor.denoise): only a render that asks
+    assert json.loads((folder / "frame.json").read_text())["stats"]["preview_denoise"] is None
     assert "ok:" in batch("verify", str(tmp_path / "ds")).stdout
 
 

@@ -118,6 +118,18 @@ def test_a_transient_histogram_beyond_the_memory_limit_is_refused_before_renderi
     assert not (tmp_path / "out").exists()
 
 
+def test_preview_denoise_and_time_budget_in_the_summary(tmp_path, capsys):
+    argv = [a for a in _tiny(tmp_path, "--resolution", "32x24", "--preview-denoise", "--time-budget", "600")
+            if a != "--quiet"]
+    argv[argv.index("--spp") + 1] = "8"
+    code, out, err = _run(argv, capsys)
+    assert code == 0, err
+    stats = json.loads((tmp_path / "out" / "frame.json").read_text())["stats"]
+    assert stats["preview_denoise"]["filter"] == "joint bilateral, amplitude-guided"
+    assert "preview denoise:            on" in out
+    assert re.search(r"render time: +[\d.]+ s \([\d.]+ M rays/s\), \d+ % of the 600 s budget", out), out
+
+
 def test_warmup_renders_a_tiny_frame_and_names_the_tracer(capsys):
     from tofcore.cli import main
 

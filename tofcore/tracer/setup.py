@@ -68,6 +68,7 @@ class TraceSettings:
     sampler: str = "sobol"
     light_paths: bool = True
     allocate: Callable | None = None
+    pass_size: Callable | None = None
 
 
 @dataclass(frozen=True)

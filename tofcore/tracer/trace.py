@@ -55,7 +55,8 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       cancel: Callable[[], bool] | None = None,
                       device: str | backend.Device = "cpu", progressive: bool = True,
                       sampler: str = "sobol", light_paths: bool = True,
-                      allocate: Callable[[Transport, int], np.ndarray | None] | None = None) -> Iterator[Transport]:
+                      allocate: Callable[[Transport, int], np.ndarray | None] | None = None,
+                      pass_size: Callable[[Transport, int], int] | None = None) -> Iterator[Transport]:
     """Trace in progressive passes, yielding the accumulated :class:`Transport` after each.
 
     Parameters
@@ -88,6 +89,10 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         e.g. :func:`tofcore.tracer.estimator.allocate_samples`) or None for n everywhere. Each pixel's samples
         keep their indices 0, 1, 2, … whatever the allocation, so a pixel's estimate is the same
         function of its own samples as without it. ``spp`` then counts the mean over the pixels.
+    pass_size : called before every pass with the accumulated transport and the scheduled pass's samples
+        per pixel n (:func:`next_pass_size`); returns the pass's samples per pixel, 0..n (0 ends the trace).
+        A time budget sizes its last pass with it (:mod:`tofcore.tracer.budget`); the samples stay the same
+        whatever the sizes, only the passes they fall into change.
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy) or ``"auto", or a resolved :class:`tofcore.backend.Device`.
         On the GPU the accumulators of the yielded :class:`Transport` are CuPy arrays (``first_hit`` is
         always NumPy); the same seed gives the same sums within float rounding (``tests/tofcore/test_gpu.py``).
@@ -98,7 +103,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         world_from_sensor=world_from_sensor, correlations=correlations, ambient=ambient, spp=spp,
         max_depth=max_depth, seed=seed, chunk_size=chunk_size, workers=workers, transient_bin_m=transient_bin_m,
         transient_max_m=transient_max_m, cancel=cancel, device=device, progressive=progressive, sampler=sampler,
-        light_paths=light_paths, allocate=allocate)
+        light_paths=light_paths, allocate=allocate, pass_size=pass_size)
     return _passes(scene, camera, leds, settings)
 
 
@@ -126,7 +131,14 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
         with ThreadPoolExecutor(max_workers=n_workers) as threads:
             runner = parallel.PassRunner(setup, transport, shared, threads, n_workers, chunk_size, settings.cancel,
                                          compiled=tracer if tracer.packed is not None else None)
-            for n_samples in pass_schedule(int(settings.spp), settings.progressive):
+            nominal = 0  # samples per pixel the passes so far were asked for
+            while nominal < settings.spp:
+                n_samples = next_pass_size(nominal, int(settings.spp), settings.progressive)
+                if settings.pass_size is not None:
+                    n_samples = _checked_pass_size(settings.pass_size(transport, n_samples), n_samples)
+                    if n_samples == 0:
+                        return
+                nominal += n_samples
                 counts = None if settings.allocate is None else settings.allocate(transport, n_samples)
                 counts = np.full(n_pix, n_samples, np.int64) if counts is None else _checked_counts(counts, n_pix)
                 runner.run(done, counts)
@@ -181,6 +193,19 @@ def _checked_counts(counts, n_pix: int) -> np.ndarray:
     return counts.astype(np.int64)
 
 
+def _checked_pass_size(n, scheduled: int) -> int:
+    if not isinstance(n, (int, np.integer)) or isinstance(n, bool) or not 0 <= n <= scheduled:
+        raise ConfigError(f"trace: pass_size must return an integer in [0, {scheduled}], got {n!r}")
+    return int(n)
+
+
+def next_pass_size(done: int, spp: int, progressive: bool = True) -> int:
+    """Samples per pixel of the pass after ``done`` of ``spp``: ``min(max(done, 1), 16)`` (progressive: the
+    passes double, 1, 1, 2, 4, 8, 16, 16, …), else 16; never more than the ``spp − done`` left."""
+    size = min(max(done, 1), _MAX_PASS) if progressive else _MAX_PASS
+    return min(size, spp - done)
+
+
 def pass_schedule(spp: int, progressive: bool = True) -> list[int]:
     """Samples per pass summing to ``spp``: 1, 1, 2, 4, 8, 16, 16, … (progressive), else 16, 16, ….
 
@@ -190,15 +215,10 @@ def pass_schedule(spp: int, progressive: bool = True) -> list[int]:
     device), so results are reproducible, and the first passes of a longer render equal a shorter
     render of the same kind.
     """
-    if not progressive:
-        return [min(_MAX_PASS, spp - done) for done in range(0, spp, _MAX_PASS)]
-    passes, done, size = [], 0, 1
+    passes, done = [], 0
     while done < spp:
-        n = min(size, spp - done)
-        passes.append(n)
-        done += n
-        if len(passes) > 1:
-            size = min(2 * size, _MAX_PASS)
+        passes.append(next_pass_size(done, spp, progressive))
+        done += passes[-1]
     return passes
 
 

@@ -1,0 +1,109 @@
+"""numba in Blender's Python: the compiled CPU tracer (``tofcore.compiled``), installed on request.
+
+tofcore traces with compiled kernels wherever numba imports (``tofcore.compiled.choose``) and falls back
+to its NumPy tracer otherwise, with the reason in ``frame.stats["transport"]["tracer_reason"]``. numba is
+not bundled in the extension zip (its wheels with llvmlite are ~64 MB per platform, README), so the
+preferences offer "Install numba for the compiled tracer", as they offer CuPy (:mod:`.gpu`):
+
+=================  =====================================================================================
+what               how
+=================  =====================================================================================
+where it goes      :func:`site_packages_dir`: a folder of its own beside CuPy's in the extension's user folder
+                   (``…/tof_camera/site-packages-numba``; an install replaces its folder as a whole, so
+                   CuPy's and numba's never share one), appended to ``sys.path`` after Blender's packages.
+which packages     numba and llvmlite (its compiler back end), at the release line tofcore's ``compiled``
+                   extra pins (pyproject.toml), ``--no-deps`` so Blender's NumPy stays the only one; numba
+                   0.68 supports NumPy 1.22–2.5 (Blender 4.2–5.0 ship 1.26).
+first render       compiles the kernels (30–80 s, docs/benchmarks.md) and caches the machine code beside
+                   tofcore's sources (numba's user cache where that folder is read-only); later renders
+                   load it in about a second.
+=================  =====================================================================================
+
+The pip run, its staging folder and cancellation are :class:`.gpu.Installer`'s. Nothing here imports
+``bpy`` at module level, nor numba: the status reads package metadata.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import os
+
+#: Name of the add-on's numba folder inside its user folder.
+SITE_PACKAGES = "site-packages-numba"
+
+#: What "Install numba" installs: tofcore's ``compiled`` extra (pyproject.toml) and the llvmlite that numba
+#: release requires (tests/addon/test_compiled_install.py checks both against the metadata).
+REQUIREMENTS = ("numba>=0.68,<0.69", "llvmlite>=0.50,<0.51")
+
+
+def site_packages_dir(package: str | None = None) -> str:
+    """The add-on's numba folder (not created), beside :func:`.gpu.site_packages_dir`'s."""
+    from . import gpu
+
+    return os.path.join(os.path.dirname(gpu.site_packages_dir(package)), SITE_PACKAGES)
+
+
+def numba_install_command(python: str, target: str, *, pip: list[str] | None = None) -> list[str]:
+    """The command line that installs numba and llvmlite into folder ``target`` (binary wheels, no deps)."""
+    pip = list(pip) if pip else [python, "-m", "pip"]
+    return [*pip, "install", "--target", target, "--upgrade", "--no-deps", "--only-binary=:all:",
+            "--no-input", "--disable-pip-version-check", "--progress-bar", "off", "--no-warn-script-location",
+            *REQUIREMENTS]
+
+
+def installed_numba() -> str | None:
+    """The version of the numba importable now (from its metadata, numba not imported), or None."""
+    try:
+        return importlib.metadata.version("numba")
+    except importlib.metadata.PackageNotFoundError:
+        return None
+
+
+_last: dict = {}  # the last finished render's tracer and reason (note_tracer)
+
+
+def note_tracer(transport_stats: dict | None) -> None:
+    """Remember which tracer a finished render used (``frame.stats["transport"]``), for :func:`status_line`."""
+    stats = transport_stats or {}
+    if stats.get("tracer"):
+        _last.clear()
+        _last.update(tracer=stats["tracer"], tracer_reason=stats.get("tracer_reason", ""))
+
+
+def last_tracer() -> dict:
+    """``{"tracer", "tracer_reason"}`` of the last finished render ({} before the first)."""
+    return dict(_last)
+
+
+def status_line(last_tracer: dict | None = None) -> tuple[str, str]:
+    """(text, icon) of the compiled-tracer box: installed or not, and which tracer the last render used.
+
+    ``last_tracer``: ``{"tracer", "tracer_reason"}`` of the last frame's ``stats["transport"]``, if any.
+    """
+    version = installed_numba()
+    if version is None:
+        return ("numba is not installed: renders use the NumPy tracer (Install numba for a compiled tracer, "
+                "about 2× faster per core)", 'INFO')
+    if last_tracer and last_tracer.get("tracer") == "numpy":
+        return f"numba {version} installed, but the last render used NumPy: {last_tracer.get('tracer_reason')}", 'INFO'
+    if last_tracer and last_tracer.get("tracer") == "compiled":
+        return f"Ready: numba {version}, the last render used the compiled tracer", 'CHECKMARK'
+    return (f"numba {version} installed: the first render compiles the tracer (30–80 s, cached for later "
+            f"renders)", 'INFO')
+
+
+def tracer_text(transport_stats: dict | None) -> str:
+    """One line naming the tracer a frame used and why (``frame.stats["transport"]``), '' when unknown."""
+    stats = transport_stats or {}
+    tracer = stats.get("tracer")
+    if tracer == "compiled":
+        parallel = stats.get("parallel") or ""
+        if parallel.startswith("numba threads: "):
+            return f"Tracer: compiled (numba, {parallel[len('numba threads: '):]} threads)"
+        return f"Tracer: compiled ({parallel})" if parallel else "Tracer: compiled"
+    if tracer == "numpy":
+        reason = stats.get("tracer_reason") or ""
+        if reason.startswith("numba is not installed"):
+            reason = "numba is not installed: Preferences > Add-ons > ToF Camera Simulator > Install numba"
+        return f"Tracer: NumPy ({reason})" if reason else "Tracer: NumPy"
+    return ""

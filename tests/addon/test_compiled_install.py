@@ -1,0 +1,76 @@
+"""addon/compiled.py without Blender: what "Install numba" installs, the status and tracer lines.
+
+``addon/compiled.py`` imports no ``bpy`` (nor numba), so it is loaded here on its own, as
+``test_cupy_install.py`` loads ``gpu.py``.
+"""
+
+from __future__ import annotations
+
+import importlib.metadata
+import importlib.util
+import sys
+import tomllib
+from pathlib import Path
+
+import pytest
+
+REPO_ROOT = Path(__file__).resolve().parents[2]
+
+_spec = importlib.util.spec_from_file_location("tof_addon_compiled", REPO_ROOT / "addon" / "compiled.py")
+compiled = importlib.util.module_from_spec(_spec)
+sys.modules[_spec.name] = compiled
+_spec.loader.exec_module(compiled)
+
+
+def test_requirements_are_tofcores_compiled_extra_and_its_llvmlite():
+    extra = tomllib.loads((REPO_ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]["compiled"]
+    assert [r for r in compiled.REQUIREMENTS if r.startswith("numba")] == extra
+    try:
+        numba_requires = importlib.metadata.requires("numba") or []
+    except importlib.metadata.PackageNotFoundError:
+        pytest.skip("numba is not installed here: its llvmlite requirement cannot be read")
+    requirements = pytest.importorskip("packaging.requirements")
+    llvmlite = next(requirements.Requirement(r) for r in numba_requires if r.startswith("llvmlite"))
+    ours = requirements.Requirement(next(r for r in compiled.REQUIREMENTS if r.startswith("llvmlite")))
+    installed = importlib.metadata.version("llvmlite")
+    assert llvmlite.specifier.contains(installed, prereleases=True) and ours.specifier.contains(installed)
+
+
+def test_install_command_installs_no_numpy():
+    command = compiled.numba_install_command("py", "/t/site-packages-numba.partial")
+    assert command[:4] == ["py", "-m", "pip", "install"]
+    assert command[command.index("--target") + 1] == "/t/site-packages-numba.partial"
+    for option in ("--upgrade", "--no-deps", "--only-binary=:all:", "--no-input"):
+        assert option in command
+    requirements = command[command.index("--no-warn-script-location") + 1:]
+    assert requirements == list(compiled.REQUIREMENTS)
+    assert not any(r.lower().startswith("numpy") for r in requirements), "Blender's NumPy must stay the only one"
+    assert compiled.numba_install_command("py", "/t", pip=["py", "/w/pip"])[:3] == ["py", "/w/pip", "install"]
+
+
+def test_tracer_text():
+    assert compiled.tracer_text({"tracer": "compiled", "tracer_reason": "", "parallel": "numba threads: 8"}) == \
+        "Tracer: compiled (numba, 8 threads)"
+    assert compiled.tracer_text({"tracer": "compiled", "parallel": "CUDA (numba), one path per thread"}) == \
+        "Tracer: compiled (CUDA (numba), one path per thread)"
+    assert compiled.tracer_text({"tracer": "numpy", "tracer_reason": "TOFCORE_TRACER=numpy"}) == \
+        "Tracer: NumPy (TOFCORE_TRACER=numpy)"
+    # tofcore's hint (pip install "tofcore[compiled]") becomes the Blender way
+    assert compiled.tracer_text({"tracer": "numpy", "tracer_reason": 'numba is not installed (pip install '
+                                 '"tofcore[compiled]")'}) == ("Tracer: NumPy (numba is not installed: Preferences > "
+                                                              "Add-ons > ToF Camera Simulator > Install numba)")
+    assert compiled.tracer_text(None) == "" and compiled.tracer_text({}) == ""
+
+
+def test_status_line(monkeypatch):
+    monkeypatch.setattr(compiled, "installed_numba", lambda: None)
+    text, icon = compiled.status_line()
+    assert text.startswith("numba is not installed: renders use the NumPy tracer") and icon == 'INFO'
+    monkeypatch.setattr(compiled, "installed_numba", lambda: "0.68.1")
+    assert compiled.status_line()[0].startswith("numba 0.68.1 installed: the first render compiles the tracer")
+    monkeypatch.setattr(compiled, "_last", {})
+    compiled.note_tracer({"tracer": "compiled", "tracer_reason": "", "parallel": "numba threads: 2"})
+    assert compiled.status_line(compiled.last_tracer()) == (
+        "Ready: numba 0.68.1, the last render used the compiled tracer", 'CHECKMARK')
+    compiled.note_tracer({})                                     # a frame without tracer stats changes nothing
+    assert compiled.last_tracer()["tracer"] == "compiled"
