@@ -44,6 +44,7 @@ import os
 import re
 import subprocess
 import sys
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
@@ -56,13 +57,19 @@ FAKE_GPU_ENV = "TOF_BATCH_FAKE_GPU"
 
 _UUID = re.compile(r"^(GPU|MIG)-[0-9A-Za-z/\-]+$")
 
-# Run in a child process: the parent must not create a CUDA context. Prints one JSON line.
+# Run in a child process: the parent must not create a CUDA context. Prints one JSON line. CuPy alone
+# counts the devices (importing tofcore, a second or so, is left out of every GPU run's start); only when
+# it finds none does tofcore's backend say why, in its words.
 _PROBE = """
 import json
-from tofcore import backend
-count = backend.gpu_count()
+try:
+    import cupy
+    count = int(cupy.cuda.runtime.getDeviceCount())
+except Exception:
+    count = 0
 reason = None
 if count == 0:
+    from tofcore import backend
     try:
         backend.select_device("gpu")
         reason = "CUDA reports no device"
@@ -98,6 +105,7 @@ class VisibleGpus:
     source: str
     reason: str | None = None
     note: str | None = None
+    probe_s: float | None = None   # seconds the child process took (None: no child was asked)
 
 
 def fake_gpu(env: Mapping[str, str] | None = None) -> bool:
@@ -118,10 +126,11 @@ def visible_gpus(env: Mapping[str, str] | None = None, probe_timeout_s: float = 
     """
     env = os.environ if env is None else env
     value = env.get(VISIBLE_ENV)
+    started = time.perf_counter()
     if value is None:
         count, reason = _probe(env, probe_timeout_s)
         return VisibleGpus(tuple(str(i) for i in range(count)), f"a CuPy probe ({VISIBLE_ENV} not set)",
-                           reason if count == 0 else None)
+                           reason if count == 0 else None, probe_s=time.perf_counter() - started)
     ids = tuple(parse_visible_devices(value))
     if not ids:
         reason = f"{VISIBLE_ENV} is empty" if not value.strip() else f"{VISIBLE_ENV}={value!r} names no GPU"
@@ -130,13 +139,14 @@ def visible_gpus(env: Mapping[str, str] | None = None, probe_timeout_s: float = 
         return VisibleGpus(ids, VISIBLE_ENV)
     count, reason = _probe(env, probe_timeout_s)
     source = f"{VISIBLE_ENV}, checked by a CuPy probe"
+    probe_s = time.perf_counter() - started
     if count == 0:
-        return VisibleGpus((), source, f"{VISIBLE_ENV}={value!r}: {reason}")
+        return VisibleGpus((), source, f"{VISIBLE_ENV}={value!r}: {reason}", probe_s=probe_s)
     note = None
     if count < len(ids):
         note = (f"{VISIBLE_ENV}={value!r}: CUDA uses {count} of its {len(ids)} entries (it stops at the first "
                 f"it cannot find or already has): using {', '.join(ids[:count])}")
-    return VisibleGpus(ids[:count], source, note=note)
+    return VisibleGpus(ids[:count], source, note=note, probe_s=probe_s)
 
 
 def _probe(env: Mapping[str, str], timeout_s: float) -> tuple[int, str | None]:
@@ -214,8 +224,8 @@ def plan_devices(device: str, *, executor: str, workers: int | None = None,
                           notes=(f"device auto: no usable GPU ({found.reason}); rendering on the CPU",))
     gpus = found.ids
     notes = ([found.note] if found.note else []) + [
-        f"device {device}: {len(gpus)} GPU(s) visible ({VISIBLE_ENV} {', '.join(gpus)}; from {found.source}): "
-        f"one worker process per GPU"]
+        f"device {device}: {len(gpus)} GPU(s) visible ({VISIBLE_ENV} {', '.join(gpus)}; from {found.source}"
+        f"{'' if found.probe_s is None else f' in {found.probe_s:.1f} s'}): one worker process per GPU"]
     if workers is not None and workers < len(gpus):
         notes.append(f"--workers {workers}: using the first {workers} of {len(gpus)} GPU(s)")
         gpus = gpus[:workers]

@@ -3,10 +3,11 @@
 Executors
 ---------
 ===================  ===========================================================================
-``LocalExecutor``    a ``ProcessPoolExecutor`` with the "spawn" context (the default);
-                     ``--workers N`` processes, at most N view tasks in flight; with
+``LocalExecutor``    ``--workers N`` processes ("spawn" context; the default), each its own
+                     one-process pool taking the next view as soon as it reports one; with
                      ``--device gpu``/``auto`` one process per GPU, each pinned to its GPU
-                     (``CUDA_VISIBLE_DEVICES``, set by the pool initializer)
+                     (``CUDA_VISIBLE_DEVICES``, set by the initializer); a worker that dies
+                     fails only its own view and is replaced
 ``DaskExecutor``     ``distributed.Client(address)`` for an existing cluster (``--scheduler``;
                      each worker uses the GPU its environment shows), or a ``LocalCluster``
                      of worker processes (``--dask local``; one per GPU, each pinned, with a
@@ -65,7 +66,8 @@ from .card import dataset_card
 from .dataset import FRAMES, RECORD, Dataset, differing_keys
 from .devices import VISIBLE_ENV, plan_devices
 from .jobs import Job, ViewTask, group_by_view
-from .worker import failed_record, init_worker, run_view
+from .timing import timing_lines, worker_timing
+from .worker import WorkerDied, failed_record, init_worker, run_view
 
 
 class Interrupted(BaseException):
@@ -134,13 +136,29 @@ class InlineExecutor:
         pass
 
 
-class LocalExecutor:
-    """A spawn-context process pool with at most ``workers`` view tasks in flight.
+@dataclass
+class _Slot:
+    """One worker process of the local pool: its own one-process pool, its GPU, the view it renders."""
 
-    With ``gpus`` (``CUDA_VISIBLE_DEVICES`` ids), one worker process per GPU: every new pool gets a
-    queue holding each id once, and each process's initializer takes one before anything in the
-    process uses CUDA (:func:`batch.worker.init_worker`). A pool that breaks (a worker killed) is
-    replaced by a new one with a full queue.
+    gpu: str | None
+    pool: cf.ProcessPoolExecutor
+    future: cf.Future | None = None
+    task: ViewTask | None = None
+    process: multiprocessing.Process | None = None
+
+
+class LocalExecutor:
+    """Worker processes ("spawn" context) that take the views one at a time from one queue.
+
+    Each worker is its own one-process pool (a slot): the parent hands a slot the next view the moment
+    it reports one, before it indexes the frames (so no worker waits for the parent's bookkeeping), and
+    the last views go to whichever worker is free first. With ``gpus`` (``CUDA_VISIBLE_DEVICES`` ids)
+    there is one slot per GPU, pinned to it by the initializer (:func:`batch.worker.init_worker`).
+
+    A worker that dies (``kill -9``, the out-of-memory killer) breaks only its own slot: its view's
+    frames fail with one line (:class:`WorkerDied`; ``--retry-failed`` renders them again; frames it
+    had published are indexed as published), the slot gets a new process on the same GPU, and the
+    other workers carry on.
     """
 
     def __init__(self, workers: int, gpus: tuple[str, ...] = ()):
@@ -152,67 +170,109 @@ class LocalExecutor:
         self.name = f"local pool, {self.workers} worker process{'es' if self.workers != 1 else ''}"
         if self.gpus:
             self.name += f" (one per GPU: {VISIBLE_ENV} {', '.join(self.gpus)})"
-        self.pool: cf.ProcessPoolExecutor | None = None
+        self.slots: list[_Slot] = []
 
-    def _new_pool(self) -> cf.ProcessPoolExecutor:
+    def _new_slot(self, gpu: str | None) -> _Slot:
         context = multiprocessing.get_context("spawn")
-        gpu_ids = None
-        if self.gpus:
-            gpu_ids = context.Queue()
-            for gpu in self.gpus:
-                gpu_ids.put(gpu)
-        return cf.ProcessPoolExecutor(max_workers=self.workers, mp_context=context,
-                                      initializer=init_worker, initargs=(os.getpid(), gpu_ids))
+        return _Slot(gpu, cf.ProcessPoolExecutor(max_workers=1, mp_context=context, initializer=init_worker,
+                                                 initargs=(os.getpid(), gpu, time.time())))
+
+    def _submit(self, slot: _Slot, task: ViewTask) -> None:
+        with sigint_blocked():  # the first submit starts the slot's worker process
+            try:
+                slot.future = slot.pool.submit(run_view, task)
+            except BrokenProcessPool:  # the worker died between two views: a new one takes this view
+                self._replace(slot)
+                slot.future = slot.pool.submit(run_view, task)
+        slot.task = task
+        if slot.process is None:
+            slot.process = next(iter((getattr(slot.pool, "_processes", None) or {}).values()), None)
+
+    def _replace(self, slot: _Slot) -> None:
+        """A new worker process (pool) for a slot whose process died, pinned to the same GPU."""
+        slot.pool.shutdown(wait=False, cancel_futures=True)
+        slot.pool, slot.process = self._new_slot(slot.gpu).pool, None
+
+    def _died(self, slot: _Slot) -> WorkerDied:
+        """The one-line error of the view whose worker died; waits briefly for its exit status."""
+        process, where = slot.process, f" for GPU {slot.gpu}" if slot.gpu is not None else ""
+        code = None
+        if process is not None:
+            process.join(timeout=2.0)
+            code = process.exitcode
+        how = "ended" if code is None else f"exit code {code}"
+        if code is not None and code < 0:
+            try:
+                how = f"killed by {signal.Signals(-code).name}"
+            except ValueError:
+                how = f"killed by signal {-code}"
+        pid = f" (pid {process.pid})" if process is not None else ""
+        return WorkerDied(f"the worker process{where}{pid} died while rendering this view ({how}); the other "
+                          f"workers went on; --retry-failed renders its frames again",
+                          pid=process.pid if process is not None else None, gpu=slot.gpu)
 
     def results(self, tasks: list[ViewTask]) -> Iterator[Result]:
         pending = deque(tasks)
-        running: dict[cf.Future, ViewTask] = {}
-        self.pool = self._new_pool()
-        while pending or running:
-            while pending and len(running) < self.workers:
-                task = pending.popleft()
-                with sigint_blocked():  # submit may start a worker process
-                    running[self.pool.submit(run_view, task)] = task
-            done, _ = cf.wait(running, timeout=0.5, return_when=cf.FIRST_COMPLETED)
+        self.slots = [self._new_slot(gpu) for gpu in (self.gpus or [None] * self.workers)]
+        while True:
+            for slot in self.slots:  # every free worker takes the next view first: none waits for the parent
+                if slot.future is None and pending:
+                    self._submit(slot, pending.popleft())
+            busy = [slot.future for slot in self.slots if slot.future is not None]
+            if not busy:
+                return
+            done, _ = cf.wait(busy, timeout=0.5, return_when=cf.FIRST_COMPLETED)
             if not done:
                 yield None
                 continue
-            broken: BaseException | None = None
-            for future in done:
-                task = running.pop(future)
+            finished = []
+            for slot in self.slots:
+                if slot.future not in done:
+                    continue
+                future, task = slot.future, slot.task
+                slot.future = slot.task = None
                 try:
-                    yield task, future.result()
-                except BrokenProcessPool as exc:
-                    broken = exc
-                    yield task, exc
+                    outcome = future.result()
+                except BrokenProcessPool:  # this worker died: a new process on its GPU takes the next view
+                    outcome = self._died(slot)
+                    self._replace(slot)
                 except Exception as exc:
-                    yield task, exc
-            if broken is not None:  # a worker died (killed, out of memory): the views in flight fail
-                in_flight = list(running.values())
-                running.clear()
-                # The other workers are stopped first: a frame one publishes meanwhile is on disk before
-                # the failures are reported (the parent indexes a published frame as published).
-                self.close(kill=True)
-                for task in in_flight:
-                    yield task, broken
-                self.pool = self._new_pool()
+                    outcome = exc
+                finished.append((task, outcome))
+            for slot in self.slots:  # refill before the parent indexes what came back
+                if slot.future is None and pending:
+                    self._submit(slot, pending.popleft())
+            yield from finished
 
     def close(self, kill: bool = False) -> None:
-        pool, self.pool = self.pool, None
-        if pool is None:
-            return
-        processes = list((getattr(pool, "_processes", None) or {}).values())
-        if kill:
+        """Stop the workers: idle ones at once (SIGTERM: an idle worker exits without the interpreter's
+        teardown, which held the end of every run back by a second or more), busy ones too with ``kill``
+        (they cancel their render and remove their partial folder), else they get 10 s to finish.
+
+        The processes are taken from each pool, not from the slot: a signal right after a submit can
+        stop the run before the slot has noted its new process. Each pool's manager thread is joined
+        last, so that it has closed its wake-up pipe before the interpreter's exit hook writes to it
+        (a race that printed ``OSError: Bad file descriptor`` at exit).
+        """
+        slots, self.slots = self.slots, []
+        owned = [(slot, list((getattr(slot.pool, "_processes", None) or {}).values()),
+                  getattr(slot.pool, "_executor_manager_thread", None)) for slot in slots]
+        for slot, processes, _ in owned:
             for process in processes:
-                if process.is_alive():
-                    process.terminate()  # the worker cancels its render and removes its partial folder
-        pool.shutdown(wait=False, cancel_futures=True)
+                if process.is_alive() and (kill or slot.future is None):
+                    process.terminate()
+        for slot in slots:
+            slot.pool.shutdown(wait=False, cancel_futures=True)
         deadline = time.monotonic() + 10.0
-        for process in processes:
-            process.join(timeout=max(0.0, deadline - time.monotonic()))
-            if process.is_alive():
-                process.kill()
-                process.join(timeout=5.0)
+        for _, processes, _ in owned:
+            for process in processes:
+                process.join(timeout=max(0.0, deadline - time.monotonic()))
+                if process.is_alive():
+                    process.kill()
+                    process.join(timeout=5.0)
+        for _, _, manager in owned:
+            if manager is not None:
+                manager.join(timeout=5.0)
 
 
 class DaskExecutor:
@@ -422,6 +482,7 @@ class RunResult:
     interrupted: Interrupted | None = None
     failures: list[dict] = field(default_factory=list)
     executor: str = ""
+    workers: list[dict] = field(default_factory=list)  # per worker process: where its time went (batch.timing)
 
     @property
     def exit_code(self) -> int:
@@ -564,6 +625,7 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
         if result.recovered:
             log(f"{result.recovered} finished frame(s) taken from their record.json (index line missing)")
         progress = Progress(len(todo), quiet=quiet, stream=stream)
+        reported: list[dict] = []  # the records the workers reported in this run
         try:
             if not todo:
                 log(f"{len(jobs)} frames in the set: nothing to render"
@@ -598,6 +660,7 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
                                         f"indexed already; its folder was not replaced)")
                                     continue
                                 records[record["job_id"]] = record
+                                reported.append(record)
                                 result.rendered += record["status"] == "ok"
                                 progress.record(record)
                         if caught:
@@ -613,6 +676,7 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
                     raise
                 else:
                     progress.close()
+                result.workers = worker_timing(reported)
         finally:
             with signals_deferred() as caught:
                 data.clean_partials()  # folders of workers stopped or lost (no worker of ours writes now)
@@ -658,5 +722,6 @@ def summary(result: RunResult, dataset: str | os.PathLike) -> str:
         lines.append("  retry them with --retry-failed once the cause is fixed")
     if result.interrupted is not None:
         lines.append(result.interrupted.message())
+    lines += timing_lines(result.workers)
     lines.append(f"dataset: {os.fspath(dataset)} (index.jsonl, README.md, frames/)")
     return "\n".join(lines)

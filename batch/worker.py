@@ -28,6 +28,14 @@ raw CuPy exceptions are converted) fails the frame with one line and no
 traceback; with ``auto`` the frame is rendered again on the CPU and the reason
 recorded.
 
+Timing: every record has ``timing``, where its worker's time went (epoch seconds and durations):
+``worker_started`` (the parent started the process), ``task_started`` (the worker took the view),
+``load_s`` (scene load or export, with the first import of tofcore; 0 for the view's later frames),
+``render_started``, ``render_s`` (``tofcore.render``: in a process's first GPU frame this includes
+importing CuPy, the CUDA context and compiling or loading the kernels), ``write_s`` (error metrics
+and the frame's files, up to ``record.json``) and ``finished``. :func:`batch.timing.worker_timing`
+sums them up per worker at the end of a run.
+
 Fault injection for tests: ``TOF_BATCH_FAIL`` holds comma-separated
 :mod:`fnmatch` patterns; a job whose id or label (``scene/view/preset``)
 matches one raises before rendering. A pattern written ``gpu:PATTERN`` raises a
@@ -41,7 +49,6 @@ from __future__ import annotations
 import fnmatch
 import gc
 import os
-import queue
 import secrets
 import shutil
 import signal
@@ -68,6 +75,8 @@ _SCENE_CACHE: dict = {}
 _STOP = threading.Event()
 _BUSY = threading.Event()
 _EXIT_STOPPED = 143
+# When this process was started (epoch seconds; :func:`init_worker`): the start of the worker's timeline.
+_WORKER_STARTED = time.time()
 
 
 def _on_sigterm(signum, frame) -> None:
@@ -98,23 +107,38 @@ class JobError(RuntimeError):
     """A job cannot be rendered for a reason the user can fix (changed file, missing camera …)."""
 
 
+class WorkerDied(RuntimeError):
+    """A local pool's worker process ended while it rendered a view (``kill -9``, the out-of-memory killer).
+
+    Raised in the parent (:class:`batch.run.LocalExecutor`); ``pid`` and ``gpu`` name the worker.
+    """
+
+    def __init__(self, message: str, *, pid: int | None = None, gpu: str | None = None):
+        super().__init__(message)
+        self.pid = pid
+        self.gpu = gpu
+
+
 # --------------------------------------------------------------------------- worker process set-up
 
-def init_worker(parent_pid: int | None = None, gpu_ids=None) -> None:
+def init_worker(parent_pid: int | None = None, gpu: str | None = None, launched: float | None = None) -> None:
     """Process-pool initializer: pin the worker to its GPU, leave Ctrl-C to the parent, exit if the parent dies.
 
-    ``gpu_ids`` (a multiprocessing queue holding one ``CUDA_VISIBLE_DEVICES``
-    id per worker process, ``--device gpu``/``auto``): the worker takes one and
-    makes it its only visible GPU before anything in it uses CUDA, so N
-    workers render on N different GPUs.
+    ``gpu`` (a ``CUDA_VISIBLE_DEVICES`` id, ``--device gpu``/``auto``): made
+    this process's only visible GPU before anything in it uses CUDA (CUDA
+    reads the variable when it initialises), so N workers render on N GPUs.
+    ``launched``: when the parent started this process (epoch seconds), the
+    start of the worker's timeline (its records' ``timing["worker_started"]``).
 
     The terminal sends SIGINT to the whole process group; the parent stops the
     workers itself. A parent killed with SIGKILL cannot: a watchdog thread
     ends the worker within a second of the parent's death, so no orphan keeps
     writing into the dataset.
     """
-    if gpu_ids is not None:
-        pin_gpu(gpu_ids)
+    global _WORKER_STARTED
+    _WORKER_STARTED = time.time() if launched is None else launched
+    if gpu is not None:
+        os.environ[VISIBLE_ENV] = gpu
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     # The parent starts workers with SIGINT blocked (batch.run.sigint_blocked), so that a Ctrl-C during
     # their start-up stays pending instead of printing a KeyboardInterrupt; ignored now, it is dropped.
@@ -130,16 +154,6 @@ def init_worker(parent_pid: int | None = None, gpu_ids=None) -> None:
             time.sleep(0.5)
 
     threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
-
-
-def pin_gpu(gpu_ids) -> str:
-    """Take one GPU id from the queue and make it this process's only visible GPU; the id."""
-    try:
-        gpu = gpu_ids.get(timeout=60)
-    except queue.Empty:
-        raise RuntimeError("GPU worker: no GPU id left for this process") from None
-    os.environ[VISIBLE_ENV] = gpu
-    return gpu
 
 
 # --------------------------------------------------------------------------- scenes
@@ -306,17 +320,27 @@ def _render(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient):
     return tofcore.render(scene, sensor, pose, device=cpu_device("auto", reason), **settings)
 
 
-def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warnings: list[str]) -> dict:
-    """Render and write one job; return its record (never raises for the job's own failure)."""
+def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warnings: list[str],
+               timing: dict | None = None) -> dict:
+    """Render and write one job; return its record (never raises for the job's own failure).
+
+    ``timing``: the record's ``timing`` so far (``worker_started``, ``task_started``, ``load_s``); the
+    render and write phases are added here.
+    """
     import tofcore
 
     record = _base_record(job, task)
+    timing = dict(timing or {"worker_started": _WORKER_STARTED, "task_started": time.time(), "load_s": 0.0})
+    record["timing"] = timing
     frames_dir = Path(task.dataset) / ds.FRAMES
     partial = frames_dir / f".{job.job_id}.partial-{secrets.token_hex(4)}"
     started = time.perf_counter()
     try:
         _maybe_fail(job)
+        timing["render_started"] = time.time()
         frame = _render(job, task, scene, pose, ambient)
+        rendered = time.perf_counter()
+        timing["render_s"] = rendered - started
         frame.metadata["batch"] = {"job_id": job.job_id, "scene": job.scene, "view": job.view,
                                    "preset": job.preset, "seed": job.seed, "set_seed": job.set_seed,
                                    "source": job.source, "export_warnings": warnings}
@@ -343,6 +367,10 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
             "seconds": time.perf_counter() - started,
             "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         })
+        # The write phase ends with the publishing rename; record.json holds the time up to its own
+        # writing (what is measured after it is a few system calls).
+        timing["write_s"] = time.perf_counter() - rendered
+        timing["finished"] = time.time()
         record = ds.write_record(partial, record)
         if ds.publish(partial, frames_dir / job.job_id):
             return record
@@ -369,18 +397,21 @@ def failed_record(job: Job, task: ViewTask, exc: BaseException, seconds: float =
 
     A GPU failure (:func:`batch.devices.is_gpu_error`) gives one line naming the cause and no traceback;
     so does a problem of the input or the disk (a :class:`tofcore.TofError` naming the file and key, an
-    ``OSError`` such as a full disk): the line says it all, a traceback would only bury it.
+    ``OSError`` such as a full disk) and a worker that died (:class:`WorkerDied`, whose record names the
+    dead worker's pid and GPU): the line says it all, a traceback would only bury it.
     """
     from tofcore.errors import TofError
 
     record = dict(record or _base_record(job, task))
     if is_gpu_error(exc):
         error, tb = gpu_error_line(exc), None
-    elif isinstance(exc, (TofError, OSError)):
+    elif isinstance(exc, (TofError, OSError, WorkerDied)):
         error, tb = f"{type(exc).__name__}: {exc}", None
     else:
         error = f"{type(exc).__name__}: {exc}"
         tb = "".join(traceback.format_exception(type(exc), exc, exc.__traceback__))[-4000:]
+    if isinstance(exc, WorkerDied):  # the parent makes this record: the worker's pid and GPU, not the parent's
+        record.update({"pid": exc.pid, "cuda_visible_devices": exc.gpu})
     record.update({"status": "failed", "error": error,
                    "traceback": tb, "dir": None, "files": [], "seconds": seconds,
                    "finished": datetime.now(timezone.utc).isoformat(timespec="seconds")})
@@ -391,6 +422,7 @@ def failed_record(job: Job, task: ViewTask, exc: BaseException, seconds: float =
 
 def run_view(task: ViewTask) -> list[dict]:
     """Load or export the view's scene once, then render each of its jobs; one record per job."""
+    task_started = time.time()
     started = time.perf_counter()
     _BUSY.set()
     try:
@@ -398,9 +430,12 @@ def run_view(task: ViewTask) -> list[dict]:
             scene, pose, ambient, warnings = _load_scene(task)
         except Exception as exc:
             return [failed_record(job, task, exc, time.perf_counter() - started) for job in task.jobs]
+        load_s = time.perf_counter() - started
         records = []
         for job in task.jobs:
-            records.append(render_job(job, task, scene, pose, ambient, warnings))
+            timing = {"worker_started": _WORKER_STARTED, "task_started": task_started, "load_s": load_s}
+            records.append(render_job(job, task, scene, pose, ambient, warnings, timing))
+            load_s = 0.0
             if _STOP.is_set():  # finished frames are published (their record.json is read back next run)
                 _exit_stopped()
         sys.stdout.flush()

@@ -11,7 +11,6 @@ from __future__ import annotations
 import importlib.util
 import json
 import os
-import queue
 
 import pytest
 
@@ -130,13 +129,11 @@ def test_no_gpu_is_one_line_for_gpu_and_a_reported_fall_back_for_auto():
     assert auto.notes == ("device auto: no usable GPU (CUDA_VISIBLE_DEVICES is empty); rendering on the CPU",)
 
 
-def test_a_worker_pins_itself_to_the_gpu_it_takes(monkeypatch):
+def test_a_worker_pins_itself_to_its_gpu(monkeypatch):
     monkeypatch.setenv("CUDA_VISIBLE_DEVICES", "0,1")
-    ids = queue.Queue()
-    for gpu in ("1", "0"):
-        ids.put(gpu)
-    assert worker.pin_gpu(ids) == "1" and os.environ["CUDA_VISIBLE_DEVICES"] == "1"
-    assert worker.pin_gpu(ids) == "0" and os.environ["CUDA_VISIBLE_DEVICES"] == "0"
+    monkeypatch.setattr(worker.signal, "signal", lambda *_args: None)  # leave pytest's handlers alone
+    worker.init_worker(None, "1", launched=123.0)
+    assert os.environ["CUDA_VISIBLE_DEVICES"] == "1" and worker._WORKER_STARTED == 123.0
 
 
 # --------------------------------------------------------------------------- the worker (in this process)

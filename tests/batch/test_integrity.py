@@ -191,8 +191,8 @@ def test_the_index_writer_appends_a_frame_once(tmp_path):
 
 
 def test_a_killed_pool_worker_leaves_an_index_that_describes_the_files(tmp_path):
-    """kill -9 of a local pool worker: the views in flight are recorded failed, except frames their worker
-    had published (indexed as published); --retry-failed then completes the set."""
+    """kill -9 of a local pool worker: its view in flight is recorded failed, except frames it had published
+    (indexed as published); --retry-failed then completes the set."""
     set_file = write_set(tmp_path, SLOW)
     dataset = tmp_path / "dataset"
     proc = _start("run", str(set_file), "--out", str(dataset), "--quiet", "--workers", "2")
@@ -208,7 +208,8 @@ def test_a_killed_pool_worker_leaves_an_index_that_describes_the_files(tmp_path)
     assert len(records) == 8 and Dataset(dataset).check("sha256")["problems"] == []
     assert stray_files(dataset) == []
     failed = [r for r in records if r["status"] == "failed"]
-    assert all("process pool" in r["error"] and not (dataset / "frames" / r["job_id"]).exists() for r in failed)
+    assert all("WorkerDied: the worker process" in r["error"] and not (dataset / "frames" / r["job_id"]).exists()
+               for r in failed)
     retry = batch("run", str(set_file), "--out", str(dataset), "--quiet", "--retry-failed")
     assert retry.returncode == 0, retry.stderr
     _assert_true_index(dataset, 8)

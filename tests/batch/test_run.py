@@ -229,7 +229,7 @@ def test_a_lock_file_planted_as_a_symlink_is_refused_and_its_target_untouched(tm
 
 #: What may differ between two runs of the same set: timings, the process, and the files that record timings.
 _RUN_DEPENDENT = {"render_seconds", "trace_seconds", "seconds", "rays_per_second", "finished", "pid", "host",
-                  "files", "record_file"}
+                  "files", "record_file", "timing"}
 
 
 def test_one_or_two_workers_give_identical_index_lines_apart_from_timings(tmp_path):
