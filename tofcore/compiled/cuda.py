@@ -168,49 +168,13 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
 
     for s0, s1 in groups(active, limit):
         offsets = np.concatenate([[0], np.cumsum(active[s0:s1])]).astype(np.int64)
-        n = int(offsets[-1])
         group = (*pixels, s0, cuda.to_device(offsets))
-        path = (xp.empty(n, np.int64), xp.empty(n, np.int64), xp.zeros(n, np.int8), xp.zeros(n, np.int8))
-        pstate = (xp.empty((n, 13)), xp.empty(n, np.int32))
-        rays = (xp.empty((n, 3), np.float32), xp.empty((n, 3), np.float32), xp.empty(n, np.int32),
-                xp.empty(n, np.float32))
-        light_rays = (xp.zeros((n, 3), np.float32), xp.zeros((n, 3), np.float32), xp.full(n, -1, np.int32))
-        light = xp.zeros((n, module.LIGHT_COLUMNS))
-        pend = (xp.zeros((n, slots)), xp.zeros((n, slots)))
-        shadow = (xp.zeros((n * slots, 3), np.float32), xp.zeros((n * slots, 3), np.float32),
-                  xp.zeros(n * slots, np.float32), xp.full(n * slots, -1, np.int32))
-        total = xp.zeros((n_corr + 2, n))
-        contrib = (xp.zeros((k_max, n)), xp.zeros((k_max, n_corr, n)), xp.zeros((k_max, n)),
-                   xp.zeros((k_max, n_corr, n)))
-        counters = xp.zeros((N_COUNTERS, n), np.int64)
-        k = _kernel_arrays
-        dev_path, dev_pstate, dev_rays, dev_shadow = k(path), k(pstate), k(rays), k(shadow)
-        dev_light, dev_total, dev_counters = k((light, total, counters))
-        dev_pend, dev_contrib = k(pend), k(contrib)
-        t = _stage_done("allocate", time.perf_counter())
-        launch(module.wf_start, n, scene, settings, group, dev_path, dev_pstate, dev_rays, k(light_rays),
-               dev_counters)
-        t = _stage_done("start", t)
-        if settings[3]:
-            h = bvh.intersect(light_rays[0], light_rays[1])
-            t = _stage_done("trace", t)
-            launch(module.wf_light, n, scene, settings, dev_path, k((h.prim, h.u, h.v)), dev_light)
-            t = _stage_done("light", t)
-        # Every slot is traced every depth: an ended path's ray and a shadow slot without a test have t_max −1,
-        # which the traversal rejects at the root — no compaction, no host synchronisation to count them.
-        for depth in range(1, k_max + 1):
-            h = bvh.intersect(rays[0], rays[1], rays[3], ignore_prim=rays[2])
-            t = _stage_done("trace", t)
-            launch(module.wf_shade, n, scene, settings, depth, dev_path, dev_pstate, k((h.prim, h.u, h.v)),
-                   dev_light, dev_pend, dev_shadow, dev_rays, dev_counters)
-            t = _stage_done("shade", t)
-            occluded = bvh.occluded(shadow[0], shadow[1], shadow[2], ignore_prim=shadow[3])
-            t = _stage_done("trace shadows", t)
-            launch(module.wf_resolve, n, scene, depth, dev_path, dev_pend, _kernel_array(occluded), dev_total,
-                   dev_contrib)
-            t = _stage_done("resolve", t)
-        launch(module.wf_gather, int(offsets[1]), group, k(path)[1], dev_contrib, dev_total, dev_sums)
-        rays_counted += counters.sum(axis=1)
+        arrays = _group_arrays(xp, int(offsets[-1]), k_max, n_corr, slots, module.LIGHT_COLUMNS)
+        _trace_group(module, device_scene, group, arrays, launch)
+        t = time.perf_counter()
+        launch(module.wf_gather, int(offsets[1]), group, _kernel_array(arrays["path"][1]),
+               _kernel_arrays(arrays["contrib"]), _kernel_array(arrays["total"]), dev_sums)
+        rays_counted += arrays["counters"].sum(axis=1)
         _stage_done("gather", t)
     nee_w, nee_wg, con_w, con_wg, replicate = sums
     out.signal_sum += con_w          # the reference's order: connections, then next-event estimates
@@ -219,6 +183,54 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
     out.correlation_sum += nee_wg
     out.replicate_sum += replicate
     return backend.to_host(rays_counted)
+
+
+def _group_arrays(xp, n: int, k_max: int, n_corr: int, slots: int, light_columns: int) -> dict:
+    """The per-path arrays of a group of ``n`` paths (the table in kernels.py's wavefront section)."""
+    f32, i32 = np.float32, np.int32
+    return {"path": (xp.empty(n, np.int64), xp.empty(n, np.int64), xp.zeros(n, np.int8), xp.zeros(n, np.int8)),
+            "pstate": (xp.empty((n, 13)), xp.empty(n, i32)),
+            "rays": (xp.empty((n, 3), f32), xp.empty((n, 3), f32), xp.empty(n, i32), xp.empty(n, f32)),
+            "light_rays": (xp.zeros((n, 3), f32), xp.zeros((n, 3), f32), xp.full(n, -1, i32)),
+            "light": xp.zeros((n, light_columns)),
+            "pend": (xp.zeros((n, slots)), xp.zeros((n, slots))),
+            "shadow": (xp.zeros((n * slots, 3), f32), xp.zeros((n * slots, 3), f32), xp.zeros(n * slots, f32),
+                       xp.full(n * slots, -1, i32)),
+            "total": xp.zeros((n_corr + 2, n)),
+            "contrib": (xp.zeros((k_max, n)), xp.zeros((k_max, n_corr, n)), xp.zeros((k_max, n)),
+                        xp.zeros((k_max, n_corr, n))),
+            "counters": xp.zeros((N_COUNTERS, n), np.int64)}
+
+
+def _trace_group(module, device_scene: DeviceScene, group: tuple, arrays: dict, launch) -> None:
+    """The stages of one group up to its gather: start, light vertices, then per depth trace, shade, trace
+    the shadow rays, resolve. Every slot is traced at every depth: an ended path's ray and a shadow slot
+    without a test have t_max −1, which the traversal rejects at the root — no compaction and no host
+    synchronisation to count them."""
+    bvh, scene, settings = device_scene.bvh, device_scene.scene, device_scene.settings
+    k = _kernel_arrays
+    n = int(arrays["path"][0].shape[0])
+    rays, light_rays, shadow = arrays["rays"], arrays["light_rays"], arrays["shadow"]
+    path, counters = k(arrays["path"]), _kernel_array(arrays["counters"])
+    buffers = (k(arrays["pstate"]), _kernel_array(arrays["light"]), k(arrays["pend"]), k(shadow), k(rays), counters)
+    t = _stage_done("allocate", time.perf_counter())
+    launch(module.wf_start, n, scene, settings, group, path, buffers[0], buffers[4], k(light_rays), counters)
+    t = _stage_done("start", t)
+    if settings[3]:
+        h = bvh.intersect(light_rays[0], light_rays[1])
+        t = _stage_done("trace", t)
+        launch(module.wf_light, n, scene, settings, path, k((h.prim, h.u, h.v)), buffers[1])
+        t = _stage_done("light", t)
+    total, contrib = _kernel_array(arrays["total"]), k(arrays["contrib"])
+    for depth in range(1, device_scene.max_depth + 1):
+        h = bvh.intersect(rays[0], rays[1], rays[3], ignore_prim=rays[2])
+        t = _stage_done("trace", t)
+        launch(module.wf_shade, n, scene, settings, depth, path, k((h.prim, h.u, h.v)), buffers)
+        t = _stage_done("shade", t)
+        occluded = bvh.occluded(shadow[0], shadow[1], shadow[2], ignore_prim=shadow[3])
+        t = _stage_done("trace shadows", t)
+        launch(module.wf_resolve, n, scene, depth, path, buffers[2], _kernel_array(occluded), total, contrib)
+        t = _stage_done("resolve", t)
 
 
 def _kernel_arrays(arrays: tuple) -> tuple:

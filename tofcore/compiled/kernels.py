@@ -1253,92 +1253,116 @@ def wf_light(scene, settings, path, light_hits, light):
     store_light(light, j, light_vertex_at(scene[0], scene[4], ray, prim[j], u[j], v[j]))
 
 
+@fn
+def queue_next_events(leds, frame, vertex, state, path_length, j, buffers):
+    """The next-event estimates of path j's vertex to every LED (led_estimate) into ``pend`` and the shadow
+    rays that need a test into ``shadow`` (slots j(L+1) + i), as connect_led decides them."""
+    pend_w, pend_tau = buffers[2]
+    shadow, counters = buffers[3], buffers[5]
+    n_led = leds[0].shape[0]
+    for i in range(n_led):
+        w, dist, led = led_estimate(frame, leds, vertex, state, i)
+        pend_w[j, i] = w
+        pend_tau[j, i] = (path_length + dist) / SPEED_OF_LIGHT_M_S
+        if w > 0:
+            if state[1] == 1 and leds[1][i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
+                counters[4, j] += 1
+            else:
+                k = j * (n_led + 1) + i
+                o, d, t_max = shadow_ray(vertex[1], led, point_offset(led, SPAWN_RELATIVE))
+                store_ray((shadow[0], shadow[1], shadow[3]), k, o, d, vertex[3])
+                shadow[2][k] = t_max
+                counters[2, j] += 1
+
+
+@fn
+def queue_connection(vertex, throughput, path_length, j, buffers):
+    """Path j's connection to its light vertex (light_estimate) into column L of ``pend``, its shadow ray
+    into slot j(L+1) + L, as connect_light decides it."""
+    light, shadow, counters = buffers[1], buffers[3], buffers[5]
+    pend_w, pend_tau = buffers[2]
+    n_led = pend_w.shape[1] - 1
+    y = load_light(light, j)
+    w = 0.0
+    extra = 0.0
+    if y[0]:
+        w, extra = light_estimate(vertex, throughput, y)
+    pend_w[j, n_led] = w
+    pend_tau[j, n_led] = (path_length + extra) / SPEED_OF_LIGHT_M_S
+    if w > 0:
+        k = j * (n_led + 1) + n_led
+        o, d, t_max = shadow_ray(vertex[1], y[1][0], y[6])
+        store_ray((shadow[0], shadow[1], shadow[3]), k, o, d, vertex[3])
+        shadow[2][k] = t_max
+        counters[2, j] += 1
+
+
+@fn
+def continue_path(surf, vertex, rng, depth, throughput, j, buffers):
+    """Sample path j's next direction at ``depth`` and store its state and next ray; False where the path
+    ends there (next_direction below the geometric surface or with zero weight, as trace_path)."""
+    f, rays = buffers[0][0], buffers[4]
+    new_dir, weight, pdf, is_delta = next_direction(surf, vertex[2], rng, depth)
+    if not (weight > 0 and dot(new_dir, surf[1]) > 0):
+        return False
+    f[j, 0] = throughput * weight
+    f[j, 2] = pdf
+    f[j, 3] = 1.0 if is_delta else 0.0
+    store_vec(f, j, 4, surf[0])
+    origin = vertex[1]
+    direction = divide(new_dir, norm(new_dir))
+    store_vec(f, j, 7, origin)
+    store_vec(f, j, 10, direction)
+    buffers[0][1][j] = vertex[3]
+    store_ray(rays, j, ray_query(origin, direction, depth + 1), to_f32(direction), vertex[3])
+    rays[3][j] = F32_INF
+    buffers[5][1, j] += 1
+    return True
+
+
 @gpu_kernel
-def wf_shade(scene, settings, depth, path, pstate, hits, light, pend, shadow, rays, counters):
+def wf_shade(scene, settings, depth, path, hits, buffers):
     """Stage 3 at ``depth``: the surface each live path hit, its next-event estimates and connection with
-    their shadow rays (pend, shadow), and its next ray (rays) — trace_path's loop body, minus traversal."""
+    their shadow rays, and its next ray — trace_path's loop body, minus traversal.
+
+    ``buffers`` = (pstate, light, pend, shadow, rays, counters), see the table above.
+    """
     j = cuda.grid(1)
     pixel, samples, alive, shaded = path
     if j >= pixel.shape[0]:
         return
     shaded[j] = 0
-    n_led = scene[4][0].shape[0]
-    slots = n_led + 1
+    shadow, rays = buffers[3], buffers[4]
+    slots = scene[4][0].shape[0] + 1
     for i in range(slots):
         shadow[2][j * slots + i] = NO_RAY
-    if alive[j] == 0:
-        return
     prim = hits[0][j]
-    if prim < 0:
+    if alive[j] == 0 or prim < 0:
         alive[j] = 0
         rays[3][j] = NO_RAY
         return
-    geo, frame, leds = scene[0], scene[3], scene[4]
+    geo = scene[0]
     key, max_depth, independent, light_paths = settings
-    p = pixel[j]
-    f = pstate[0]
+    f = buffers[0][0]
     throughput, path_length, prev_pdf, prev_delta = f[j, 0], f[j, 1], f[j, 2], f[j, 3] != 0.0
-    prev_point, origin, direction = load_vec(f, j, 4), load_vec(f, j, 7), load_vec(f, j, 10)
-    surf = surface_at(geo, prim, hits[1][j], hits[2][j], origin, direction)
-    position, ng = surf[0], surf[1]
-    segment = norm(sub(position, prev_point))
+    direction = load_vec(f, j, 10)
+    surf = surface_at(geo, prim, hits[1][j], hits[2][j], load_vec(f, j, 7), direction)
+    segment = norm(sub(surf[0], load_vec(f, j, 4)))
     path_length = path_length + segment
     f[j, 1] = path_length
     vertex = camera_vertex(geo, prim, surf, direction)
     use_mis = light_paths and depth >= 2
-    bsdf_area_pdf = prev_pdf * dot(neg(direction), ng) / (segment * segment) if use_mis else 0.0
-    state = (throughput, depth, bsdf_area_pdf, prev_delta, use_mis)
-    pend_w, pend_tau = pend
-    for i in range(n_led):
-        w, dist, led = led_estimate(frame, leds, vertex, state, i)
-        pend_w[j, i] = w
-        pend_tau[j, i] = (path_length + dist) / SPEED_OF_LIGHT_M_S
-        k = j * slots + i
-        if w > 0:
-            if depth == 1 and leds[1][i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
-                counters[4, j] += 1
-            else:
-                o, d, t_max = shadow_ray(vertex[1], led, point_offset(led, SPAWN_RELATIVE))
-                store_ray((shadow[0], shadow[1], shadow[3]), k, o, d, prim)
-                shadow[2][k] = t_max
-                counters[2, j] += 1
-    k = j * slots + n_led
+    bsdf_area_pdf = prev_pdf * dot(neg(direction), surf[1]) / (segment * segment) if use_mis else 0.0
+    queue_next_events(scene[4], scene[3], vertex, (throughput, depth, bsdf_area_pdf, prev_delta, use_mis),
+                      path_length, j, buffers)
     shaded[j] = 1
-    if depth == max_depth:
-        alive[j] = 0
-        rays[3][j] = NO_RAY
-        return
-    if light_paths:  # the connection to the light vertex (add_connection), column L
-        y = load_light(light, j)
-        w = 0.0
-        extra = 0.0
-        if y[0]:
-            w, extra = light_estimate(vertex, throughput, y)
-        pend_w[j, n_led] = w
-        pend_tau[j, n_led] = (path_length + extra) / SPEED_OF_LIGHT_M_S
-        if w > 0:
-            o, d, t_max = shadow_ray(vertex[1], y[1][0], y[6])
-            store_ray((shadow[0], shadow[1], shadow[3]), k, o, d, prim)
-            shadow[2][k] = t_max
-            counters[2, j] += 1
+    if depth < max_depth and light_paths:
+        queue_connection(vertex, throughput, path_length, j, buffers)
         shaded[j] = 2
-    new_dir, weight, pdf, is_delta = next_direction(surf, vertex[2], (key, p, samples[j], independent), depth)
-    if not (weight > 0 and dot(new_dir, ng) > 0):
+    rng = (key, pixel[j], samples[j], independent)
+    if depth == max_depth or not continue_path(surf, vertex, rng, depth, throughput, j, buffers):
         alive[j] = 0
         rays[3][j] = NO_RAY
-        return
-    f[j, 0] = throughput * weight
-    f[j, 2] = pdf
-    f[j, 3] = 1.0 if is_delta else 0.0
-    store_vec(f, j, 4, position)
-    origin = vertex[1]
-    direction = divide(new_dir, norm(new_dir))
-    store_vec(f, j, 7, origin)
-    store_vec(f, j, 10, direction)
-    pstate[1][j] = prim
-    store_ray(rays, j, ray_query(origin, direction, depth + 1), to_f32(direction), prim)
-    rays[3][j] = F32_INF
-    counters[1, j] += 1
 
 
 @gpu_kernel
