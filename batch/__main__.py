@@ -8,7 +8,12 @@ start-up comes first.
 """
 
 if __name__ == "__main__":
-    from .entry import tofcore_batch
+    try:
+        from .entry import tofcore_batch
+    except KeyboardInterrupt:  # Ctrl-C while entry's own imports (signal, os) were loading: no handler yet
+        import os
+        os.write(2, b"\ninterrupted (SIGINT): nothing was written\n")
+        os._exit(130)
 
     # Guarded: worker processes started with "spawn" import the parent's main module as __mp_main__.
     raise SystemExit(tofcore_batch())
