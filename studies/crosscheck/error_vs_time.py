@@ -238,7 +238,8 @@ def plot(results: dict, out: Path) -> None:
         a.set_xscale("log")
         a.set_yscale("log")
         a.grid(True, which="both", alpha=0.3)
-    where = "one GPU (tofcore device='gpu', mitransient cuda_ad_mono)" if cc.DEVICE == "gpu" else "2 cores, shared machine"
+    where = ("one GPU (tofcore device='gpu', mitransient cuda_ad_mono)" if cc.DEVICE == "gpu"
+             else "2 cores, shared machine")
     ax.set_xlabel(f"wall time, s ({where}; 128 × 106 pixels)")
     ax.set_ylabel(f"RMS depth error at {FREQS[MAIN] / 1e6:.0f} MHz, mm (vs reference)")
     ax.set_title("Error against run time, same scene and path length (5); x: time to 5 mm and 1 mm\n"
