@@ -19,3 +19,5 @@ def hold() -> None:
     """Route SIGINT and SIGTERM to :func:`exit_at_once`."""
     signal.signal(signal.SIGINT, exit_at_once)
     signal.signal(signal.SIGTERM, exit_at_once)
+    # A parent that started us with them blocked (inherited through exec) would hold Ctrl-C back for good.
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})

@@ -19,3 +19,5 @@ def hold_until_the_command_starts() -> None:
     """Route SIGINT and SIGTERM to one line on stderr and exit code 128 + signal number."""
     signal.signal(signal.SIGINT, _exit_at_once)
     signal.signal(signal.SIGTERM, _exit_at_once)
+    # A parent that started us with them blocked (inherited through exec) would hold Ctrl-C back for good.
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT, signal.SIGTERM})

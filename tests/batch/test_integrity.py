@@ -81,7 +81,15 @@ def _start(*args: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(REPO))
     env.pop("TOF_BATCH_FAIL", None)
     return subprocess.Popen([sys.executable, "-m", "batch", *args], cwd=REPO, env=env, stdout=subprocess.PIPE,
-                            stderr=subprocess.PIPE, start_new_session=True, text=True)
+                            stderr=subprocess.PIPE, start_new_session=True, text=True, preexec_fn=_as_a_shell_does)
+
+
+def _as_a_shell_does() -> None:
+    """In the child before exec: SIGINT at its default and unblocked, as a shell starts a foreground job —
+    not whatever disposition this test process was left with by other tests (an ignored or blocked SIGINT
+    is inherited through exec, and a Ctrl-C before the program's own handler would then be lost)."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+    signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
 
 
 def _tasks(set_file: Path, dataset: Path):
