@@ -130,10 +130,9 @@ def groups(active: np.ndarray, limit: int) -> list[tuple[int, int]]:
 
 
 def path_bytes(n_depth: int, n_corr: int, n_led: int) -> int:
-    """Device bytes of one path's state in a group (the arrays :func:`trace_pass` allocates per path)."""
-    slots = n_led + 1
-    return (8 * 3 + 2 + 8 * 13 + 4 + 28 + 8 * 28 + 16 * slots + slots * 29 + 8 * (n_corr + 2)
-            + 16 * n_depth * (1 + n_corr) + 8 * N_COUNTERS + 12)
+    """Device bytes of one path's state in a group: what :func:`_group_arrays` allocates for one path."""
+    arrays = _group_arrays(np, 1, n_depth, n_corr, n_led + 1, load_kernels().LIGHT_COLUMNS)
+    return sum(a.nbytes for v in arrays.values() for a in (v if isinstance(v, tuple) else (v,)))
 
 
 def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.ndarray,
