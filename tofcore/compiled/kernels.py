@@ -1119,8 +1119,12 @@ GPU_MAX_CHANNELS = 32
 # The same path as trace_path, cut where it traces rays: each kernel advances every path of a launch
 # group by one stage and leaves its rays in buffers that tofcore.gpu.traversal (a lean kernel, one thread
 # per ray, bit for bit the NumPy traversal) traces in between; tofcore.compiled.cuda.trace_pass drives
-# them. A group holds the paths of sample indices s0 ≤ s < s1 of a pass, path j of lane l = s − s0 being
-# pixel order[j − offsets[l]]. Per-path state in global memory (column or row j):
+# them. A group holds the paths of sample indices s0 ≤ s < s1 of a pass: with offsets[s] the pass's paths
+# of sample indices below s, path j of the group has sample index l where offsets[l] ≤ offsets[s0] + j <
+# offsets[l + 1] and is pixel order[offsets[s0] + j − offsets[l]]; the group has n = offsets[s1] −
+# offsets[s0] paths. The buffers below are the pass's, sized for its largest group (rows j ≥ n unused),
+# so a launch's arguments are the same from group to group (tofcore.compiled.launch).
+# Per-path state in global memory (column or row j):
 #   path    = (pixel, sample, alive, shaded)                  int64 ×2, int8 ×2
 #   pstate  = (f (n, 13), prev_prim (n,))                     f: β, path length, prev pdf, prev delta,
 #                                                             prev point xyz, origin xyz, direction xyz
@@ -1197,25 +1201,26 @@ def store_ray(rays, j, origin, direction, ignore):
 def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
     """Stage 1: each path's pixel and sample, its camera ray and its light ray.
 
-    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), counts (P,), s0, offsets (m + 1,)).
+    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), offsets (≥ S + 1,) over the
+    pass's sample indices, s0, s1): the group of sample indices s0 ≤ s < s1 (the table above).
     """
     j = cuda.grid(1)
-    order, first, counts, s0, offsets = launch
-    m = offsets.shape[0] - 1
-    if j >= offsets[m]:
+    order, first, offsets, s0, s1 = launch
+    g = offsets[s0] + j  # the path's index in the pass
+    if g >= offsets[s1]:
         return
-    lo = 0  # the lane l with offsets[l] <= j < offsets[l + 1]
-    hi = m
+    lo = s0  # its sample index l: offsets[l] <= g < offsets[l + 1]
+    hi = s1
     while hi - lo > 1:
         mid = (lo + hi) // 2
-        if offsets[mid] <= j:
+        if offsets[mid] <= g:
             lo = mid
         else:
             hi = mid
-    p = order[j - offsets[lo]]
+    p = order[g - offsets[lo]]
     pixel, samples, alive, shaded = path
     pixel[j] = p
-    sample = first[p] + s0 + lo
+    sample = first[p] + lo
     samples[j] = sample
     shaded[j] = 0
     alive[j] = 1
@@ -1241,11 +1246,12 @@ def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
 
 
 @gpu_kernel
-def wf_light(scene, settings, path, light_hits, light):
-    """Stage 2: the light vertex where each path's light ray hit (light_vertex_at), into the light table."""
+def wf_light(scene, settings, n, path, light_hits, light):
+    """Stage 2: the light vertex where each of the group's n paths' light ray hit (light_vertex_at), into the
+    light table."""
     j = cuda.grid(1)
     pixel, samples = path[0], path[1]
-    if j >= pixel.shape[0]:
+    if j >= n:
         return
     key, max_depth, independent, light_paths = settings
     ray = light_ray(scene[3], scene[4], (key, pixel[j], samples[j], independent))
@@ -1321,15 +1327,15 @@ def continue_path(surf, vertex, rng, depth, throughput, j, buffers):
 
 
 @gpu_kernel
-def wf_shade(scene, settings, depth, path, hits, buffers):
-    """Stage 3 at ``depth``: the surface each live path hit, its next-event estimates and connection with
-    their shadow rays, and its next ray — trace_path's loop body, minus traversal.
+def wf_shade(scene, settings, depth, n, path, hits, buffers):
+    """Stage 3 at ``depth``: the surface each live path of the group's n hit, its next-event estimates and
+    connection with their shadow rays, and its next ray — trace_path's loop body, minus traversal.
 
     ``buffers`` = (pstate, light, pend, shadow, rays, counters), see the table above.
     """
     j = cuda.grid(1)
     pixel, samples, alive, shaded = path
-    if j >= pixel.shape[0]:
+    if j >= n:
         return
     shaded[j] = 0
     shadow, rays = buffers[3], buffers[4]
@@ -1366,12 +1372,12 @@ def wf_shade(scene, settings, depth, path, hits, buffers):
 
 
 @gpu_kernel
-def wf_resolve(scene, depth, path, pend, occluded, total, contrib):
-    """Stage 4 at ``depth``: each shaded path's unoccluded next-event estimates and connection, as
-    add_next_events and add_connection compute them, into its addends (contrib) and its totals."""
+def wf_resolve(scene, depth, n, path, pend, occluded, total, contrib):
+    """Stage 4 at ``depth``: each shaded path's (of the group's n) unoccluded next-event estimates and
+    connection, as add_next_events and add_connection compute them, into its addends (contrib) and totals."""
     j = cuda.grid(1)
     shaded = path[3]
-    if j >= shaded.shape[0] or shaded[j] == 0:
+    if j >= n or shaded[j] == 0:
         return
     corr_kinds, corr_table = scene[5], scene[6]
     nee_w, nee_wg, con_w, con_wg = contrib
@@ -1409,22 +1415,22 @@ def wf_resolve(scene, depth, path, pend, occluded, total, contrib):
 def wf_gather(launch, samples, contrib, total, sums):
     """Stage 5: add the group's paths to the pass's sums, one thread per pixel, its samples in sample order.
 
-    ``launch`` as in :func:`wf_start`; thread i serves pixel order[i] (the pixels of lane 0 include every
-    later lane's). ``sums`` = (nee_w (K, P), nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate
-    (R, J + 2, P)): each pixel's addends arrive in the order trace_pixels adds them on the CPU.
+    ``launch`` as in :func:`wf_start`; thread i serves pixel order[i] (the pixels of sample index s0 include
+    every later index's). ``sums`` = (nee_w (K, P), nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P),
+    replicate (R, J + 2, P)): each pixel's addends arrive in the order trace_pixels adds them on the CPU.
     """
     i = cuda.grid(1)
-    order, offsets = launch[0], launch[4]
-    if i >= offsets[1]:
+    order, offsets, s0, s1 = launch[0], launch[2], launch[3], launch[4]
+    if i >= offsets[s0 + 1] - offsets[s0]:
         return
     p = order[i]
     nee_w, nee_wg, con_w, con_wg = contrib
     pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate = sums
     n_depth, n_corr = nee_wg.shape[0], nee_wg.shape[1]
-    for lane in range(offsets.shape[0] - 1):
+    for lane in range(s0, s1):
         if i >= offsets[lane + 1] - offsets[lane]:
             break
-        j = offsets[lane] + i
+        j = offsets[lane] - offsets[s0] + i
         for k in range(n_depth):
             pass_nee_w[k, p] += nee_w[k, j]
             pass_con_w[k, p] += con_w[k, j]
