@@ -321,3 +321,16 @@ def test_the_wavefronts_light_table_round_trips_a_light_vertex():
     kernels.store_light(table, 1, light)
     assert kernels.load_light(table, 1) == light
     assert not table[[0, 2]].any()
+
+
+@needs_numba
+def test_sobol_bit_by_bit_equals_the_lookup_tables():
+    """The GPU build's Sobol' dimension 2 (a loop over the index's bits: constant-memory tables serialise a
+    warp) is the CPU build's table lookup, number for number: every single-bit index, and 20,000 random ones."""
+    from tofcore.compiled import kernels
+
+    rng = np.random.default_rng(5)
+    indices = np.concatenate([np.uint64(1) << np.arange(32, dtype=np.uint64), [0, 0xFFFFFFFF],
+                              rng.integers(0, 2 ** 32, 20_000, dtype=np.uint64)]).astype(np.uint64)
+    for i in indices:
+        assert kernels.sobol_dim1_bits(i) == kernels.sobol_dim1_lookup(i), hex(int(i))

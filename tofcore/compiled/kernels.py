@@ -43,7 +43,8 @@ from .layout import LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE,
 GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
 M1, M2 = _rng._M1, _rng._M2
 S11, S27, S30, S31 = _rng._S11, _rng._S27, _rng._S30, _rng._S31
-U1, U2, U4, U8, U16, U24, U32 = (np.uint64(k) for k in (1, 2, 4, 8, 16, 24, 32))
+U0, U1, U2, U4, U8, U16, U24, U32 = (np.uint64(k) for k in (0, 1, 2, 4, 8, 16, 24, 32))
+V31 = np.uint64(1 << 31)
 MASK32 = np.uint64(0xFFFFFFFF)
 BYTE = np.uint64(0xFF)
 C55, C33, C0F, C00FF = (np.uint64(c) for c in (0x55555555, 0x33333333, 0x0F0F0F0F, 0x00FF00FF))
@@ -177,10 +178,32 @@ def owen_scramble(x, seed):
 
 
 @fn
-def sobol_dim1(index):
+def sobol_dim1_lookup(index):
     """Sobol' dimension 2 of a 32-bit index by four byte lookups (tofcore.qmc.sobol_2d)."""
     return (SOBOL[0, np.int64(index & BYTE)] ^ SOBOL[1, np.int64((index >> U8) & BYTE)]
             ^ SOBOL[2, np.int64((index >> U16) & BYTE)] ^ SOBOL[3, np.int64(index >> U24)])
+
+
+@fn
+def sobol_dim1_bits(index):
+    """Sobol' dimension 2 of a 32-bit index bit by bit, the same number as :func:`sobol_dim1_lookup`: bit b
+    of the index toggles v_b = m_b · 2^(31 − b) with m_0 = 1, m_(b+1) = m_b ⊕ 2 m_b, so v_(b+1) = v_b ⊕
+    (v_b >> 1) (tofcore.qmc._sobol_dim1_tables). On the GPU a table would sit in constant memory, whose
+    loads a warp serialises when its threads read different entries (wf_start stalled 114 cycles per
+    instruction on them); 32 shifts and XORs in registers do not."""
+    out = U0
+    v = V31
+    rest = index
+    for _ in range(32):
+        if rest & U1:
+            out ^= v
+        rest >>= U1
+        v ^= v >> U1
+    return out
+
+
+sobol_dim1 = sobol_dim1_bits if cuda is not None else sobol_dim1_lookup
+"""Sobol' dimension 2: by lookups on the CPU (its caches serve them in a few cycles), bit by bit on the GPU."""
 
 
 @fn
