@@ -79,34 +79,54 @@ def load_kernels():
     return _MODULE
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(eq=False)
 class DeviceScene:
-    """A render's packed arrays (:class:`tofcore.compiled.setup.Packed`) on the GPU, uploaded once, the
-    scene's BVH (its records are uploaded by :mod:`tofcore.gpu.traversal` at the first ray), and the
-    wavefront's :class:`Workspace` of the render's passes (made at the first pass)."""
+    """A render's packed arrays (:class:`tofcore.compiled.setup.Packed`) on the GPU, its sampler settings
+    (key, max_depth, independent, light_paths), the scene's BVH (its records are uploaded by
+    :mod:`tofcore.gpu.traversal` at the first ray), and the wavefront's :class:`Workspace` (made at the
+    first pass). After its trace (:func:`release`) it serves the next trace of the same ``layout``: the
+    arrays get the new contents, the workspace and its prepared kernels stay."""
 
     scene: tuple
     settings: tuple
     n_correlations: int
     max_depth: int
     bvh: object
+    layout: tuple
     work: dict = field(default_factory=dict)
 
 
+_IDLE: dict = {}
+"""The device scene of the last finished trace, by layout (at most one, so its memory stays bounded)."""
+
+
 def upload(packed, bvh) -> DeviceScene:
-    """Copy the packed scene, camera, LED and channel tables to the GPU."""
+    """The packed scene, camera, LED and channel tables on the GPU: copied into the arrays of the last
+    finished trace's device scene where their shapes and types match (its kernels stay prepared), else
+    into new ones."""
     module = load_kernels()
     n_corr = len(packed.corr_kinds)
     if n_corr + 2 > module.GPU_MAX_CHANNELS:
         raise ValueError(f"the GPU tracer takes at most {module.GPU_MAX_CHANNELS - 2} correlation channels, "
                          f"got {n_corr}")
-    dev = cuda.to_device
     corr_table = packed.corr_table if n_corr else np.zeros((1, 6))  # numba types an empty table by a row
-    scene = (tuple(dev(np.ascontiguousarray(a)) for a in packed.geo), dev(packed.cam), dev(packed.cam_table),
-             dev(packed.frame), tuple(dev(np.ascontiguousarray(a)) for a in packed.leds), dev(packed.corr_kinds),
-             dev(corr_table))
-    settings = (packed.key, packed.max_depth, packed.independent, packed.light_paths)
-    return DeviceScene(scene, settings, n_corr, int(packed.max_depth), bvh)
+    host = (tuple(np.ascontiguousarray(a) for a in packed.geo), packed.cam, packed.cam_table, packed.frame,
+            tuple(np.ascontiguousarray(a) for a in packed.leds), packed.corr_kinds, corr_table)
+    settings = (packed.key, int(packed.max_depth), bool(packed.independent), bool(packed.light_paths))
+    layout = (tuple((a.shape, a.dtype.str) for a in _leaves(host)), int(packed.max_depth))
+    device_scene = _IDLE.pop(layout, None)
+    if device_scene is None:
+        return DeviceScene(_nest_map(cuda.to_device, host), settings, n_corr, int(packed.max_depth), bvh, layout)
+    for target, values in zip(_leaves(device_scene.scene), _leaves(host)):
+        target.copy_to_device(values)
+    device_scene.settings, device_scene.bvh = settings, bvh
+    return device_scene
+
+
+def release(device_scene: DeviceScene) -> None:
+    """Keep a finished trace's device scene for the next trace of its layout (dropping any other kept one)."""
+    _IDLE.clear()
+    _IDLE[device_scene.layout] = device_scene
 
 
 def launch_plan(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -164,9 +184,9 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
     offsets = np.concatenate([[0], np.cumsum(active)]).astype(np.int64)
     plan = [(s0, s1, int(offsets[s1] - offsets[s0])) for s0, s1 in groups(active, group_limit(device_scene))]
     ws = workspace(device_scene, xp, n_pix, len(offsets), max((n for *_, n in plan), default=0), threads_per_block)
-    ws.begin_pass(order, first, offsets)
+    ws.begin_pass(device_scene.settings, order, first, offsets)
     for s0, s1, n in plan:
-        ws.trace_group(s0, s1, n, int(active[s0]))
+        ws.trace_group(device_scene.bvh, s0, s1, n, int(active[s0]))
     nee_w, nee_wg, con_w, con_wg, replicate = ws.sums
     out.signal_sum += con_w          # the reference's order: connections, then next-event estimates
     out.signal_sum += nee_w
@@ -203,7 +223,7 @@ class Workspace:
         from ..tracer import qmc
 
         module = load_kernels()
-        self.device_scene, self.xp, self.n_pix, self.limit = device_scene, xp, n_pix, limit
+        self.xp, self.n_pix, self.limit, self.max_depth = xp, n_pix, limit, device_scene.max_depth
         self.threads_per_block = threads_per_block
         k_max, n_corr = device_scene.max_depth, device_scene.n_correlations
         self.slots = int(device_scene.scene[4][0].shape[0]) + 1
@@ -220,7 +240,9 @@ class Workspace:
         self.sums = (xp.zeros((k_max, n_pix)), xp.zeros((k_max, n_corr, n_pix)), xp.zeros((k_max, n_pix)),
                      xp.zeros((k_max, n_corr, n_pix)), xp.zeros((qmc.REPLICATES, n_corr + 2, n_pix)))
         k = _kernel_arrays
-        scene, settings = device_scene.scene, device_scene.settings
+        scene = device_scene.scene
+        settings = (Slot("key", np.uint64), Slot("max_depth"), Slot("independent", np.bool_),
+                    Slot("light_paths", np.bool_))  # the sampler's: set per pass (begin_pass)
         group = (*k(self.pixels), _kernel_array(self.offsets), Slot("s0"), Slot("s1"))
         path, counters = k(a["path"]), _kernel_array(a["counters"])
         buffers = (k(a["pstate"]), _kernel_array(a["light"]), k(a["pend"]), k(a["shadow"]), k(a["rays"]), counters)
@@ -237,34 +259,39 @@ class Workspace:
         self.gather = PreparedKernel(module.wf_gather, (group, _kernel_array(a["path"][1]), k(a["contrib"]),
                                                         _kernel_array(a["total"]), k(self.sums)), tpb)
 
-    def begin_pass(self, order: np.ndarray, first: np.ndarray, offsets: np.ndarray) -> None:
-        """Upload the pass's pixel order, first sample indices and offsets; zero its sums and ray counts."""
+    def begin_pass(self, settings: tuple, order: np.ndarray, first: np.ndarray, offsets: np.ndarray) -> None:
+        """Set the sampler's ``settings`` (key, max_depth, independent, light_paths); upload the pass's pixel
+        order, first sample indices and offsets; zero its sums and ray counts."""
         xp = self.xp
+        values = dict(zip(("key", "max_depth", "independent", "light_paths"), settings))
+        for kernel in (self.start, self.light, self.shade):
+            kernel.set(**values)
+        self.light_paths = bool(values["light_paths"])
         self.pixels[0][:] = xp.asarray(order, dtype=np.int64)
         self.pixels[1][:] = xp.asarray(first, dtype=np.int64)
         self.offsets[:len(offsets)] = xp.asarray(offsets)
         for a in (*self.sums, self.arrays["counters"]):
             a.fill(0)
 
-    def trace_group(self, s0: int, s1: int, n: int, lead: int) -> None:
+    def trace_group(self, bvh, s0: int, s1: int, n: int, lead: int) -> None:
         """The stages of the group of sample indices [s0, s1) (n paths; ``lead`` pixels in its first index):
         start, light vertices, then per depth trace, shade, trace the shadow rays, resolve; gather. Every
         slot is traced at every depth: an ended path's ray and a shadow slot without a test have t_max −1,
         which the traversal rejects at the root — no compaction and no host synchronisation to count them."""
-        a, bvh, tr = self.arrays, self.device_scene.bvh, _traversal()
+        a, tr = self.arrays, _traversal()
         for z in (a["total"], *a["contrib"]):
             z.fill(0)
         t = _stage_done("zero", time.perf_counter())
         self.start.launch(n, s0=s0, s1=s1)
         t = _stage_done("start", t)
-        if self.device_scene.settings[3]:
+        if self.light_paths:
             o, d, ig = a["light_rays"]
             tr.closest_hits_into(bvh, (o, d, self.light_t_max, ig), n, self.light_hits, self.status)
             t = _stage_done("trace", t)
             self.light.launch(n, n=n)
             t = _stage_done("light", t)
         rays, shadow = a["rays"], a["shadow"]
-        for depth in range(1, self.device_scene.max_depth + 1):
+        for depth in range(1, self.max_depth + 1):
             tr.closest_hits_into(bvh, (rays[0], rays[1], rays[3], rays[2]), n, self.hits, self.status)
             t = _stage_done("trace", t)
             self.shade.launch(n, depth=depth, n=n)
@@ -341,6 +368,11 @@ def _leaves(tree):
     if isinstance(tree, tuple):
         return [a for t in tree for a in _leaves(t)]
     return [tree]
+
+
+def _nest_map(function, tree: tuple) -> tuple:
+    """``tree`` (nested tuples) with ``function`` applied to each leaf."""
+    return tuple(_nest_map(function, t) if isinstance(t, tuple) else function(t) for t in tree)
 
 
 def _kernel_arrays(arrays: tuple) -> tuple:

@@ -25,10 +25,11 @@ DEFAULT_STREAM = 0
 
 @dataclass(frozen=True)
 class Slot:
-    """An int64 kernel argument given at each launch: ``PreparedKernel(k, (a, Slot("depth")))`` then
-    ``.launch(n, depth=2)``."""
+    """A scalar kernel argument given later: ``PreparedKernel(k, (a, Slot("depth")))`` then
+    ``.launch(n, depth=2)`` or ``.set(depth=2)``; int64 unless ``dtype`` says otherwise."""
 
     name: str
+    dtype: type = np.int64
 
 
 class PreparedKernel:
@@ -41,14 +42,14 @@ class PreparedKernel:
         self.args = args
         self.threads_per_block = threads_per_block
         self.simulated = bool(config.ENABLE_CUDASIM)
-        self.slots: dict = {}
+        self.slots: dict = {}  # a Slot's name → its value (typed as the Slot says)
+        self.slot_cells: dict = {}  # a Slot's name → its cells in the parameter block
         typed = _fill(args, self.slots)
         if self.simulated:
             return
         kernel = dispatcher.compile(tuple(dispatcher.typeof_pyval(a) for a in typed))
         self.handle = int(kernel._codelibrary.get_cufunc().handle)
         self.cells: list = []      # one ctypes value per kernel parameter, kept alive with the block
-        self.slot_cells: dict = {}  # a Slot's name → its cells
         for ty, a in zip(kernel.argument_types, args):
             self._marshal(kernel, ty, a)
         self.block = (ctypes.c_void_p * len(self.cells))(*(ctypes.addressof(c) for c in self.cells))
@@ -60,24 +61,30 @@ class PreparedKernel:
                 self._marshal(kernel, t, a)
             return
         raw: list = []
-        kernel._prepare_args(ty, np.int64(0) if isinstance(arg, Slot) else arg, DEFAULT_STREAM, [], raw)
+        kernel._prepare_args(ty, arg.dtype(0) if isinstance(arg, Slot) else arg, DEFAULT_STREAM, [], raw)
         cells = [_cell(v) for v in raw]
         if isinstance(arg, Slot):
             self.slot_cells.setdefault(arg.name, []).append(cells[0])
         self.cells.extend(cells)
 
-    def launch(self, n_threads: int, **slots: int) -> None:
-        """Launch over ``n_threads`` threads with the :class:`Slot` arguments ``slots`` (name=value)."""
+    def set(self, **slots) -> None:
+        """Give the :class:`Slot` arguments ``slots`` (name=value) their values for the next launches."""
+        for name, value in slots.items():
+            if name not in self.slots:
+                raise KeyError(f"{self.dispatcher.py_func.__name__} has no argument slot {name!r}")
+            self.slots[name] = type(self.slots[name])(value)
+            for cell in self.slot_cells.get(name, ()):
+                cell.value = int(value)
+
+    def launch(self, n_threads: int, **slots) -> None:
+        """Launch over ``n_threads`` threads, with the :class:`Slot` arguments ``slots`` set first (:meth:`set`)."""
+        self.set(**slots)
         if n_threads <= 0:
             return
         blocks = (n_threads + self.threads_per_block - 1) // self.threads_per_block
         if self.simulated:
-            self.slots.update({k: np.int64(v) for k, v in slots.items()})
             self.dispatcher[blocks, self.threads_per_block](*_fill(self.args, self.slots))
             return
-        for name, value in slots.items():
-            for cell in self.slot_cells[name]:
-                cell.value = int(value)
         from cupy.cuda import driver
 
         driver.launchKernel(self.handle, blocks, 1, 1, self.threads_per_block, 1, 1, 0, DEFAULT_STREAM,
@@ -92,7 +99,7 @@ def _fill(args: tuple, slots: dict) -> tuple:
         if isinstance(a, tuple):
             out.append(_fill(a, slots))
         elif isinstance(a, Slot):
-            out.append(slots.setdefault(a.name, np.int64(0)))
+            out.append(slots.setdefault(a.name, a.dtype(0)))
         else:
             out.append(a)
     return tuple(out)
