@@ -227,6 +227,7 @@ class Workspace:
         self.threads_per_block = threads_per_block
         k_max, n_corr = device_scene.max_depth, device_scene.n_correlations
         self.slots = int(device_scene.scene[4][0].shape[0]) + 1
+        self.gather_outputs = 2 * k_max * (1 + n_corr) + n_corr + 2  # kernels.gather_outputs
         self.arrays = _group_arrays(xp, limit, k_max, n_corr, self.slots, module.LIGHT_COLUMNS)
         a = self.arrays
         self.hits = (xp.empty(limit, np.int32), xp.empty(limit, np.float32), xp.empty(limit, np.float32),
@@ -301,7 +302,7 @@ class Workspace:
             t = _stage_done("trace shadows", t)
             self.resolve.launch(n, depth=depth, n=n)
             t = _stage_done("resolve", t)
-        self.gather.launch(lead, s0=s0, s1=s1)
+        self.gather.launch(lead * self.gather_outputs, s0=s0, s1=s1)
         _stage_done("gather", t)
 
     def end_pass(self) -> np.ndarray:

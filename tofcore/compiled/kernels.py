@@ -1434,32 +1434,61 @@ def wf_resolve(scene, depth, n, path, pend, occluded, total, contrib):
             total[1 + c, j] += wg_c
 
 
+@fn
+def gather_outputs(n_depth, n_corr, n_replicate_channels):
+    """How many sums :func:`wf_gather` adds each pixel's addends to: nee_w and con_w per bucket, nee_wg and
+    con_wg per bucket and channel, and the replicate channels."""
+    return 2 * n_depth * (1 + n_corr) + n_replicate_channels
+
+
+@fn
+def in_sample_order(start, source, row, i, offsets, s0, s1):
+    """``start`` + source[row, j] over the paths j of the pixel that thread i of :func:`wf_gather` serves,
+    added one by one in sample order."""
+    total = start
+    for lane in range(s0, s1):
+        if i >= offsets[lane + 1] - offsets[lane]:
+            break
+        total += source[row, offsets[lane] - offsets[s0] + i]
+    return total
+
+
 @gpu_kernel
 def wf_gather(launch, samples, contrib, total, sums):
-    """Stage 5: add the group's paths to the pass's sums, one thread per pixel, its samples in sample order.
+    """Stage 5: add the group's paths to the pass's sums, one thread per pixel and sum, its samples in order.
 
-    ``launch`` as in :func:`wf_start`; thread i serves pixel order[i] (the pixels of sample index s0 include
-    every later index's). ``sums`` = (nee_w (K, P), nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P),
-    replicate (R, J + 2, P)): each pixel's addends arrive in the order trace_pixels adds them on the CPU.
+    ``launch`` as in :func:`wf_start`; thread t = o · m + i serves pixel order[i] (the m pixels of sample
+    index s0 include every later index's) and sum o (:func:`gather_outputs`). ``sums`` = (nee_w (K, P),
+    nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate (R, J + 2, P)): each pixel's addends arrive
+    in the order trace_pixels adds them on the CPU. One thread per sum rather than per pixel: a pixel that
+    adaptive sampling gives hundreds of samples would otherwise keep one thread adding for milliseconds.
     """
-    i = cuda.grid(1)
+    t = cuda.grid(1)
     order, offsets, s0, s1 = launch[0], launch[2], launch[3], launch[4]
-    if i >= offsets[s0 + 1] - offsets[s0]:
-        return
-    p = order[i]
     nee_w, nee_wg, con_w, con_wg = contrib
     pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate = sums
     n_depth, n_corr = nee_wg.shape[0], nee_wg.shape[1]
+    m = offsets[s0 + 1] - offsets[s0]
+    if t >= m * gather_outputs(n_depth, n_corr, replicate.shape[1]):
+        return
+    o = t // m
+    i = t - o * m
+    p = order[i]
+    per_kind = n_depth * (1 + n_corr)
+    if o < 2 * per_kind:
+        q = o % per_kind
+        k = q // (1 + n_corr)
+        c = q - k * (1 + n_corr) - 1  # −1: the weight, else channel c
+        if c < 0:
+            target, source = (pass_nee_w, nee_w) if o < per_kind else (pass_con_w, con_w)
+            target[k, p] = in_sample_order(target[k, p], source, k, i, offsets, s0, s1)
+        else:
+            target, source = (pass_nee_wg[k], nee_wg[k]) if o < per_kind else (pass_con_wg[k], con_wg[k])
+            target[c, p] = in_sample_order(target[c, p], source, c, i, offsets, s0, s1)
+        return
+    c = o - 2 * per_kind
     for lane in range(s0, s1):
         if i >= offsets[lane + 1] - offsets[lane]:
             break
         j = offsets[lane] - offsets[s0] + i
-        for k in range(n_depth):
-            pass_nee_w[k, p] += nee_w[k, j]
-            pass_con_w[k, p] += con_w[k, j]
-            for c in range(n_corr):
-                pass_nee_wg[k, c, p] += nee_wg[k, c, j]
-                pass_con_wg[k, c, p] += con_wg[k, c, j]
-        r = samples[j] % replicate.shape[0]
-        for c in range(replicate.shape[1]):
-            replicate[r, c, p] += total[c, j]
+        replicate[samples[j] % replicate.shape[0], c, p] += total[c, j]
