@@ -173,7 +173,7 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
     (R, J + 2, P) (a :class:`tofcore.tracer.transport.Transport` on the GPU); NumPy arrays under numba's
     CUDA simulator (tests). Per group of sample indices (:func:`groups`): start every path, trace the
     camera and light rays, the light vertices; per depth shade the live paths, trace the shadow rays that
-    need a test, resolve, trace the next rays; gather. No synchronisation until the pass's ray counts are
+    need a test, resolve, gather the depth's addends, trace the next rays. No synchronisation until the pass's ray counts are
     read back at its end. Returns those counts (N_COUNTERS,) on the host.
     """
     from .. import backend
@@ -227,7 +227,7 @@ class Workspace:
         self.threads_per_block = threads_per_block
         k_max, n_corr = device_scene.max_depth, device_scene.n_correlations
         self.slots = int(device_scene.scene[4][0].shape[0]) + 1
-        self.gather_outputs = 2 * k_max * (1 + n_corr) + n_corr + 2  # kernels.gather_outputs
+        self.n_corr = n_corr
         self.arrays = _group_arrays(xp, limit, k_max, n_corr, self.slots, module.LIGHT_COLUMNS)
         a = self.arrays
         self.hits = (xp.empty(limit, np.int32), xp.empty(limit, np.float32), xp.empty(limit, np.float32),
@@ -257,8 +257,8 @@ class Workspace:
         self.resolve = PreparedKernel(module.wf_resolve, (scene, Slot("depth"), Slot("n"), path, buffers[2],
                                                           _kernel_array(self.occluded), _kernel_array(a["total"]),
                                                           k(a["contrib"])), tpb)
-        self.gather = PreparedKernel(module.wf_gather, (group, _kernel_array(a["path"][1]), k(a["contrib"]),
-                                                        _kernel_array(a["total"]), k(self.sums)), tpb)
+        self.gather = PreparedKernel(module.wf_gather, (group, Slot("depth"), _kernel_array(a["path"][1]),
+                                                        k(a["contrib"]), _kernel_array(a["total"]), k(self.sums)), tpb)
 
     def begin_pass(self, settings: tuple, order: np.ndarray, first: np.ndarray, offsets: np.ndarray) -> None:
         """Set the sampler's ``settings`` (key, max_depth, independent, light_paths); upload the pass's pixel
@@ -276,12 +276,11 @@ class Workspace:
 
     def trace_group(self, bvh, s0: int, s1: int, n: int, lead: int) -> None:
         """The stages of the group of sample indices [s0, s1) (n paths; ``lead`` pixels in its first index):
-        start, light vertices, then per depth trace, shade, trace the shadow rays, resolve; gather. Every
+        start, light vertices, then per depth trace, shade, trace the shadow rays, resolve, gather. Every
         slot is traced at every depth: an ended path's ray and a shadow slot without a test have t_max −1,
         which the traversal rejects at the root — no compaction and no host synchronisation to count them."""
         a, tr = self.arrays, _traversal()
-        for z in (a["total"], *a["contrib"]):
-            z.fill(0)
+        a["total"].fill(0)
         t = _stage_done("zero", time.perf_counter())
         self.start.launch(n, s0=s0, s1=s1)
         t = _stage_done("start", t)
@@ -302,8 +301,13 @@ class Workspace:
             t = _stage_done("trace shadows", t)
             self.resolve.launch(n, depth=depth, n=n)
             t = _stage_done("resolve", t)
-        self.gather.launch(lead * self.gather_outputs, s0=s0, s1=s1)
-        _stage_done("gather", t)
+            self.gather.launch(lead * self.gather_outputs(depth), depth=depth, s0=s0, s1=s1)
+            t = _stage_done("gather", t)
+
+    def gather_outputs(self, depth: int) -> int:
+        """Sums per pixel that wf_gather adds to after ``depth`` (kernels.gather_outputs)."""
+        n_corr = self.n_corr
+        return (1 + n_corr) * (2 if depth < self.max_depth else 1) + (n_corr + 2 if depth == self.max_depth else 0)
 
     def end_pass(self) -> np.ndarray:
         """The pass's ray counts (N_COUNTERS,) on the host (the pass's one synchronisation), after checking
@@ -357,8 +361,7 @@ def _group_arrays(xp, n: int, k_max: int, n_corr: int, slots: int, light_columns
             "shadow": (xp.zeros((n * slots, 3), f32), xp.zeros((n * slots, 3), f32), xp.zeros(n * slots, f32),
                        xp.full(n * slots, -1, i32)),
             "total": xp.zeros((n_corr + 2, n)),
-            "contrib": (xp.zeros((k_max, n)), xp.zeros((k_max, n_corr, n)), xp.zeros((k_max, n)),
-                        xp.zeros((k_max, n_corr, n))),
+            "contrib": (xp.zeros((n_corr + 1, n)), xp.zeros((n_corr + 1, n))),
             "counters": xp.zeros((N_COUNTERS, n), np.int64)}
 
 

@@ -1158,9 +1158,10 @@ GPU_MAX_CHANNELS = 32
 #   pend    = (w (n, L + 1), tau (n, L + 1))                  next-event estimates (LED i) and the
 #                                                             connection (column L) before their shadow test
 #   shadow  = (origin (n(L+1), 3), direction, t_max, ignore)  their shadow rays; t_max −1: no test
-#   contrib = (nee_w (K, n), nee_wg (K, J, n), con_w (K, n), con_wg (K, J, n))   the path's one addend per
-#             bucket; total (J + 2, n) its channel totals; counters (N_COUNTERS, n) its rays
-# wf_gather adds the contributions per pixel in sample order: the pass's sums are the CPU's, addend by addend.
+#   contrib = (nee (J + 1, n), con (J + 1, n))   the path's addends of the current depth: weight and
+#             channels of its next-event estimates (bucket depth − 1) and of its connection (bucket depth);
+#             total (J + 2, n) its channel totals; counters (N_COUNTERS, n) its rays
+# wf_gather adds each depth's addends per pixel in sample order: the pass's sums are the CPU's, addend by addend.
 LIGHT_FOUND, LIGHT_SURF, LIGHT_PARAMS, LIGHT_TO_LED, LIGHT_REST, LIGHT_COLUMNS = 0, 1, 16, 21, 24, 28
 NO_RAY = np.float32(-1.0)
 """t_max of a ray slot that traces nothing (an ended path, an estimate that needs no shadow test)."""
@@ -1397,48 +1398,47 @@ def wf_shade(scene, settings, depth, n, path, hits, buffers):
 @gpu_kernel
 def wf_resolve(scene, depth, n, path, pend, occluded, total, contrib):
     """Stage 4 at ``depth``: each shaded path's (of the group's n) unoccluded next-event estimates and
-    connection, as add_next_events and add_connection compute them, into its addends (contrib) and totals."""
+    connection, as add_next_events and add_connection compute them, into its addends of this depth
+    (``contrib``, zero for a path that was not shaded) and its totals."""
     j = cuda.grid(1)
-    shaded = path[3]
-    if j >= n or shaded[j] == 0:
+    if j >= n:
         return
+    shaded = path[3]
     corr_kinds, corr_table = scene[5], scene[6]
-    nee_w, nee_wg, con_w, con_wg = contrib
+    nee, con = contrib
+    n_corr = corr_kinds.shape[0]
+    for c in range(n_corr + 1):
+        nee[c, j] = 0.0
+        con[c, j] = 0.0
+    if shaded[j] == 0:
+        return
     pend_w, pend_tau = pend
     n_led = pend_w.shape[1] - 1
-    n_corr = corr_kinds.shape[0]
-    wg = cuda.local.array(GPU_MAX_CHANNELS, np.float64)
-    for c in range(n_corr):
-        wg[c] = 0.0
-    w_sum = 0.0
     for i in range(n_led):
         w = 0.0 if occluded[j * (n_led + 1) + i] else pend_w[j, i]
         tau = pend_tau[j, i]
-        w_sum += w
+        nee[0, j] += w
         for c in range(n_corr):
-            wg[c] += correlation(corr_kinds[c], corr_table[c], tau) * w
-    k = depth - 1
-    nee_w[k, j] = w_sum
-    total[0, j] += w_sum
-    for c in range(n_corr):
-        nee_wg[k, c, j] = wg[c]
-        total[1 + c, j] += wg[c]
+            nee[1 + c, j] += correlation(corr_kinds[c], corr_table[c], tau) * w
+    for c in range(n_corr + 1):
+        total[c, j] += nee[c, j]
     if shaded[j] == 2:
         w = 0.0 if occluded[j * (n_led + 1) + n_led] else pend_w[j, n_led]
         tau = pend_tau[j, n_led]
-        con_w[depth, j] = w
+        con[0, j] = w
         total[0, j] += w
         for c in range(n_corr):
             wg_c = correlation(corr_kinds[c], corr_table[c], tau) * w
-            con_wg[depth, c, j] = wg_c
+            con[1 + c, j] = wg_c
             total[1 + c, j] += wg_c
 
 
 @fn
-def gather_outputs(n_depth, n_corr, n_replicate_channels):
-    """How many sums :func:`wf_gather` adds each pixel's addends to: nee_w and con_w per bucket, nee_wg and
-    con_wg per bucket and channel, and the replicate channels."""
-    return 2 * n_depth * (1 + n_corr) + n_replicate_channels
+def gather_outputs(depth, n_depth, n_corr):
+    """How many sums :func:`wf_gather` adds each pixel's addends of ``depth`` to: the next-event weight and
+    channels (bucket depth − 1), the connection's (bucket depth, below the last depth), and at the last
+    depth the replicate channels (J + 2)."""
+    return (1 + n_corr) * (2 if depth < n_depth else 1) + (n_corr + 2 if depth == n_depth else 0)
 
 
 @fn
@@ -1454,39 +1454,43 @@ def in_sample_order(start, source, row, i, offsets, s0, s1):
 
 
 @gpu_kernel
-def wf_gather(launch, samples, contrib, total, sums):
-    """Stage 5: add the group's paths to the pass's sums, one thread per pixel and sum, its samples in order.
+def wf_gather(launch, depth, samples, contrib, total, sums):
+    """Stage 5, after each depth's resolve: add the group's addends of ``depth`` to the pass's sums, one
+    thread per pixel and sum, each sum's addends in sample order; at the last depth also the paths' totals
+    to the replicate sums.
 
     ``launch`` as in :func:`wf_start`; thread t = o · m + i serves pixel order[i] (the m pixels of sample
     index s0 include every later index's) and sum o (:func:`gather_outputs`). ``sums`` = (nee_w (K, P),
     nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate (R, J + 2, P)): each pixel's addends arrive
-    in the order trace_pixels adds them on the CPU. One thread per sum rather than per pixel: a pixel that
-    adaptive sampling gives hundreds of samples would otherwise keep one thread adding for milliseconds.
+    in the order trace_pixels adds them on the CPU (a bucket's sums take one depth's addends only). One
+    thread per sum rather than per pixel: a pixel that adaptive sampling gives hundreds of samples would
+    otherwise keep one thread adding for milliseconds.
     """
     t = cuda.grid(1)
     order, offsets, s0, s1 = launch[0], launch[2], launch[3], launch[4]
-    nee_w, nee_wg, con_w, con_wg = contrib
+    nee, con = contrib
     pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate = sums
-    n_depth, n_corr = nee_wg.shape[0], nee_wg.shape[1]
+    n_depth, n_corr = pass_nee_wg.shape[0], pass_nee_wg.shape[1]
     m = offsets[s0 + 1] - offsets[s0]
-    if t >= m * gather_outputs(n_depth, n_corr, replicate.shape[1]):
+    if t >= m * gather_outputs(depth, n_depth, n_corr):
         return
     o = t // m
     i = t - o * m
     p = order[i]
-    per_kind = n_depth * (1 + n_corr)
-    if o < 2 * per_kind:
-        q = o % per_kind
-        k = q // (1 + n_corr)
-        c = q - k * (1 + n_corr) - 1  # −1: the weight, else channel c
-        if c < 0:
-            target, source = (pass_nee_w, nee_w) if o < per_kind else (pass_con_w, con_w)
-            target[k, p] = in_sample_order(target[k, p], source, k, i, offsets, s0, s1)
+    per_kind = 1 + n_corr
+    n_con = per_kind if depth < n_depth else 0
+    if o < per_kind + n_con:
+        row = o % per_kind  # 0: the weight, else channel row − 1
+        if o < per_kind:
+            k, source, w_sum, wg_sum = depth - 1, nee, pass_nee_w, pass_nee_wg
         else:
-            target, source = (pass_nee_wg[k], nee_wg[k]) if o < per_kind else (pass_con_wg[k], con_wg[k])
-            target[c, p] = in_sample_order(target[c, p], source, c, i, offsets, s0, s1)
+            k, source, w_sum, wg_sum = depth, con, pass_con_w, pass_con_wg
+        if row == 0:
+            w_sum[k, p] = in_sample_order(w_sum[k, p], source, 0, i, offsets, s0, s1)
+        else:
+            wg_sum[k, row - 1, p] = in_sample_order(wg_sum[k, row - 1, p], source, row, i, offsets, s0, s1)
         return
-    c = o - 2 * per_kind
+    c = o - per_kind - n_con
     for lane in range(s0, s1):
         if i >= offsets[lane + 1] - offsets[lane]:
             break
