@@ -47,6 +47,7 @@ the Kinect v2 frame peaked at 2.3 GiB on the device with 768 MiB)."""
 
 MAX_GROUP_PATHS = 1 << 20
 
+
 STAGE_SECONDS: dict[str, float] = {}
 """Seconds per stage summed over the passes traced while :data:`PROFILE` is on (benchmarks only: each stage
 then ends with a device synchronisation)."""
@@ -247,26 +248,25 @@ class Workspace:
         group = (*k(self.pixels), _kernel_array(self.offsets), Slot("s0"), Slot("s1"))
         path, counters = k(a["path"]), _kernel_array(a["counters"])
         buffers = (k(a["pstate"]), _kernel_array(a["light"]), k(a["pend"]), k(a["shadow"]), k(a["rays"]), counters)
-        tpb = threads_per_block
-        self.start = PreparedKernel(module.wf_start, (scene, settings, group, path, buffers[0], buffers[4],
-                                                      k(a["light_rays"]), counters), tpb)
-        self.light = PreparedKernel(module.wf_light, (scene, settings, Slot("n"), path, k(self.light_hits[:3]),
-                                                      buffers[1]), tpb)
-        self.shade = PreparedKernel(module.wf_shade, (scene, settings, Slot("depth"), Slot("n"), path,
-                                                      k(self.hits[:3]), buffers), tpb)
-        self.resolve = PreparedKernel(module.wf_resolve, (scene, Slot("depth"), Slot("n"), path, buffers[2],
-                                                          _kernel_array(self.occluded), _kernel_array(a["total"]),
-                                                          k(a["contrib"])), tpb)
-        self.gather = PreparedKernel(module.wf_gather, (group, Slot("depth"), _kernel_array(a["path"][1]),
-                                                        k(a["contrib"]), _kernel_array(a["total"]), k(self.sums)), tpb)
+        self.arguments = {
+            "wf_start": (scene, settings, group, path, buffers[0], buffers[4], k(a["light_rays"]), counters),
+            "wf_light": (scene, settings, Slot("n"), path, k(self.light_hits[:3]), buffers[1]),
+            "wf_shade": (scene, settings, Slot("depth"), Slot("n"), path, k(self.hits[:3]), buffers),
+            "wf_resolve": (scene, Slot("depth"), Slot("n"), path, buffers[2], _kernel_array(self.occluded),
+                           _kernel_array(a["total"]), k(a["contrib"])),
+            "wf_gather": (group, Slot("depth"), _kernel_array(a["path"][1]), k(a["contrib"]),
+                          _kernel_array(a["total"]), k(self.sums))}
+        """Each stage kernel's arguments (:class:`tofcore.compiled.launch.Slot` where they change)."""
+        self.kernels = {name: PreparedKernel(getattr(module, name), arguments, threads_per_block)
+                        for name, arguments in self.arguments.items()}
 
     def begin_pass(self, settings: tuple, order: np.ndarray, first: np.ndarray, offsets: np.ndarray) -> None:
         """Set the sampler's ``settings`` (key, max_depth, independent, light_paths); upload the pass's pixel
         order, first sample indices and offsets; zero its sums and ray counts."""
         xp = self.xp
         values = dict(zip(("key", "max_depth", "independent", "light_paths"), settings))
-        for kernel in (self.start, self.light, self.shade):
-            kernel.set(**values)
+        for name in ("wf_start", "wf_light", "wf_shade"):
+            self.kernels[name].set(**values)
         self.light_paths = bool(values["light_paths"])
         self.pixels[0][:] = xp.asarray(order, dtype=np.int64)
         self.pixels[1][:] = xp.asarray(first, dtype=np.int64)
@@ -279,29 +279,29 @@ class Workspace:
         start, light vertices, then per depth trace, shade, trace the shadow rays, resolve, gather. Every
         slot is traced at every depth: an ended path's ray and a shadow slot without a test have t_max −1,
         which the traversal rejects at the root — no compaction and no host synchronisation to count them."""
-        a, tr = self.arrays, _traversal()
+        a, tr, kernel = self.arrays, _traversal(), self.kernels
         a["total"].fill(0)
         t = _stage_done("zero", time.perf_counter())
-        self.start.launch(n, s0=s0, s1=s1)
+        kernel["wf_start"].launch(n, s0=s0, s1=s1)
         t = _stage_done("start", t)
         if self.light_paths:
             o, d, ig = a["light_rays"]
             tr.closest_hits_into(bvh, (o, d, self.light_t_max, ig), n, self.light_hits, self.status)
             t = _stage_done("trace", t)
-            self.light.launch(n, n=n)
+            kernel["wf_light"].launch(n, n=n)
             t = _stage_done("light", t)
         rays, shadow = a["rays"], a["shadow"]
         for depth in range(1, self.max_depth + 1):
             tr.closest_hits_into(bvh, (rays[0], rays[1], rays[3], rays[2]), n, self.hits, self.status)
             t = _stage_done("trace", t)
-            self.shade.launch(n, depth=depth, n=n)
+            kernel["wf_shade"].launch(n, depth=depth, n=n)
             t = _stage_done("shade", t)
             tr.occluded_into(bvh, (shadow[0], shadow[1], shadow[2], shadow[3]), n * self.slots, self.occluded,
                              self.status)
             t = _stage_done("trace shadows", t)
-            self.resolve.launch(n, depth=depth, n=n)
+            kernel["wf_resolve"].launch(n, depth=depth, n=n)
             t = _stage_done("resolve", t)
-            self.gather.launch(lead * self.gather_outputs(depth), depth=depth, s0=s0, s1=s1)
+            kernel["wf_gather"].launch(lead * self.gather_outputs(depth), depth=depth, s0=s0, s1=s1)
             t = _stage_done("gather", t)
 
     def gather_outputs(self, depth: int) -> int:

@@ -44,7 +44,7 @@ class PreparedKernel:
         self.simulated = bool(config.ENABLE_CUDASIM)
         self.slots: dict = {}  # a Slot's name → its value (typed as the Slot says)
         self.slot_cells: dict = {}  # a Slot's name → its cells in the parameter block
-        typed = _fill(args, self.slots)
+        typed = fill_slots(args, self.slots)
         if self.simulated:
             return
         kernel = dispatcher.compile(tuple(dispatcher.typeof_pyval(a) for a in typed))
@@ -83,7 +83,7 @@ class PreparedKernel:
             return
         blocks = (n_threads + self.threads_per_block - 1) // self.threads_per_block
         if self.simulated:
-            self.dispatcher[blocks, self.threads_per_block](*_fill(self.args, self.slots))
+            self.dispatcher[blocks, self.threads_per_block](*fill_slots(self.args, self.slots))
             return
         from cupy.cuda import driver
 
@@ -91,13 +91,13 @@ class PreparedKernel:
                             ctypes.addressof(self.block), 0)
 
 
-def _fill(args: tuple, slots: dict) -> tuple:
+def fill_slots(args: tuple, slots: dict) -> tuple:
     """``args`` with each :class:`Slot` (in nested tuples too) replaced by its value in ``slots`` (0 where
     it has none yet, which it then gets)."""
     out = []
     for a in args:
         if isinstance(a, tuple):
-            out.append(_fill(a, slots))
+            out.append(fill_slots(a, slots))
         elif isinstance(a, Slot):
             out.append(slots.setdefault(a.name, a.dtype(0)))
         else:
