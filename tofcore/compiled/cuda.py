@@ -82,12 +82,14 @@ def load_kernels():
 
 @dataclass(eq=False)
 class DeviceScene:
-    """A render's packed arrays (:class:`tofcore.compiled.setup.Packed`) on the GPU, its sampler settings
-    (key, max_depth, independent, light_paths), the scene's BVH (its records are uploaded by
+    """A render's packed arrays (:class:`tofcore.compiled.setup.Packed`) on the GPU (``arrays``, CuPy; NumPy
+    under numba's CUDA simulator) and as the kernels take them (``scene``), its sampler settings (key,
+    max_depth, independent, light_paths), the scene's BVH (its records are uploaded by
     :mod:`tofcore.gpu.traversal` at the first ray), and the wavefront's :class:`Workspace` (made at the
     first pass). After its trace (:func:`release`) it serves the next trace of the same ``layout``: the
     arrays get the new contents, the workspace and its prepared kernels stay."""
 
+    arrays: tuple
     scene: tuple
     settings: tuple
     n_correlations: int
@@ -117,11 +119,23 @@ def upload(packed, bvh) -> DeviceScene:
     layout = (tuple((a.shape, a.dtype.str) for a in _leaves(host)), int(packed.max_depth))
     device_scene = _IDLE.pop(layout, None)
     if device_scene is None:
-        return DeviceScene(_nest_map(cuda.to_device, host), settings, n_corr, int(packed.max_depth), bvh, layout)
-    for target, values in zip(_leaves(device_scene.scene), _leaves(host)):
-        target.copy_to_device(values)
+        arrays = _nest_map(_device_namespace().asarray, host)
+        return DeviceScene(arrays, _nest_map(_kernel_array, arrays), settings, n_corr, int(packed.max_depth), bvh,
+                           layout)
+    for target, values in zip(_leaves(device_scene.arrays), _leaves(host)):
+        if hasattr(target, "set"):
+            target.set(values)  # CuPy: one copy to the device
+        else:
+            target[...] = values
     device_scene.settings, device_scene.bvh = settings, bvh
     return device_scene
+
+
+def _device_namespace():
+    """CuPy, or NumPy under numba's CUDA simulator (tests)."""
+    from .. import backend
+
+    return np if numba.config.ENABLE_CUDASIM else backend.select_device("gpu").xp
 
 
 def release(device_scene: DeviceScene) -> None:
@@ -408,7 +422,7 @@ def trace_frame(packed, bvh, n_pix: int, spp: int, threads_per_block: int = THRE
     from .. import backend
     from ..tracer import qmc
 
-    xp = np if numba.config.ENABLE_CUDASIM else backend.select_device("gpu").xp
+    xp = _device_namespace()
     start = time.perf_counter()
     device_scene = upload(packed, bvh)
     n_corr = device_scene.n_correlations
