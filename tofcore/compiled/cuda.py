@@ -119,7 +119,7 @@ def upload(packed, bvh) -> DeviceScene:
     layout = (tuple((a.shape, a.dtype.str) for a in _leaves(host)), int(packed.max_depth))
     device_scene = _IDLE.pop(layout, None)
     if device_scene is None:
-        arrays = _nest_map(_device_namespace().asarray, host)
+        arrays = _nest_map(_device_namespace().array, host)  # a copy: the host arrays stay the caller's
         return DeviceScene(arrays, _nest_map(_kernel_array, arrays), settings, n_corr, int(packed.max_depth), bvh,
                            layout)
     for target, values in zip(_leaves(device_scene.arrays), _leaves(host)):
