@@ -87,9 +87,13 @@ class DeviceScene:
     max_depth, independent, light_paths), the scene's BVH (its records are uploaded by
     :mod:`tofcore.gpu.traversal` at the first ray), and the wavefront's :class:`Workspace` (made at the
     first pass). After its trace (:func:`release`) it serves the next trace of the same ``layout``: the
-    arrays get the new contents, the workspace and its prepared kernels stay."""
+    arrays get the new contents, the workspace and its prepared kernels stay. ``host`` keeps the host arrays
+    last copied, so an array the next trace passes again (the same memory: a BVH's records, a mesh's tables)
+    is not copied again — the policy of :func:`tofcore.backend.device_copy`: host tables are not changed in
+    place."""
 
     arrays: tuple
+    host: tuple
     scene: tuple
     settings: tuple
     n_correlations: int
@@ -120,15 +124,24 @@ def upload(packed, bvh) -> DeviceScene:
     device_scene = _IDLE.pop(layout, None)
     if device_scene is None:
         arrays = _nest_map(_device_namespace().array, host)  # a copy: the host arrays stay the caller's
-        return DeviceScene(arrays, _nest_map(_kernel_array, arrays), settings, n_corr, int(packed.max_depth), bvh,
-                           layout)
-    for target, values in zip(_leaves(device_scene.arrays), _leaves(host)):
+        return DeviceScene(arrays, host, _nest_map(_kernel_array, arrays), settings, n_corr, int(packed.max_depth),
+                           bvh, layout)
+    for target, values, before in zip(_leaves(device_scene.arrays), _leaves(host), _leaves(device_scene.host)):
+        if _same_memory(values, before):
+            continue
         if hasattr(target, "set"):
             target.set(values)  # CuPy: one copy to the device
         else:
             target[...] = values
-    device_scene.settings, device_scene.bvh = settings, bvh
+    device_scene.host, device_scene.settings, device_scene.bvh = host, settings, bvh
     return device_scene
+
+
+def _same_memory(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether host arrays ``a`` and ``b`` are the same memory seen the same way (``b`` is kept alive, so its
+    address cannot have been given to another array)."""
+    return (a.__array_interface__["data"][0] == b.__array_interface__["data"][0] and a.shape == b.shape
+            and a.strides == b.strides and a.dtype == b.dtype)
 
 
 def _device_namespace():
