@@ -1,0 +1,139 @@
+"""The compiled tracer (numba) inside a real Blender: install it the add-on's way, render cold, warm and NumPy.
+
+    sudo python tests/blender_gui/numba_run.py dist/tof_camera-0.1.0.zip --wheels DIR [--out out/blender-numba]
+
+Runs :file:`numba_scenario.py` in Debian 13's Blender 4.3.2 (Python 3.13, ``blender -b``: nothing here needs
+the UI) inside the root that :file:`real_blender.sh` builds (``$ROOT``, default /opt/blender-trixie), with
+one fresh HOME for all its Blender processes, in this order:
+
+1. the extension zip installed and enabled (``blender --command extension install-file``);
+2. ``install``: the add-on's "Install numba for the compiled tracer" operator with ``--online-mode``. pip
+   reads the wheels of ``--wheels DIR`` (``PIP_NO_INDEX``, ``PIP_FIND_LINKS``: no network at test time):
+   ``numba-0.68.*``, ``llvmlite-0.50.*`` cp313 manylinux_2_28 x86-64 and a ``pip-*.whl``, which runs as
+   ``python -m pip`` through ``PYTHONPATH`` since Debian's Python 3.13 has neither pip nor ensurepip;
+3. ``render cold``: Render ToF in a new Blender process (compiles the kernels, caches them);
+4. ``render warm``: the same in another new process (loads the cache);
+5. ``render numpy``: the same with ``TOFCORE_TRACER=numpy``.
+
+Then checks that numba was installed into the add-on's folder, that the cold and warm renders used the
+compiled tracer and the add-on says so, that the warm one compiled nothing new (the cache's files are the
+same), and that the compiled depth equals the NumPy depth as tests/tofcore/test_compiled.py requires
+(``isclose(rtol=1e-9, atol=1e-9)`` or both NaN on ≥ 99.5 % of the pixels). Prints one line per check and
+the timings; exit code 0 pass, 1 fail, 2 bad arguments. Needs root (chroot); one Blender at a time.
+"""
+
+from __future__ import annotations
+
+import argparse
+import glob
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+ROOT = Path(os.environ.get("ROOT", "/opt/blender-trixie"))
+WHEELS = ("numba-0.68.*-cp313-*.whl", "llvmlite-0.50.*-cp313-*.whl", "pip-*.whl")
+RENDERS = (("cold", ""), ("warm", ""), ("numpy", "TOFCORE_TRACER=numpy "))
+
+
+def run_script(work: str) -> str:
+    """The shell script run inside the root: the steps of the module docstring, each timed."""
+    blender = f"blender -b --python {work}/numba_scenario.py --"
+    lines = [
+        "set -u",
+        f"export HOME={work} TOF_GUI_OUT={work}/out",
+        f"cd {work}",
+        f"blender -b --factory-startup --command extension install-file -r user_default -e {work}/ext.zip "
+        f">{work}/out/install-extension.log 2>&1 || {{ cat {work}/out/install-extension.log; exit 3; }}",
+        "t() { local label=$1 s=$(date +%s%N); shift; \"$@\"; local rc=$?; "
+        f"echo \"$label: $(( ($(date +%s%N) - s) / 1000000 )) ms wall (Blender start to exit)\" >>{work}/out/wall.txt; "
+        "return $rc; }",
+        f"PYTHONPATH=$(ls {work}/wheels/pip-*.whl) PIP_NO_INDEX=1 PIP_FIND_LINKS={work}/wheels "
+        f"t install blender -b --online-mode --python {work}/numba_scenario.py -- install >{work}/out/install.log 2>&1 "
+        "|| exit 4",
+    ]
+    for label, env in RENDERS:
+        lines.append(f"{env}t render-{label} {blender} render {label} >{work}/out/render-{label}.log 2>&1 || exit 5")
+    return "\n".join(lines) + "\n"
+
+
+def judge(out: Path) -> list[tuple[bool, str]]:
+    """(passed, one line) per check of the module docstring."""
+    load = lambda name: json.loads((out / f"{name}.json").read_text()) if (out / f"{name}.json").is_file() else {}
+    install, cold, warm, numpy_ = load("install"), load("render-cold"), load("render-warm"), load("render-numpy")
+    checks = [(install.get("installer_state") == "done" and any(c.startswith("numba") for c in install.get("contents", [])),
+               f"install: {install.get('installer_state')}, {install.get('installer_message')!r} into "
+               f"{install.get('folder')} in {install.get('seconds')} s")]
+    for label, record in (("cold", cold), ("warm", warm)):
+        transport = record.get("transport", {})
+        checks.append((transport.get("tracer") == "compiled" and "compiled" in record.get("tracer_text", "")
+                       and "the last render used the compiled tracer" in record.get("status_after", [""])[0],
+                       f"render {label}: tracer {transport.get('tracer')!r} ({transport.get('parallel')}), "
+                       f"{record.get('seconds')} s in Render ToF, threading layer {record.get('threading_layer')}; "
+                       f"status {record.get('status_after', [''])[0]!r}"))
+    checks.append((bool(cold.get("cache_files")) and cold.get("cache_files") == warm.get("cache_files"),
+                   f"cache {cold.get('cache_folder')}: {len(cold.get('cache_files') or {})} files after the cold "
+                   f"render, unchanged by the warm one: {cold.get('cache_files') == warm.get('cache_files')}"))
+    checks.append((numpy_.get("transport", {}).get("tracer") == "numpy",
+                   f"render numpy: tracer {numpy_.get('transport', {}).get('tracer')!r}, {numpy_.get('seconds')} s"))
+    if (out / "depth-warm.npy").is_file() and (out / "depth-numpy.npy").is_file():
+        a, b = np.load(out / "depth-numpy.npy"), np.load(out / "depth-warm.npy")
+        same = np.isclose(a, b, rtol=1e-9, atol=1e-9) | (np.isnan(a) & np.isnan(b))
+        checks.append((a.shape == b.shape and same.mean() >= 0.995,
+                       f"depth compiled vs NumPy {a.shape}: {same.mean():.2%} of the pixels within 1e-9, "
+                       f"{np.array_equal(a, b, equal_nan=True) and 'bit for bit' or 'not bit for bit'}"))
+    else:
+        checks.append((False, "depth arrays missing"))
+    return checks
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="tests/blender_gui/numba_run.py", description=__doc__.split("\n\n")[0])
+    parser.add_argument("zip", type=Path, help="the extension zip (make addon)")
+    parser.add_argument("--wheels", type=Path, required=True, help="folder with the numba, llvmlite and pip wheels")
+    parser.add_argument("--out", type=Path, default=Path("out/blender-numba"))
+    args = parser.parse_args(argv)
+    if not args.zip.is_file():
+        parser.error(f"{args.zip}: no such extension zip (make addon builds it)")
+    wheels = [sorted(glob.glob(str(args.wheels / pattern))) for pattern in WHEELS]
+    if not all(wheels):
+        parser.error(f"--wheels {args.wheels}: needs {', '.join(WHEELS)}")
+    if os.geteuid() != 0 or not (ROOT / "usr/bin/blender").is_file():
+        parser.error(f"needs root and the Debian root {ROOT} (tests/blender_gui/real_blender.sh builds it)")
+    for mount in ("proc", "dev"):
+        if subprocess.run(["mountpoint", "-q", str(ROOT / mount)]).returncode != 0:
+            subprocess.run(["mount", "--bind", f"/{mount}", str(ROOT / mount)], check=True)
+    work = f"/tof-numba-{os.getpid()}"
+    host = ROOT / work[1:]
+    shutil.rmtree(host, ignore_errors=True)
+    (host / "out").mkdir(parents=True)
+    (host / "wheels").mkdir()
+    try:
+        shutil.copy(args.zip, host / "ext.zip")
+        shutil.copy(HERE / "numba_scenario.py", host)
+        for found in wheels:
+            shutil.copy(found[-1], host / "wheels")
+        (host / "run.sh").write_text(run_script(work))
+        proc = subprocess.run(["chroot", str(ROOT), "/bin/bash", f"{work}/run.sh"],
+                              env={"PATH": "/usr/sbin:/usr/bin:/sbin:/bin", "LANG": "C.UTF-8"})
+        shutil.rmtree(args.out, ignore_errors=True)
+        shutil.copytree(host / "out", args.out)
+    finally:
+        shutil.rmtree(host, ignore_errors=True)
+    print((args.out / "wall.txt").read_text() if (args.out / "wall.txt").is_file() else "no timings")
+    checks = judge(args.out)
+    for ok, line in checks:
+        print(f"{'PASS' if ok else 'FAIL'} {line}")
+    passed = proc.returncode == 0 and all(ok for ok, _ in checks)
+    print(f"numba in a real Blender: {'passed' if passed else f'FAILED (run.sh exited {proc.returncode})'}; "
+          f"logs in {args.out}")
+    return 0 if passed else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,120 @@
+"""The compiled tracer (numba) in a real Blender, one step per Blender process (run by numba_run.py).
+
+    blender -b --python numba_scenario.py -- install|render LABEL
+
+Runs in Blender's own Python with the extension zip installed (``bl_ext.user_default.tof_camera``) and writes
+``$TOF_GUI_OUT/<step>.json``:
+
+* ``install``: the add-on's own "Install numba for the compiled tracer" operator (``tof.install_numba``,
+  ``execute`` in background mode: pip in this thread), then what the numba folder holds and the box's status.
+* ``render LABEL``: the default cube seen by a ToF camera (as scenario.py's step 1), the add-on's Render ToF
+  operator; records the operator's wall time, ``frame.stats["transport"]``, the add-on's tracer text and
+  status line, numba's threading layer and where the kernels' machine code is cached (with its files), and
+  saves the frame's float64 depth as ``depth-LABEL.npy`` for numba_run.py to compare tracers.
+"""
+
+import importlib
+import json
+import os
+import sys
+import time
+
+import bpy
+import mathutils
+import numpy as np
+
+OUT = os.environ["TOF_GUI_OUT"]
+ADDON = "bl_ext.user_default.tof_camera"
+
+
+def addon(name: str):
+    return importlib.import_module(f"{ADDON}.{name}")
+
+
+def cache_files(folder: str) -> dict:
+    """``{file name: (size, mtime)}`` of numba's cache folder (empty if there is none)."""
+    if not folder or not os.path.isdir(folder):
+        return {}
+    return {name: (os.path.getsize(os.path.join(folder, name)), os.path.getmtime(os.path.join(folder, name)))
+            for name in sorted(os.listdir(folder))}
+
+
+def install() -> dict:
+    prefs = addon("preferences")
+    started = time.perf_counter()
+    result = bpy.ops.tof.install_numba()
+    seconds = time.perf_counter() - started
+    folder = prefs.numba_folder()
+    installer = prefs._install.installer
+    return {"operator": sorted(result), "seconds": round(seconds, 1), "folder": folder,
+            "contents": sorted(os.listdir(folder)) if os.path.isdir(folder) else [],
+            "installer_state": installer.state if installer else None,
+            "installer_message": installer.message if installer else None,
+            "pip_tail": installer.lines[-8:] if installer else [],
+            "on_sys_path": folder in sys.path, "status_line": list(prefs.compiled_status_line()),
+            "python": sys.executable, "online_access": bpy.app.online_access}
+
+
+def render(label: str) -> dict:
+    ops, compiled, prefs = addon("operators"), addon("compiled"), addon("preferences")
+    context = bpy.context
+    frames = []
+    job_run = ops.RenderJob.run
+
+    def keep_frame(self, on_pass):   # the final frame, as the operator got it
+        frame, written = job_run(self, on_pass)
+        frames.append(frame)
+        return frame, written
+
+    ops.RenderJob.run = keep_frame
+    bpy.ops.tof.add_camera()
+    camera = context.active_object
+    camera.location = (2.6, -2.6, 2.0)
+    camera.rotation_euler = (mathutils.Vector((0, 0, 0)) - camera.location).to_track_quat('-Z', 'Y').to_euler()
+    tof = camera.data.tof
+    tof.use_resolution, tof.width, tof.height, tof.spp, tof.max_depth = True, 128, 106, 8, 3
+    tof.output_dir = os.path.join(OUT, f"tof-{label}", "")
+    status_before = list(prefs.compiled_status_line())
+    started = time.perf_counter()
+    result = bpy.ops.tof.render()
+    seconds = time.perf_counter() - started
+    frame = frames[-1]
+    np.save(os.path.join(OUT, f"depth-{label}.npy"), np.asarray(frame.depth, dtype=np.float64))
+    transport = frame.stats.get("transport") or {}
+    record = {"operator": sorted(result), "seconds": round(seconds, 2), "state": ops.last_result.get("state"),
+              "transport": {k: transport.get(k) for k in ("tracer", "tracer_reason", "parallel")},
+              "tracer_text": compiled.tracer_text(transport), "status_before": status_before,
+              "status_after": list(prefs.compiled_status_line()), "numba_folder": prefs.numba_folder(),
+              "sys_path_has_numba_folder": prefs.numba_folder() in sys.path}
+    if "numba" in sys.modules:
+        import numba
+
+        import tofcore.compiled
+        folder = tofcore.compiled.cache_location()
+        try:
+            layer = numba.threading_layer()
+        except ValueError as err:   # no parallel function has run in this process
+            layer = f"none ({err})"
+        record.update(numba=numba.__version__, numba_file=numba.__file__, threading_layer=layer,
+                      cache_folder=folder, cache_files=cache_files(folder), tofcore_file=tofcore.compiled.__file__)
+    return record
+
+
+def main() -> None:
+    args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else []
+    step = args[0]
+    bpy.ops.preferences.addon_enable(module=ADDON)
+    record = install() if step == "install" else render(args[1])
+    name = step if step == "install" else f"render-{args[1]}"
+    with open(os.path.join(OUT, f"{name}.json"), "w") as fh:
+        json.dump(record, fh, indent=1)
+    print(f"NUMBA-CHECK {name}: {json.dumps(record)[:2000]}", flush=True)
+
+
+try:
+    main()
+except Exception:
+    import traceback
+    traceback.print_exc()
+    sys.stdout.flush()
+    os._exit(1)
