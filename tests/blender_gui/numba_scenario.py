@@ -1,16 +1,19 @@
 """The compiled tracer (numba) in a real Blender, one step per Blender process (run by numba_run.py).
 
-    blender -b --python numba_scenario.py -- install|render LABEL
+    blender -b --python numba_scenario.py -- install|install-nopip|render LABEL [--world]
 
 Runs in Blender's own Python with the extension zip installed (``bl_ext.user_default.tof_camera``) and writes
 ``$TOF_GUI_OUT/<step>.json``:
 
 * ``install``: the add-on's own "Install numba for the compiled tracer" operator (``tof.install_numba``,
   ``execute`` in background mode: pip in this thread), then what the numba folder holds and the box's status.
-* ``render LABEL``: the default cube seen by a ToF camera (as scenario.py's step 1), the add-on's Render ToF
-  operator; records the operator's wall time, ``frame.stats["transport"]``, the add-on's tracer text and
-  status line, numba's threading layer and where the kernels' machine code is cached (with its files), and
-  saves the frame's float64 depth as ``depth-LABEL.npy`` for numba_run.py to compare tracers.
+* ``install-nopip``: the same operator where Blender's Python has no pip (Debian's Blender): its error.
+* ``render LABEL``: the default cube seen by a ToF camera (as scenario.py's step 1) with the scene's world
+  removed (Blender's default grey world is ambient light, which the compiled tracer does not do yet:
+  ``--world`` keeps it), the add-on's Render ToF operator; records the operator's wall time,
+  ``frame.stats["transport"]``, the add-on's tracer text and status line, numba's threading layer and where
+  the kernels' machine code is cached (with its files), and saves the frame's float64 depth as
+  ``depth-LABEL.npy`` for numba_run.py to compare tracers.
 """
 
 import importlib
@@ -32,11 +35,22 @@ def addon(name: str):
 
 
 def cache_files(folder: str) -> dict:
-    """``{file name: (size, mtime)}`` of numba's cache folder (empty if there is none)."""
-    if not folder or not os.path.isdir(folder):
-        return {}
-    return {name: (os.path.getsize(os.path.join(folder, name)), os.path.getmtime(os.path.join(folder, name)))
-            for name in sorted(os.listdir(folder))}
+    """``{path relative to folder: (size, mtime)}`` of every file in numba's cache folder (numba keeps them in
+    a subfolder per source folder); empty if there is none."""
+    found = {}
+    for parent, _, names in os.walk(folder or "/nonexistent"):
+        for name in names:
+            path = os.path.join(parent, name)
+            found[os.path.relpath(path, folder)] = (os.path.getsize(path), os.path.getmtime(path))
+    return dict(sorted(found.items()))
+
+
+def install_nopip() -> dict:
+    try:
+        result, error = sorted(bpy.ops.tof.install_numba()), ""
+    except RuntimeError as err:   # bpy.ops raises the ERROR report of an operator called from Python
+        result, error = ["ERROR"], str(err)
+    return {"operator": result, "error": error, "python": sys.executable}
 
 
 def install() -> dict:
@@ -55,7 +69,7 @@ def install() -> dict:
             "python": sys.executable, "online_access": bpy.app.online_access}
 
 
-def render(label: str) -> dict:
+def render(label: str, world: bool) -> dict:
     ops, compiled, prefs = addon("operators"), addon("compiled"), addon("preferences")
     context = bpy.context
     frames = []
@@ -67,6 +81,8 @@ def render(label: str) -> dict:
         return frame, written
 
     ops.RenderJob.run = keep_frame
+    if not world:
+        context.scene.world = None
     bpy.ops.tof.add_camera()
     camera = context.active_object
     camera.location = (2.6, -2.6, 2.0)
@@ -104,8 +120,10 @@ def main() -> None:
     args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else []
     step = args[0]
     bpy.ops.preferences.addon_enable(module=ADDON)
-    record = install() if step == "install" else render(args[1])
-    name = step if step == "install" else f"render-{args[1]}"
+    if step == "render":
+        record, name = render(args[1], "--world" in args), f"render-{args[1]}"
+    else:
+        record, name = {"install": install, "install-nopip": install_nopip}[step](), step
     with open(os.path.join(OUT, f"{name}.json"), "w") as fh:
         json.dump(record, fh, indent=1)
     print(f"NUMBA-CHECK {name}: {json.dumps(record)[:2000]}", flush=True)
