@@ -85,7 +85,8 @@ def status_line(last_tracer: dict | None = None) -> tuple[str, str]:
         return ("numba is not installed: renders use the NumPy tracer (Install numba for a compiled tracer, "
                 "about 2× faster per core)", 'INFO')
     if last_tracer and last_tracer.get("tracer") == "numpy":
-        return f"numba {version} installed, but the last render used NumPy: {last_tracer.get('tracer_reason')}", 'INFO'
+        reason = blender_reason(last_tracer.get("tracer_reason") or "")
+        return f"numba {version} installed, but the last render used NumPy: {reason}", 'INFO'
     if last_tracer and last_tracer.get("tracer") == "compiled":
         return f"Ready: numba {version}, the last render used the compiled tracer", 'CHECKMARK'
     return (f"numba {version} installed: the first render compiles the tracer (30–80 s, cached for later "
@@ -102,8 +103,26 @@ def tracer_text(transport_stats: dict | None) -> str:
             return f"Tracer: compiled (numba, {parallel[len('numba threads: '):]} threads)"
         return f"Tracer: compiled ({parallel})" if parallel else "Tracer: compiled"
     if tracer == "numpy":
-        reason = stats.get("tracer_reason") or ""
-        if reason.startswith("numba is not installed"):
-            reason = "numba is not installed: Preferences > Add-ons > ToF Camera Simulator > Install numba"
+        reason = blender_reason(stats.get("tracer_reason") or "")
         return f"Tracer: NumPy ({reason})" if reason else "Tracer: NumPy"
     return ""
+
+
+#: tofcore's reasons for the NumPy tracer (``tracer_reason``'s start) → what to do about it in Blender.
+BLENDER_REASONS = {
+    "numba is not installed": "numba is not installed: Preferences > Add-ons > ToF Camera Simulator > Install numba",
+    "ambient light is not compiled yet": ("ambient light is not compiled yet: the World's background is ambient "
+                                          "light (a black World, Strength 0 or no World renders compiled)"),
+}
+
+
+def blender_reason(reason: str) -> str:
+    """tofcore's ``tracer_reason`` with the Blender way around it, where there is one (:data:`BLENDER_REASONS`).
+
+    Blender's default scene has a grey World, which the add-on exports as ambient light (:mod:`.export`), so
+    without this hint every render of a new file runs on NumPy for a reason that names no Blender setting.
+    """
+    for start, text in BLENDER_REASONS.items():
+        if reason.startswith(start):
+            return text
+    return reason

@@ -11,6 +11,7 @@ import importlib.util
 import sys
 import tomllib
 from pathlib import Path
+from types import SimpleNamespace
 
 import pytest
 
@@ -62,6 +63,19 @@ def test_tracer_text():
     assert compiled.tracer_text(None) == "" and compiled.tracer_text({}) == ""
 
 
+def test_ambient_light_reason_names_the_world():
+    """Blender's default grey World is ambient light, which the compiled tracer does not do (a real Blender
+    4.3 render of the default cube ran on NumPy for it): the reason says which Blender setting to change."""
+    from tofcore.compiled import setup
+
+    reason = setup.unsupported(SimpleNamespace(ambient=object(), transient_bins=0))   # tofcore's own words
+    assert reason == "ambient light is not compiled yet"
+    text = compiled.tracer_text({"tracer": "numpy", "tracer_reason": reason})
+    assert text.startswith("Tracer: NumPy (ambient light is not compiled yet: the World's background is ambient")
+    assert "a black World, Strength 0 or no World renders compiled" in text
+    assert compiled.blender_reason("TOFCORE_TRACER=numpy") == "TOFCORE_TRACER=numpy"   # others unchanged
+
+
 def test_status_line(monkeypatch):
     monkeypatch.setattr(compiled, "installed_numba", lambda: None)
     text, icon = compiled.status_line()
@@ -74,3 +88,6 @@ def test_status_line(monkeypatch):
         "Ready: numba 0.68.1, the last render used the compiled tracer", 'CHECKMARK')
     compiled.note_tracer({})                                     # a frame without tracer stats changes nothing
     assert compiled.last_tracer()["tracer"] == "compiled"
+    compiled.note_tracer({"tracer": "numpy", "tracer_reason": "ambient light is not compiled yet"})
+    assert compiled.status_line(compiled.last_tracer())[0].startswith(
+        "numba 0.68.1 installed, but the last render used NumPy: ambient light is not compiled yet: the World's")
