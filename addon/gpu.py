@@ -157,7 +157,8 @@ def pip_command(python: str, *, timeout_s: float = 120.0) -> list[str]:
     """How to run pip with ``python``: ``[python, "-m", "pip"]`` when pip is installed there, else
     ``[python, "<ensurepip's bundled wheel>/pip"]`` (pip runs from its wheel; nothing is installed).
 
-    Raises :class:`InstallError` when neither works.
+    Raises :class:`InstallError` when neither works (Debian's Blender 4.3: its Python 3.13 has neither); the
+    caller says how to install by hand.
     """
     probe = run_quiet([python, "-m", "pip", "--version"], timeout_s=timeout_s)
     if probe.returncode == 0:
@@ -167,8 +168,7 @@ def pip_command(python: str, *, timeout_s: float = 120.0) -> list[str]:
         command = [python, os.path.join(wheel, "pip")]
         if run_quiet([*command, "--version"], timeout_s=timeout_s).returncode == 0:
             return command
-    raise InstallError(f"pip is not available in Blender's Python ({python}) and ensurepip has no pip wheel; "
-                       f"install CuPy by hand (README, GPU in Blender)")
+    raise InstallError(f"pip is not available in Blender's Python ({python}) and ensurepip has no pip wheel")
 
 
 def pip_env() -> dict[str, str]:

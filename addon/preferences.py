@@ -192,7 +192,7 @@ def _blender_pip(what: str, platform_problem: str | None) -> tuple[str, list[str
         try:
             pip = gpu.pip_command(python)
         except gpu.InstallError as err:
-            problem = str(err).replace("CuPy", what)
+            problem = f"{err}; install {what} by hand ({_BY_HAND[what]})"
     return python, pip, problem
 
 

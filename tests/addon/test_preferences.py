@@ -323,6 +323,25 @@ def test_install_numba_refused_when_offline(prefs, monkeypatch, tmp_path):
     assert not (tmp_path / "numba").exists()
 
 
+def test_install_numba_without_pip_points_to_its_own_readme_section(prefs, monkeypatch, tmp_path):
+    """Debian's Blender 4.3 (Python 3.13 without pip or ensurepip) answered "install numba by hand (README, GPU
+    in Blender)": the CuPy section. The by-hand pointer is the package's own."""
+    monkeypatch.setattr(preferences, "numba_folder", lambda: str(tmp_path / "numba"))
+    monkeypatch.setattr(preferences, "_online_problem", lambda what: None)
+    monkeypatch.setattr(gpu, "run_quiet", lambda command, timeout_s: SimpleNamespace(returncode=1))
+    monkeypatch.setattr(gpu, "bundled_pip_wheel", lambda: None)
+    for operator, what, section in ((preferences.TOF_OT_install_numba, "numba", "The compiled tracer"),
+                                    (preferences.TOF_OT_install_cupy, "CuPy", "GPU in Blender")):
+        if what == "CuPy" and gpu.platform_problem():
+            continue
+        result, reports = run_execute(operator)
+        assert result == {'CANCELLED'}
+        assert reports.of("ERROR") == [f"Cannot install {what}: pip is not available in Blender's Python "
+                                       f"({sys.executable}) and ensurepip has no pip wheel; install {what} by hand "
+                                       f"(README, {section})"]
+    assert not (tmp_path / "numba").exists()
+
+
 def test_one_install_at_a_time(prefs, numba_pip):
     installer = preferences.prepare_numba_install(Reports())
     preferences._install.installer, preferences._install.what = installer, "numba"
