@@ -14,9 +14,14 @@ where it goes      :func:`site_packages_dir`: a folder of its own beside CuPy's 
 which packages     numba and llvmlite (its compiler back end), at the release line tofcore's ``compiled``
                    extra pins (pyproject.toml), ``--no-deps`` so Blender's NumPy stays the only one; numba
                    0.68 supports NumPy 1.22–2.5 (Blender 4.2–5.0 ship 1.26).
-first render       compiles the kernels (30–80 s, docs/benchmarks.md) and caches the machine code beside
-                   tofcore's sources (numba's user cache where that folder is read-only); later renders
-                   load it in about a second.
+first render       compiles the kernels (30 s on a fast machine; 128–157 s on a busy 2-core one in Debian's
+                   Blender 4.3, tests/blender_gui/numba_run.py) and caches the machine code beside tofcore's
+                   sources (the extension's ``.local/lib/python3.x/site-packages/tofcore/compiled/__pycache__``;
+                   ~/.cache/tofcore where that folder is read-only); later Blender sessions load it in about a
+                   second.
+which renders      those without ambient light, transient histograms or textures (``tofcore.compiled.setup``).
+                   Blender's default grey World is ambient light (:mod:`.export`), so a new file renders on
+                   NumPy until its World is black or removed; :func:`blender_reason` says so in the UI.
 =================  =====================================================================================
 
 The pip run, its staging folder and cancellation are :class:`.gpu.Installer`'s. Nothing here imports
@@ -89,8 +94,8 @@ def status_line(last_tracer: dict | None = None) -> tuple[str, str]:
         return f"numba {version} installed, but the last render used NumPy: {reason}", 'INFO'
     if last_tracer and last_tracer.get("tracer") == "compiled":
         return f"Ready: numba {version}, the last render used the compiled tracer", 'CHECKMARK'
-    return (f"numba {version} installed: the first render compiles the tracer (30–80 s, cached for later "
-            f"renders)", 'INFO')
+    return (f"numba {version} installed: the first render compiles the tracer (30 s to 3 min, cached for "
+            f"later renders)", 'INFO')
 
 
 def tracer_text(transport_stats: dict | None) -> str:

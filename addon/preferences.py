@@ -257,7 +257,7 @@ def finish_numba_install(installer: gpu.Installer, report) -> set[str]:
     if "numba" in sys.modules:  # this Blender session already runs the numba it had before
         report({'WARNING'}, f"{installer.message}; restart Blender to use it")
     else:
-        report({'INFO'}, f"{installer.message}; the next render compiles the tracer once (30–80 s)")
+        report({'INFO'}, f"{installer.message}; the next render compiles the tracer once (30 s to 3 min)")
     return {'FINISHED'}
 
 

@@ -154,8 +154,8 @@ def _gpu_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, cancel)
 def cache_location() -> str:
     """Where numba keeps the compiled kernels: the CPU build's folder once the kernels are imported
     (:func:`tofcore.compiled._target.cache_folder`); else, as for the CUDA build, ``NUMBA_CACHE_DIR``, else
-    ``__pycache__`` beside the sources, else (a read-only install, such as a Blender extension's
-    site-packages) numba's user cache."""
+    ``__pycache__`` beside the sources (also in a Blender extension: its site-packages is in the user's
+    folder), else (a read-only install) numba's user cache."""
     import numba
 
     from . import _target
