@@ -6,14 +6,26 @@ accumulators in the order the NumPy reference adds them (per bounce bucket: the 
 connections of the previous vertex, then the next-event estimates; per replicate: the path totals in
 sample order), so the two tracers differ only where the compiled libm rounds a transcendental function
 differently from NumPy's (tests/tofcore/test_compiled.py).
+
+One chunk at a time per process (:data:`PARALLEL_LOCK`): numba's ``workqueue`` threading layer, the one
+it falls back to where neither TBB nor OpenMP loads, aborts the whole process ("Concurrent access has been
+detected") when two Python threads run ``parallel=True`` code at once — two renders on two threads did
+(tests/tofcore/test_compiled_threads.py), and Blender's add-on starts a live preview while the one it
+cancelled may still trace its last chunk. The chunks of concurrent renders take turns; each chunk still
+runs on all of numba's threads.
 """
 
 from __future__ import annotations
+
+import threading
 
 import numpy as np
 
 from . import kernels
 from .layout import N_COUNTERS
+
+PARALLEL_LOCK = threading.Lock()
+"""Held while a chunk runs on numba's threads (see the module docstring)."""
 
 
 def trace_chunk(packed, out, p0: int, p1: int, first: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -23,5 +35,7 @@ def trace_chunk(packed, out, p0: int, p1: int, first: np.ndarray, counts: np.nda
              packed.corr_table)
     settings = (packed.key, packed.max_depth, packed.independent, packed.light_paths)
     pixels = (p0, p1, np.ascontiguousarray(first, dtype=np.int64), np.ascontiguousarray(counts, dtype=np.int64))
-    kernels.trace_pixels(scene, settings, pixels, (out.signal_sum, out.correlation_sum, out.replicate_sum, counters))
+    with PARALLEL_LOCK:
+        kernels.trace_pixels(scene, settings, pixels, (out.signal_sum, out.correlation_sum, out.replicate_sum,
+                                                       counters))
     return counters.sum(axis=0)
