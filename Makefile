@@ -65,6 +65,13 @@ test-blender: addon
 	$(PY) tests/blender_gui/run.py dist/tof_camera-$$(sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml).zip \
 		--out out/blender-gui $(if $(DOCS),--docs $(DOCS))
 
+# The compiled tracer (numba) in that Blender: the add-on's Install numba from WHEELS (a folder with the cp313
+# numba, llvmlite and pip wheels: README, "Tested in a real Blender GUI"), cold/warm/NumPy renders; ~5 min.
+.PHONY: test-blender-numba
+test-blender-numba: addon
+	$(PY) tests/blender_gui/numba_run.py dist/tof_camera-$$(sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml).zip \
+		--wheels $(or $(WHEELS),$(error WHEELS=folder of the numba, llvmlite and pip wheels)) --out out/blender-numba
+
 # The six thesis experiments (docs/validation.md): PNG plots + JSON numbers in out/studies/, ~10 min on 2 cores.
 STUDIES := corner_path_length corner_roughness systematic_error box_wall_error_map flying_pixels led_shadow
 .PHONY: studies
