@@ -338,10 +338,10 @@ def test_the_wavefronts_light_table_round_trips_a_light_vertex():
     surf = ((1.0, 2.0, 3.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.6, 0.8),
             (0.5, 0.2, 0.0, 1.5, 0.0))
     light = (True, surf, (0.0, -0.6, -0.8), 2.5, 0.125, 3.0e-2, 1e-6)
-    table = np.zeros((3, kernels.LIGHT_COLUMNS))
+    table = np.zeros((kernels.LIGHT_COLUMNS, 3))
     kernels.store_light(table, 1, light)
     assert kernels.load_light(table, 1) == light
-    assert not table[[0, 2]].any()
+    assert not table[:, [0, 2]].any()  # the other paths' columns untouched
 
 
 @needs_numba

@@ -380,11 +380,11 @@ def _group_arrays(xp, n: int, k_max: int, n_corr: int, slots: int, light_columns
     """The per-path arrays of a group of ``n`` paths (the table in kernels.py's wavefront section)."""
     f32, i32 = np.float32, np.int32
     return {"path": (xp.empty(n, np.int64), xp.empty(n, np.int64), xp.zeros(n, np.int8), xp.zeros(n, np.int8)),
-            "pstate": (xp.empty((n, 13)), xp.empty(n, i32)),
+            "pstate": (xp.empty((13, n)), xp.empty(n, i32)),
             "rays": (xp.empty((n, 3), f32), xp.empty((n, 3), f32), xp.empty(n, i32), xp.empty(n, f32)),
             "light_rays": (xp.zeros((n, 3), f32), xp.zeros((n, 3), f32), xp.full(n, -1, i32)),
-            "light": xp.zeros((n, light_columns)),
-            "pend": (xp.zeros((n, slots)), xp.zeros((n, slots))),
+            "light": xp.zeros((light_columns, n)),
+            "pend": (xp.zeros((slots, n)), xp.zeros((slots, n))),
             "shadow": (xp.zeros((n * slots, 3), f32), xp.zeros((n * slots, 3), f32), xp.zeros(n * slots, f32),
                        xp.full(n * slots, -1, i32)),
             "total": xp.zeros((n_corr + 2, n)),
