@@ -783,7 +783,8 @@ def correlation(kind, par, tau):
 #
 # The path's arguments travel in tuples (numba compiles heterogeneous tuples of arrays and scalars):
 #   scene    = (geo, cam, cam_table, frame, leds, corr_kinds, corr_table)      the render's arrays
-#   settings = (key, max_depth, independent, light_paths)                      the render's switches
+#   settings = (key, max_depth, independent, light_paths, ambient)             the render's switches and its
+#                                                                              constant ambient radiance, W/(m² sr)
 #   rng      = (key, pixel, sample, independent)                               one sample's random numbers
 #   vertex   = (surface, spawn point, wo in the local frame, triangle index)  a camera vertex x
 #   state    = (throughput β, depth, bsdf_area_pdf, prev_delta, use_mis)      the path at x
@@ -1030,7 +1031,7 @@ def trace_path(scene, settings, pixel, sample, sums, work):
     """Trace sample ``sample`` of pixel ``pixel`` and add its contributions (transport._trace_chunk for one path).
 
     ``scene`` = (geo, cam, cam_table, frame, leds, corr_kinds, corr_table); ``settings`` = (key, max_depth,
-    independent, light_paths). Adds to the pixel's ``sums`` of next-event contributions ``nee_w`` (K,) and
+    independent, light_paths, ambient radiance). Adds to the pixel's ``sums`` of next-event contributions ``nee_w`` (K,) and
     ``nee_wg`` (K, J) and of light-vertex connections ``con_w``, ``con_wg`` per bounce bucket, in the order
     the reference adds them, and writes the path's channel totals (signal, J correlations, ambient) to
     ``total`` (J + 2,). ``work`` = (counters (layout.N_COUNTERS,) int64 ray counts, stack, stack_t, wg (J,)
@@ -1039,7 +1040,7 @@ def trace_path(scene, settings, pixel, sample, sums, work):
     emission probability, first-hit shadow skipped; cdf (L − 1,)).
     """
     geo = scene[0]
-    key, max_depth, independent, light_paths = settings
+    key, max_depth, independent, light_paths, ambient = settings
     rng = (key, pixel, sample, independent)
     total = sums[4]
     for c in range(total.shape[0]):
@@ -1058,7 +1059,8 @@ def trace_path(scene, settings, pixel, sample, sums, work):
     prev_delta = False    # ... and whether it was a mirror lobe
     for depth in range(1, max_depth + 1):
         prim, u, v = next_hit(geo, origin, direction, depth, prev_prim, work)
-        if prim < 0:
+        if prim < 0:  # the ray left the scene: it sees the ambient radiance, β · L_amb (stages.intersect)
+            total[total.shape[0] - 1] += throughput * ambient
             break
         surf = surface_at(geo, prim, u, v, origin, direction)
         position, ng = surf[0], surf[1]
@@ -1090,15 +1092,15 @@ def trace_pixels(scene, settings, pixels, out):
     """Trace samples [first[p], first[p] + counts[p]) of pixels p0 ≤ p < p1 into the frame's sums.
 
     ``scene`` and ``settings`` as in :func:`trace_path`; ``pixels`` = (p0, p1, first, counts); ``out`` =
-    (signal_sum (K, P), correlation_sum (K, J, P), replicate_sum (R, J + 2, P) as in
+    (signal_sum (K, P), correlation_sum (K, J, P), replicate_sum (R, J + 2, P), ambient_sum (P,) as in
     :class:`tofcore.transport.Transport`, counters (p1 − p0, N_COUNTERS) receiving each pixel's ray counts).
     """
     # numba's parallel loop takes arrays, scalars and flat tuples of arrays, not a tuple of tuples:
     # the scene is unpacked here and packed again inside the loop.
     geo, cam, cam_table, frame, leds, corr_kinds, corr_table = scene
-    key, max_depth, independent, light_paths = settings
+    key, max_depth, independent, light_paths, ambient = settings
     p0, p1, first, counts = pixels
-    signal_sum, correlation_sum, replicate_sum, counters = out
+    signal_sum, correlation_sum, replicate_sum, ambient_sum, counters = out
     n_depth = signal_sum.shape[0]
     n_corr = corr_kinds.shape[0]
     n_rep = replicate_sum.shape[0]
@@ -1114,12 +1116,14 @@ def trace_pixels(scene, settings, pixels, out):
         count = np.zeros(N_COUNTERS, np.int64)
         work = (count, np.empty(STACK_SIZE, np.int64), np.empty(STACK_SIZE, np.float32), np.zeros(n_corr))
         sums = (nee_w, nee_wg, con_w, con_wg, total)
+        seen = 0.0  # the pixel's ambient radiance of this pass (accumulate.Tally.finish)
         for sample in range(first[p], first[p] + counts[p]):
             trace_path((geo, cam, cam_table, frame, leds, corr_kinds, corr_table),
-                       (key, max_depth, independent, light_paths), p, sample, sums, work)
+                       (key, max_depth, independent, light_paths, ambient), p, sample, sums, work)
             r = sample % n_rep
             for c in range(n_ch):
                 replicate[r, c] += total[c]
+            seen += total[n_ch - 1]
         for k in range(n_depth):
             signal_sum[k, p] += con_w[k]
             signal_sum[k, p] += nee_w[k]
@@ -1129,6 +1133,7 @@ def trace_pixels(scene, settings, pixels, out):
         for r in range(n_rep):
             for c in range(n_ch):
                 replicate_sum[r, c, p] += replicate[r, c]
+        ambient_sum[p] += seen
         for c in range(N_COUNTERS):
             counters[local, c] = count[c]
 
@@ -1258,7 +1263,7 @@ def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
     samples[j] = sample
     shaded[j] = 0
     alive[j] = 1
-    key, max_depth, independent, light_paths = settings
+    key, max_depth, independent, light_paths, ambient = settings
     rng = (key, p, sample, independent)
     origin, direction = camera_start(scene, rng)
     f = pstate[0]
@@ -1287,7 +1292,7 @@ def wf_light(scene, settings, n, path, light_hits, light):
     pixel, samples = path[0], path[1]
     if j >= n:
         return
-    key, max_depth, independent, light_paths = settings
+    key, max_depth, independent, light_paths, ambient = settings
     ray = light_ray(scene[3], scene[4], (key, pixel[j], samples[j], independent))
     prim, u, v = light_hits
     store_light(light, j, light_vertex_at(scene[0], scene[4], ray, prim[j], u[j], v[j]))
@@ -1365,7 +1370,7 @@ def wf_shade(scene, settings, depth, n, path, hits, buffers):
     """Stage 3 at ``depth``: the surface each live path of the group's n hit, its next-event estimates and
     connection with their shadow rays, and its next ray — trace_path's loop body, minus traversal.
 
-    ``buffers`` = (pstate, light, pend, shadow, rays, counters), see the table above.
+    ``buffers`` = (pstate, light, pend, shadow, rays, counters, total), see the table above.
     """
     j = cuda.grid(1)
     pixel, samples, alive, shaded = path
@@ -1377,13 +1382,16 @@ def wf_shade(scene, settings, depth, n, path, hits, buffers):
     for i in range(slots):
         shadow[2][j * slots + i] = NO_RAY
     prim = hits[0][j]
+    key, max_depth, independent, light_paths, ambient = settings
+    f = buffers[0][0]
     if alive[j] == 0 or prim < 0:
+        if alive[j] != 0:  # the ray left the scene: it sees the ambient radiance, β · L_amb (trace_path)
+            total = buffers[6]
+            total[total.shape[0] - 1, j] += f[0, j] * ambient
         alive[j] = 0
         rays[3][j] = NO_RAY
         return
     geo = scene[0]
-    key, max_depth, independent, light_paths = settings
-    f = buffers[0][0]
     throughput, path_length, prev_pdf, prev_delta = f[0, j], f[1, j], f[2, j], f[3, j] != 0.0
     direction = load_vec(f, j, 10)
     surf = surface_at(geo, prim, hits[1][j], hits[2][j], load_vec(f, j, 7), direction)
@@ -1447,8 +1455,8 @@ def wf_resolve(scene, depth, n, path, pend, occluded, total, contrib):
 def gather_outputs(depth, n_depth, n_corr):
     """How many sums :func:`wf_gather` adds each pixel's addends of ``depth`` to: the next-event weight and
     channels (bucket depth − 1), the connection's (bucket depth, below the last depth), and at the last
-    depth the replicate channels (J + 2)."""
-    return (1 + n_corr) * (2 if depth < n_depth else 1) + (n_corr + 2 if depth == n_depth else 0)
+    depth the replicate channels (J + 2) and the ambient sum."""
+    return (1 + n_corr) * (2 if depth < n_depth else 1) + (n_corr + 3 if depth == n_depth else 0)
 
 
 @fn
@@ -1471,7 +1479,7 @@ def wf_gather(launch, depth, samples, contrib, total, sums):
 
     ``launch`` as in :func:`wf_start`; thread t = o · m + i serves pixel order[i] (the m pixels of sample
     index s0 include every later index's) and sum o (:func:`gather_outputs`). ``sums`` = (nee_w (K, P),
-    nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate (R, J + 2, P)): each pixel's addends arrive
+    nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate (R, J + 2, P), ambient (P,)): each pixel's addends arrive
     in the order trace_pixels adds them on the CPU (a bucket's sums take one depth's addends only). One
     thread per sum rather than per pixel: a pixel that adaptive sampling gives hundreds of samples would
     otherwise keep one thread adding for milliseconds.
@@ -1479,7 +1487,7 @@ def wf_gather(launch, depth, samples, contrib, total, sums):
     t = cuda.grid(1)
     order, offsets, s0, s1 = launch[0], launch[2], launch[3], launch[4]
     nee, con = contrib
-    pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate = sums
+    pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate, pass_ambient = sums
     n_depth, n_corr = pass_nee_wg.shape[0], pass_nee_wg.shape[1]
     m = offsets[s0 + 1] - offsets[s0]
     if t >= m * gather_outputs(depth, n_depth, n_corr):
@@ -1501,6 +1509,9 @@ def wf_gather(launch, depth, samples, contrib, total, sums):
             wg_sum[k, row - 1, p] = in_sample_order(wg_sum[k, row - 1, p], source, row, i, offsets, s0, s1)
         return
     c = o - per_kind - n_con
+    if c == n_corr + 2:  # the ambient radiance the paths saw
+        pass_ambient[p] = in_sample_order(pass_ambient[p], total, n_corr + 1, i, offsets, s0, s1)
+        return
     for lane in range(s0, s1):
         if i >= offsets[lane + 1] - offsets[lane]:
             break
