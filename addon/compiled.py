@@ -19,9 +19,9 @@ first render       compiles the kernels (30 s on a fast machine; 128–183 s on 
                    sources (the extension's ``.local/lib/python3.x/site-packages/tofcore/compiled/__pycache__``;
                    ~/.cache/tofcore where that folder is read-only); later Blender sessions load it in about a
                    second.
-which renders      those without ambient light, transient histograms or textures (``tofcore.compiled.setup``).
-                   Blender's default grey World is ambient light (:mod:`.export`), so a new file renders on
-                   NumPy until its World is black or removed; :func:`blender_reason` says so in the UI.
+which renders      all but those with an ambient environment map (a World with an Environment Texture),
+                   transient histograms or textures (``tofcore.compiled.setup``); a plain World colour is
+                   compiled. :func:`blender_reason` names the Blender setting in the UI.
 =================  =====================================================================================
 
 The pip run, its staging folder and cancellation are :class:`.gpu.Installer`'s. Nothing here imports
@@ -116,16 +116,16 @@ def tracer_text(transport_stats: dict | None) -> str:
 #: tofcore's reasons for the NumPy tracer (``tracer_reason``'s start) → what to do about it in Blender.
 BLENDER_REASONS = {
     "numba is not installed": "numba is not installed: Preferences > Add-ons > ToF Camera Simulator > Install numba",
-    "ambient light is not compiled yet": ("ambient light is not compiled yet: the World's background is ambient "
-                                          "light (a black World, Strength 0 or no World renders compiled)"),
+    "ambient light from an environment map": ("the World's Environment Texture is ambient light from an "
+                                              "environment map, not compiled yet (a plain World colour is)"),
 }
 
 
 def blender_reason(reason: str) -> str:
     """tofcore's ``tracer_reason`` with the Blender way around it, where there is one (:data:`BLENDER_REASONS`).
 
-    Blender's default scene has a grey World, which the add-on exports as ambient light (:mod:`.export`), so
-    without this hint every render of a new file runs on NumPy for a reason that names no Blender setting.
+    tofcore's words name no Blender setting: an environment map, for one, is the World's Environment Texture
+    (:mod:`.export`).
     """
     for start, text in BLENDER_REASONS.items():
         if reason.startswith(start):

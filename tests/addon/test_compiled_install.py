@@ -63,16 +63,19 @@ def test_tracer_text():
     assert compiled.tracer_text(None) == "" and compiled.tracer_text({}) == ""
 
 
-def test_ambient_light_reason_names_the_world():
-    """Blender's default grey World is ambient light, which the compiled tracer does not do (a real Blender
-    4.3 render of the default cube ran on NumPy for it): the reason says which Blender setting to change."""
+def test_environment_map_reason_names_the_world():
+    """tofcore's reason for an ambient environment map names no Blender setting; the add-on's names the World's
+    Environment Texture."""
+    import numpy as np
+
     from tofcore.compiled import setup
 
-    reason = setup.unsupported(SimpleNamespace(ambient=object(), transient_bins=0))   # tofcore's own words
-    assert reason == "ambient light is not compiled yet"
+    ambient = SimpleNamespace(environment=np.ones((2, 4)), environment_strength=1.0)
+    reason = setup.unsupported(SimpleNamespace(ambient=ambient, transient_bins=0))   # tofcore's own words
+    assert reason.startswith("ambient light from an environment map is not compiled yet")
     text = compiled.tracer_text({"tracer": "numpy", "tracer_reason": reason})
-    assert text.startswith("Tracer: NumPy (ambient light is not compiled yet: the World's background is ambient")
-    assert "a black World, Strength 0 or no World renders compiled" in text
+    assert text == ("Tracer: NumPy (the World's Environment Texture is ambient light from an environment map, "
+                    "not compiled yet (a plain World colour is))")
     assert compiled.blender_reason("TOFCORE_TRACER=numpy") == "TOFCORE_TRACER=numpy"   # others unchanged
 
 
@@ -88,6 +91,7 @@ def test_status_line(monkeypatch):
         "Ready: numba 0.68.1, the last render used the compiled tracer", 'CHECKMARK')
     compiled.note_tracer({})                                     # a frame without tracer stats changes nothing
     assert compiled.last_tracer()["tracer"] == "compiled"
-    compiled.note_tracer({"tracer": "numpy", "tracer_reason": "ambient light is not compiled yet"})
+    compiled.note_tracer({"tracer": "numpy", "tracer_reason": "ambient light from an environment map is not "
+                                                              "compiled yet (a constant ambient radiance is)"})
     assert compiled.status_line(compiled.last_tracer())[0].startswith(
-        "numba 0.68.1 installed, but the last render used NumPy: ambient light is not compiled yet: the World's")
+        "numba 0.68.1 installed, but the last render used NumPy: the World's Environment Texture is ambient")

@@ -1,6 +1,6 @@
 """The compiled tracer (numba) in a real Blender, one step per Blender process (run by numba_run.py).
 
-    blender -b --python numba_scenario.py -- install|install-nopip|render LABEL [--world]
+    blender -b --python numba_scenario.py -- install|install-nopip|render LABEL
 
 Runs in Blender's own Python with the extension zip installed (``bl_ext.user_default.tof_camera``) and writes
 ``$TOF_GUI_OUT/<step>.json``:
@@ -8,9 +8,8 @@ Runs in Blender's own Python with the extension zip installed (``bl_ext.user_def
 * ``install``: the add-on's own "Install numba for the compiled tracer" operator (``tof.install_numba``,
   ``execute`` in background mode: pip in this thread), then what the numba folder holds and the box's status.
 * ``install-nopip``: the same operator where Blender's Python has no pip (Debian's Blender): its error.
-* ``render LABEL``: the default cube seen by a ToF camera (as scenario.py's step 1) with the scene's world
-  removed (Blender's default grey world is ambient light, which the compiled tracer does not do yet:
-  ``--world`` keeps it), the add-on's Render ToF operator; records the operator's wall time,
+* ``render LABEL``: the default cube and World (constant ambient light) seen by a ToF camera (as
+  scenario.py's step 1), the add-on's Render ToF operator; records the operator's wall time,
   ``frame.stats["transport"]``, the add-on's tracer text and status line, numba's threading layer and where
   the kernels' machine code is cached (with its files), and saves the frame's float64 depth as
   ``depth-LABEL.npy`` for numba_run.py to compare tracers.
@@ -69,7 +68,7 @@ def install() -> dict:
             "python": sys.executable, "online_access": bpy.app.online_access}
 
 
-def render(label: str, world: bool) -> dict:
+def render(label: str) -> dict:
     ops, compiled, prefs = addon("operators"), addon("compiled"), addon("preferences")
     context = bpy.context
     frames = []
@@ -81,8 +80,6 @@ def render(label: str, world: bool) -> dict:
         return frame, written
 
     ops.RenderJob.run = keep_frame
-    if not world:
-        context.scene.world = None
     bpy.ops.tof.add_camera()
     camera = context.active_object
     camera.location = (2.6, -2.6, 2.0)
@@ -121,7 +118,7 @@ def main() -> None:
     step = args[0]
     bpy.ops.preferences.addon_enable(module=ADDON)
     if step == "render":
-        record, name = render(args[1], "--world" in args), f"render-{args[1]}"
+        record, name = render(args[1]), f"render-{args[1]}"
     else:
         record, name = {"install": install, "install-nopip": install_nopip}[step](), step
     with open(os.path.join(OUT, f"{name}.json"), "w") as fh:
