@@ -73,7 +73,8 @@ def judge(out: Path) -> list[tuple[bool, str]]:
     nopip = load("install-nopip")
     checks = [("pip is not available in Blender's Python" in nopip.get("error", ""),
                f"install without pip: {nopip.get('error')!r}")]
-    checks += [(install.get("installer_state") == "done" and any(c.startswith("numba") for c in install.get("contents", [])),
+    installed = any(c.startswith("numba") for c in install.get("contents", []))
+    checks += [(install.get("installer_state") == "done" and installed,
                f"install: {install.get('installer_state')}, {install.get('installer_message')!r} into "
                f"{install.get('folder')} in {install.get('seconds')} s")]
     for label, record in (("cold", cold), ("warm", warm)):
@@ -93,7 +94,7 @@ def judge(out: Path) -> list[tuple[bool, str]]:
         same = np.isclose(a, b, rtol=1e-9, atol=1e-9) | (np.isnan(a) & np.isnan(b))
         checks.append((a.shape == b.shape and same.mean() >= 0.995,
                        f"depth compiled vs NumPy {a.shape}: {same.mean():.2%} of the pixels within 1e-9, "
-                       f"{np.array_equal(a, b, equal_nan=True) and 'bit for bit' or 'not bit for bit'}"))
+                       f"{'bit for bit' if np.array_equal(a, b, equal_nan=True) else 'not bit for bit'}"))
     else:
         checks.append((False, "depth arrays missing"))
     return checks
