@@ -55,29 +55,32 @@ def _init(scene_name: str, scale: float, seed: int, max_depth: int) -> None:
 
 
 def _pt_block(args) -> ClassSums:
-    p0, p1, spp = args
-    return trace_classified(_WORKER["setup"], p0, p1, spp)
+    p0, p1, spp, ratio = args
+    return trace_classified(_WORKER["setup"], p0, p1, spp, lt_ratio=ratio)
 
 
 def _lt_block(args) -> ClassSums:
-    first, n, caustic_only = args
-    return trace_light(_WORKER["setup"], first, n, caustic_only=caustic_only)
+    first, n, caustic_only, ratio = args
+    return trace_light(_WORKER["setup"], first, n, caustic_only=caustic_only, mis_ratio=ratio)
 
 
 def traced(kind: str, scene_name: str, scale: float, seed: int, *, spp: int = 0, n_paths: int = 0,
-           caustic_only: bool = True, max_depth: int = 5, workers: int = 2, block: int = 65536) -> ClassSums:
+           caustic_only: bool = True, mis_ratio: float | None = None, max_depth: int = 5, workers: int = 2,
+           block: int = 65536) -> ClassSums:
     """Per-class sums of a whole frame, traced by ``workers`` processes in blocks of about ``block`` paths.
 
     ``kind`` "pt": the path tracer (:func:`classify.trace_classified`), ``spp`` samples per pixel;
-    "lt": light tracing (:func:`light_tracer.trace_light`), ``n_paths`` light paths.
+    "lt": light tracing (:func:`light_tracer.trace_light`), ``n_paths`` light paths. ``mis_ratio`` = N/n
+    gives both their three-strategy MIS weights (:mod:`mis`).
     """
     sensor = sensor_at(scale)
     n_pix = sensor.camera.width * sensor.camera.height
     if kind == "pt":
         step = max(1, block // spp)
-        jobs, fn = [(p, min(p + step, n_pix), spp) for p in range(0, n_pix, step)], _pt_block
+        jobs, fn = [(p, min(p + step, n_pix), spp, mis_ratio) for p in range(0, n_pix, step)], _pt_block
     else:
-        jobs, fn = [(f, min(block, n_paths - f), caustic_only) for f in range(0, n_paths, block)], _lt_block
+        jobs = [(f, min(block, n_paths - f), caustic_only, mis_ratio) for f in range(0, n_paths, block)]
+        fn = _lt_block
     with ProcessPoolExecutor(workers, initializer=_init, initargs=(scene_name, scale, seed, max_depth)) as pool:
         parts = list(pool.map(fn, jobs))
     if kind == "pt":
