@@ -9,13 +9,13 @@ A caustic path lens → x_1 … x_m → LED (x_m glossy) can be sampled three wa
     p_C &= p_L(x_m) \prod_{i=2}^{m} \overleftarrow{p}_i,
 
 * A, the path tracer's next event: camera ray (:mod:`camera_importance`, p_cam = W_p), BSDF samples
-  :math:`\overrightarrow{p}_i = p_\sigma(x_i;\ \omega_o{=}x_{i-1}, \omega_i{=}x_{i+1}) |\cos_{x_{i+1}}| / |x_{i+1} - x_i|^2`
-  (x_0 the lens), then the LED;
+  :math:`\overrightarrow{p}_i = p_\sigma(x_i;\ \omega_o{=}x_{i-1}, \omega_i{=}x_{i+1})
+  |\cos_{x_{i+1}}| / |x_{i+1} - x_i|^2` (x_0 the lens), then the LED;
 * B, the tracer's light vertex: the same down to x_{m−1}, x_m from the LED,
   p_L(x) = q_l p_l(ω) |cos_x| / |x − l|² (:mod:`tofcore.tracer.light_paths`);
 * C, light tracing: x_m from the LED, then BSDF samples towards the camera,
-  :math:`\overleftarrow{p}_i = p_\sigma(x_i;\ \omega_o{=}x_{i+1}, \omega_i{=}x_{i-1}) |\cos_{x_{i-1}}| / |x_i - x_{i-1}|^2`
-  (x_{m+1} the LED), and x_1 connects to the lens.
+  :math:`\overleftarrow{p}_i = p_\sigma(x_i;\ \omega_o{=}x_{i+1}, \omega_i{=}x_{i-1})
+  |\cos_{x_{i-1}}| / |x_i - x_{i-1}|^2` (x_{m+1} the LED), and x_1 connects to the lens.
 
 The path tracer takes n samples per pixel, light tracing N light paths for the frame; the balance heuristic
 with these counts (Veach 1997, eq. 9.12) weighs strategy s by n_s p_s / Σ_t n_t p_t, so with

@@ -232,7 +232,8 @@ def summary(rows, seconds, args, names, cls_c, ref_caustic_signal) -> dict:
     overhead = seconds["classified_mis"] / seconds["classified"]
     c, cbar, b = m["caustic"] * t_pt, m["rest"] * t_pt, m_lt * t_lt
     out = {
-        "depth_rmse_mm": {k: float(np.sqrt(v)) * 1e3 for k, v in m.items()} | {"caustic_lt": float(np.sqrt(max(m_lt, 0))) * 1e3},
+        "depth_rmse_mm": ({k: float(np.sqrt(v)) * 1e3 for k, v in m.items()}
+                          | {"caustic_lt": float(np.sqrt(max(m_lt, 0))) * 1e3}),
         "gross_pixels_per_frame_pt": mean(lambda r: r["pt"]["all"]["gross"]),
         "caustic_share_depth": m["caustic"] / m["all"], "rest_share_depth": m["rest"] / m["all"],
         "caustic_share_signal": s["caustic"] / s["all"],
@@ -249,12 +250,13 @@ def summary(rows, seconds, args, names, cls_c, ref_caustic_signal) -> dict:
         key = f"mis {ratio}"
         m_mis = mean(lambda r: r[key]["all"]["mse"]) - ref_noise_all
         m_mis_c = mean(lambda r: r[key]["caustic"]["mse"]) - ref_noise_c
-        t_mis = overhead * t_pt + seconds[f"lt_mis {ratio}"]
+        t_lt_mis = seconds[f"lt_mis {ratio}"]
+        t_mis = overhead * t_pt + t_lt_mis
         out[key] = {"depth_rmse_mm": float(np.sqrt(max(m_mis, 0))) * 1e3,
                     "caustic_depth_rmse_mm": float(np.sqrt(max(m_mis_c, 0))) * 1e3,
                     "mse_gain_equal_spp": m["all"] / m_mis, "seconds": t_mis,
                     "time_to_error_gain": m["all"] * t_pt / (m_mis * t_mis),
-                    "time_to_error_gain_without_overhead": m["all"] * t_pt / (m_mis * (t_pt + seconds[f"lt_mis {ratio}"])),
+                    "time_to_error_gain_without_overhead": m["all"] * t_pt / (m_mis * (t_pt + t_lt_mis)),
                     "gross_pixels_per_frame": mean(lambda r: r[key]["all"]["gross"]),
                     "caustic_signal_over_ref": mean(lambda r: r[key]["caustic_signal_total"]) / ref_caustic_signal}
     return out
