@@ -17,7 +17,7 @@ no caustic); for k ≥ 2, ``spec:<material>`` = the specular part at an LED-lit 
 and ``diffuse`` = every diffuse part. A **caustic** is a ``spec:`` class of a material whose roughness
 is at most :data:`GLOSSY_MAX_RAD` (LED → glossy/specular vertex → … → camera, at least one vertex
 between). Each class sum is an unbiased estimate of its component; the classes add up to the
-tracer's frame bit for bit in the sum (tested in ``check_split``).
+tracer's frame within float rounding (``tests/studies/test_caustics.py``).
 
 This module runs the tracer's own stages (:mod:`tofcore.tracer.stages`) in the order of
 :func:`tofcore.tracer.integrator.trace_chunk` and only recomputes the split factor beside them; the
