@@ -43,7 +43,8 @@ from .layout import LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE,
 GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
 M1, M2 = _rng._M1, _rng._M2
 S11, S27, S30, S31 = _rng._S11, _rng._S27, _rng._S30, _rng._S31
-U1, U2, U4, U8, U16, U24, U32 = (np.uint64(k) for k in (1, 2, 4, 8, 16, 24, 32))
+U0, U1, U2, U4, U8, U16, U24, U32 = (np.uint64(k) for k in (0, 1, 2, 4, 8, 16, 24, 32))
+V31 = np.uint64(1 << 31)
 MASK32 = np.uint64(0xFFFFFFFF)
 BYTE = np.uint64(0xFF)
 C55, C33, C0F, C00FF = (np.uint64(c) for c in (0x55555555, 0x33333333, 0x0F0F0F0F, 0x00FF00FF))
@@ -177,10 +178,32 @@ def owen_scramble(x, seed):
 
 
 @fn
-def sobol_dim1(index):
+def sobol_dim1_lookup(index):
     """Sobol' dimension 2 of a 32-bit index by four byte lookups (tofcore.qmc.sobol_2d)."""
     return (SOBOL[0, np.int64(index & BYTE)] ^ SOBOL[1, np.int64((index >> U8) & BYTE)]
             ^ SOBOL[2, np.int64((index >> U16) & BYTE)] ^ SOBOL[3, np.int64(index >> U24)])
+
+
+@fn
+def sobol_dim1_bits(index):
+    """Sobol' dimension 2 of a 32-bit index bit by bit, the same number as :func:`sobol_dim1_lookup`: bit b
+    of the index toggles v_b = m_b · 2^(31 − b) with m_0 = 1, m_(b+1) = m_b ⊕ 2 m_b, so v_(b+1) = v_b ⊕
+    (v_b >> 1) (tofcore.qmc._sobol_dim1_tables). On the GPU a table would sit in constant memory, whose
+    loads a warp serialises when its threads read different entries (wf_start stalled 114 cycles per
+    instruction on them); 32 shifts and XORs in registers do not."""
+    out = U0
+    v = V31
+    rest = index
+    for _ in range(32):
+        if rest & U1:
+            out ^= v
+        rest >>= U1
+        v ^= v >> U1
+    return out
+
+
+sobol_dim1 = sobol_dim1_bits if cuda is not None else sobol_dim1_lookup
+"""Sobol' dimension 2: by lookups on the CPU (its caches serve them in a few cycles), bit by bit on the GPU."""
 
 
 @fn
@@ -1119,8 +1142,12 @@ GPU_MAX_CHANNELS = 32
 # The same path as trace_path, cut where it traces rays: each kernel advances every path of a launch
 # group by one stage and leaves its rays in buffers that tofcore.gpu.traversal (a lean kernel, one thread
 # per ray, bit for bit the NumPy traversal) traces in between; tofcore.compiled.cuda.trace_pass drives
-# them. A group holds the paths of sample indices s0 ≤ s < s1 of a pass, path j of lane l = s − s0 being
-# pixel order[j − offsets[l]]. Per-path state in global memory (column or row j):
+# them. A group holds the paths of sample indices s0 ≤ s < s1 of a pass: with offsets[s] the pass's paths
+# of sample indices below s, path j of the group has sample index l where offsets[l] ≤ offsets[s0] + j <
+# offsets[l + 1] and is pixel order[offsets[s0] + j − offsets[l]]; the group has n = offsets[s1] −
+# offsets[s0] paths. The buffers below are the pass's, sized for its largest group (rows j ≥ n unused),
+# so a launch's arguments are the same from group to group (tofcore.compiled.launch).
+# Per-path state in global memory (column or row j):
 #   path    = (pixel, sample, alive, shaded)                  int64 ×2, int8 ×2
 #   pstate  = (f (n, 13), prev_prim (n,))                     f: β, path length, prev pdf, prev delta,
 #                                                             prev point xyz, origin xyz, direction xyz
@@ -1131,9 +1158,10 @@ GPU_MAX_CHANNELS = 32
 #   pend    = (w (n, L + 1), tau (n, L + 1))                  next-event estimates (LED i) and the
 #                                                             connection (column L) before their shadow test
 #   shadow  = (origin (n(L+1), 3), direction, t_max, ignore)  their shadow rays; t_max −1: no test
-#   contrib = (nee_w (K, n), nee_wg (K, J, n), con_w (K, n), con_wg (K, J, n))   the path's one addend per
-#             bucket; total (J + 2, n) its channel totals; counters (N_COUNTERS, n) its rays
-# wf_gather adds the contributions per pixel in sample order: the pass's sums are the CPU's, addend by addend.
+#   contrib = (nee (J + 1, n), con (J + 1, n))   the path's addends of the current depth: weight and
+#             channels of its next-event estimates (bucket depth − 1) and of its connection (bucket depth);
+#             total (J + 2, n) its channel totals; counters (N_COUNTERS, n) its rays
+# wf_gather adds each depth's addends per pixel in sample order: the pass's sums are the CPU's, addend by addend.
 LIGHT_FOUND, LIGHT_SURF, LIGHT_PARAMS, LIGHT_TO_LED, LIGHT_REST, LIGHT_COLUMNS = 0, 1, 16, 21, 24, 28
 NO_RAY = np.float32(-1.0)
 """t_max of a ray slot that traces nothing (an ended path, an estimate that needs no shadow test)."""
@@ -1197,25 +1225,26 @@ def store_ray(rays, j, origin, direction, ignore):
 def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
     """Stage 1: each path's pixel and sample, its camera ray and its light ray.
 
-    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), counts (P,), s0, offsets (m + 1,)).
+    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), offsets (≥ S + 1,) over the
+    pass's sample indices, s0, s1): the group of sample indices s0 ≤ s < s1 (the table above).
     """
     j = cuda.grid(1)
-    order, first, counts, s0, offsets = launch
-    m = offsets.shape[0] - 1
-    if j >= offsets[m]:
+    order, first, offsets, s0, s1 = launch
+    g = offsets[s0] + j  # the path's index in the pass
+    if g >= offsets[s1]:
         return
-    lo = 0  # the lane l with offsets[l] <= j < offsets[l + 1]
-    hi = m
+    lo = s0  # its sample index l: offsets[l] <= g < offsets[l + 1]
+    hi = s1
     while hi - lo > 1:
         mid = (lo + hi) // 2
-        if offsets[mid] <= j:
+        if offsets[mid] <= g:
             lo = mid
         else:
             hi = mid
-    p = order[j - offsets[lo]]
+    p = order[g - offsets[lo]]
     pixel, samples, alive, shaded = path
     pixel[j] = p
-    sample = first[p] + s0 + lo
+    sample = first[p] + lo
     samples[j] = sample
     shaded[j] = 0
     alive[j] = 1
@@ -1241,11 +1270,12 @@ def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
 
 
 @gpu_kernel
-def wf_light(scene, settings, path, light_hits, light):
-    """Stage 2: the light vertex where each path's light ray hit (light_vertex_at), into the light table."""
+def wf_light(scene, settings, n, path, light_hits, light):
+    """Stage 2: the light vertex where each of the group's n paths' light ray hit (light_vertex_at), into the
+    light table."""
     j = cuda.grid(1)
     pixel, samples = path[0], path[1]
-    if j >= pixel.shape[0]:
+    if j >= n:
         return
     key, max_depth, independent, light_paths = settings
     ray = light_ray(scene[3], scene[4], (key, pixel[j], samples[j], independent))
@@ -1321,15 +1351,15 @@ def continue_path(surf, vertex, rng, depth, throughput, j, buffers):
 
 
 @gpu_kernel
-def wf_shade(scene, settings, depth, path, hits, buffers):
-    """Stage 3 at ``depth``: the surface each live path hit, its next-event estimates and connection with
-    their shadow rays, and its next ray — trace_path's loop body, minus traversal.
+def wf_shade(scene, settings, depth, n, path, hits, buffers):
+    """Stage 3 at ``depth``: the surface each live path of the group's n hit, its next-event estimates and
+    connection with their shadow rays, and its next ray — trace_path's loop body, minus traversal.
 
     ``buffers`` = (pstate, light, pend, shadow, rays, counters), see the table above.
     """
     j = cuda.grid(1)
     pixel, samples, alive, shaded = path
-    if j >= pixel.shape[0]:
+    if j >= n:
         return
     shaded[j] = 0
     shadow, rays = buffers[3], buffers[4]
@@ -1366,71 +1396,103 @@ def wf_shade(scene, settings, depth, path, hits, buffers):
 
 
 @gpu_kernel
-def wf_resolve(scene, depth, path, pend, occluded, total, contrib):
-    """Stage 4 at ``depth``: each shaded path's unoccluded next-event estimates and connection, as
-    add_next_events and add_connection compute them, into its addends (contrib) and its totals."""
+def wf_resolve(scene, depth, n, path, pend, occluded, total, contrib):
+    """Stage 4 at ``depth``: each shaded path's (of the group's n) unoccluded next-event estimates and
+    connection, as add_next_events and add_connection compute them, into its addends of this depth
+    (``contrib``, zero for a path that was not shaded) and its totals."""
     j = cuda.grid(1)
-    shaded = path[3]
-    if j >= shaded.shape[0] or shaded[j] == 0:
+    if j >= n:
         return
+    shaded = path[3]
     corr_kinds, corr_table = scene[5], scene[6]
-    nee_w, nee_wg, con_w, con_wg = contrib
+    nee, con = contrib
+    n_corr = corr_kinds.shape[0]
+    for c in range(n_corr + 1):
+        nee[c, j] = 0.0
+        con[c, j] = 0.0
+    if shaded[j] == 0:
+        return
     pend_w, pend_tau = pend
     n_led = pend_w.shape[1] - 1
-    n_corr = corr_kinds.shape[0]
-    wg = cuda.local.array(GPU_MAX_CHANNELS, np.float64)
-    for c in range(n_corr):
-        wg[c] = 0.0
-    w_sum = 0.0
     for i in range(n_led):
         w = 0.0 if occluded[j * (n_led + 1) + i] else pend_w[j, i]
         tau = pend_tau[j, i]
-        w_sum += w
+        nee[0, j] += w
         for c in range(n_corr):
-            wg[c] += correlation(corr_kinds[c], corr_table[c], tau) * w
-    k = depth - 1
-    nee_w[k, j] = w_sum
-    total[0, j] += w_sum
-    for c in range(n_corr):
-        nee_wg[k, c, j] = wg[c]
-        total[1 + c, j] += wg[c]
+            nee[1 + c, j] += correlation(corr_kinds[c], corr_table[c], tau) * w
+    for c in range(n_corr + 1):
+        total[c, j] += nee[c, j]
     if shaded[j] == 2:
         w = 0.0 if occluded[j * (n_led + 1) + n_led] else pend_w[j, n_led]
         tau = pend_tau[j, n_led]
-        con_w[depth, j] = w
+        con[0, j] = w
         total[0, j] += w
         for c in range(n_corr):
             wg_c = correlation(corr_kinds[c], corr_table[c], tau) * w
-            con_wg[depth, c, j] = wg_c
+            con[1 + c, j] = wg_c
             total[1 + c, j] += wg_c
 
 
-@gpu_kernel
-def wf_gather(launch, samples, contrib, total, sums):
-    """Stage 5: add the group's paths to the pass's sums, one thread per pixel, its samples in sample order.
+@fn
+def gather_outputs(depth, n_depth, n_corr):
+    """How many sums :func:`wf_gather` adds each pixel's addends of ``depth`` to: the next-event weight and
+    channels (bucket depth − 1), the connection's (bucket depth, below the last depth), and at the last
+    depth the replicate channels (J + 2)."""
+    return (1 + n_corr) * (2 if depth < n_depth else 1) + (n_corr + 2 if depth == n_depth else 0)
 
-    ``launch`` as in :func:`wf_start`; thread i serves pixel order[i] (the pixels of lane 0 include every
-    later lane's). ``sums`` = (nee_w (K, P), nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate
-    (R, J + 2, P)): each pixel's addends arrive in the order trace_pixels adds them on the CPU.
-    """
-    i = cuda.grid(1)
-    order, offsets = launch[0], launch[4]
-    if i >= offsets[1]:
-        return
-    p = order[i]
-    nee_w, nee_wg, con_w, con_wg = contrib
-    pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate = sums
-    n_depth, n_corr = nee_wg.shape[0], nee_wg.shape[1]
-    for lane in range(offsets.shape[0] - 1):
+
+@fn
+def in_sample_order(start, source, row, i, offsets, s0, s1):
+    """``start`` + source[row, j] over the paths j of the pixel that thread i of :func:`wf_gather` serves,
+    added one by one in sample order."""
+    total = start
+    for lane in range(s0, s1):
         if i >= offsets[lane + 1] - offsets[lane]:
             break
-        j = offsets[lane] + i
-        for k in range(n_depth):
-            pass_nee_w[k, p] += nee_w[k, j]
-            pass_con_w[k, p] += con_w[k, j]
-            for c in range(n_corr):
-                pass_nee_wg[k, c, p] += nee_wg[k, c, j]
-                pass_con_wg[k, c, p] += con_wg[k, c, j]
-        r = samples[j] % replicate.shape[0]
-        for c in range(replicate.shape[1]):
-            replicate[r, c, p] += total[c, j]
+        total += source[row, offsets[lane] - offsets[s0] + i]
+    return total
+
+
+@gpu_kernel
+def wf_gather(launch, depth, samples, contrib, total, sums):
+    """Stage 5, after each depth's resolve: add the group's addends of ``depth`` to the pass's sums, one
+    thread per pixel and sum, each sum's addends in sample order; at the last depth also the paths' totals
+    to the replicate sums.
+
+    ``launch`` as in :func:`wf_start`; thread t = o · m + i serves pixel order[i] (the m pixels of sample
+    index s0 include every later index's) and sum o (:func:`gather_outputs`). ``sums`` = (nee_w (K, P),
+    nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate (R, J + 2, P)): each pixel's addends arrive
+    in the order trace_pixels adds them on the CPU (a bucket's sums take one depth's addends only). One
+    thread per sum rather than per pixel: a pixel that adaptive sampling gives hundreds of samples would
+    otherwise keep one thread adding for milliseconds.
+    """
+    t = cuda.grid(1)
+    order, offsets, s0, s1 = launch[0], launch[2], launch[3], launch[4]
+    nee, con = contrib
+    pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate = sums
+    n_depth, n_corr = pass_nee_wg.shape[0], pass_nee_wg.shape[1]
+    m = offsets[s0 + 1] - offsets[s0]
+    if t >= m * gather_outputs(depth, n_depth, n_corr):
+        return
+    o = t // m
+    i = t - o * m
+    p = order[i]
+    per_kind = 1 + n_corr
+    n_con = per_kind if depth < n_depth else 0
+    if o < per_kind + n_con:
+        row = o % per_kind  # 0: the weight, else channel row − 1
+        if o < per_kind:
+            k, source, w_sum, wg_sum = depth - 1, nee, pass_nee_w, pass_nee_wg
+        else:
+            k, source, w_sum, wg_sum = depth, con, pass_con_w, pass_con_wg
+        if row == 0:
+            w_sum[k, p] = in_sample_order(w_sum[k, p], source, 0, i, offsets, s0, s1)
+        else:
+            wg_sum[k, row - 1, p] = in_sample_order(wg_sum[k, row - 1, p], source, row, i, offsets, s0, s1)
+        return
+    c = o - per_kind - n_con
+    for lane in range(s0, s1):
+        if i >= offsets[lane + 1] - offsets[lane]:
+            break
+        j = offsets[lane] - offsets[s0] + i
+        replicate[samples[j] % replicate.shape[0], c, p] += total[c, j]

@@ -34,7 +34,7 @@ from .estimator import bsdf_strategy_weight
 from .light_paths import LightVertices, connect
 from .path import Contribution, PathState, Vertex
 from .setup import TraceSetup
-from .surface import dot, leaving, point_offset, rotate, shadow_ray, spawn_offset, surface_at
+from .surface import dot, leaving, point_offset, rotate, shadow_ray, spawn_offset, surface_at, surface_geometry
 from .transport import FirstHit, TraceStats
 
 
@@ -53,13 +53,14 @@ def first_hit(setup: TraceSetup, stats: TraceStats) -> FirstHit:
     normal = xp.full((n, 3), np.nan, np.float32)
     material = xp.full(n, -1, np.int32)
     obj = xp.full(n, -1, np.int32)
-    if hit.any():
-        surf = surface_at(setup.scene, setup.table, hits.prim[hit], hits.u[hit], hits.v[hit], origin[hit], d[hit])
-        distance[hit] = xp.linalg.norm(surf.position - setup.lens_center, axis=1)
-        position[hit] = surf.position + xp.asarray(setup.scene.origin_m)  # world frame
-        normal[hit] = surf.geometric_normal
-        material[hit] = setup.table.material_ids[hits.prim[hit]]
-        obj[hit] = setup.table.object_ids[hits.prim[hit]]
+    # no `if hit.any()`: on the GPU that reduction is a host round trip and, per array size, a CUB kernel that
+    # NVRTC compiles for 1.5–2 s in a fresh cache; with no hit the lines below work on empty arrays
+    point, facing_normal = surface_geometry(setup.table, hits.prim[hit], hits.u[hit], hits.v[hit], origin[hit], d[hit])
+    distance[hit] = xp.linalg.norm(point - setup.lens_center, axis=1)
+    position[hit] = point + xp.asarray(setup.scene.origin_m)  # world frame
+    normal[hit] = facing_normal
+    material[hit] = setup.table.material_ids[hits.prim[hit]]
+    obj[hit] = setup.table.object_ids[hits.prim[hit]]
     shape = (cam.height, cam.width)
     host = backend.to_host
     return FirstHit(distance_m=host(distance).reshape(shape), position_m=host(position).reshape(shape + (3,)),
