@@ -42,7 +42,7 @@ def prepared(spp: int, width: int = 512, height: int = 424):
     device_scene = cuda.upload(packed, args[0].bvh)
     n_pix, n_corr = width * height, device_scene.n_correlations
     sums = cuda.Sums(cp.zeros((packed.max_depth, n_pix)), cp.zeros((packed.max_depth, n_corr, n_pix)),
-                     cp.zeros((qmc.REPLICATES, n_corr + 2, n_pix)))
+                     cp.zeros((qmc.REPLICATES, n_corr + 2, n_pix)), cp.zeros(n_pix))
     return device_scene, sums, np.zeros(n_pix, np.int64), np.full(n_pix, spp, np.int64)
 
 

@@ -28,7 +28,7 @@ from tofcore.tracer.trace import trace, trace_progressive
 
 needs_numba = pytest.mark.skipif(compiled.numba_version() is None, reason="numba is not installed")
 
-SUMS = ("signal_sum", "correlation_sum", "replicate_sum")
+SUMS = ("signal_sum", "correlation_sum", "replicate_sum", "ambient_sum")
 RAYS = ("camera_rays", "bounce_rays", "shadow_rays", "light_rays", "skipped_shadow_rays")
 
 
@@ -36,7 +36,7 @@ def assert_same_frame(a, b):
     """The tolerance of the module docstring, on every accumulator and the ray counts."""
     for name in SUMS:
         x, y = getattr(a, name), getattr(b, name)
-        close = np.isclose(x, y, rtol=1e-9, atol=1e-12 * max(np.abs(x).max(), 1e-300))
+        close = np.isclose(x, y, rtol=1e-9, atol=1e-12 * max(np.abs(x).max(initial=0.0), 1e-300))
         assert close.mean() >= 0.995, f"{name}: {100 * (1 - close.mean()):.2f} % of the sums differ"
         np.testing.assert_allclose(y.sum(axis=-1), x.sum(axis=-1), rtol=1e-6, atol=1e-9 * np.abs(x).max(),
                                    err_msg=name)
@@ -115,6 +115,18 @@ def test_mirrors_metals_and_shading_normals_equal_numpy(monkeypatch):
                            world_from_sensor=tofcore.suggested_pose(scene),
                            correlations=phasor_correlations([20e6, 100e6]), spp=4, max_depth=4, seed=1)
     assert reference.stats.skipped_shadow_rays > 0
+    assert_same_frame(reference, fast)
+
+
+@needs_numba
+def test_constant_ambient_light_equals_numpy(monkeypatch):
+    """Rays that leave the open corner see a constant ambient radiance: β · L_amb into the ambient sums and
+    the replicates' ambient channel, as the NumPy tracer adds them."""
+    scene = tofcore.demo_scene("corner", detail=2)
+    reference, fast = both(monkeypatch, scene, Camera.from_fov(24, 18, 90.0), [tofcore.LED(position_m=(0.02, 0, 0))],
+                           world_from_sensor=tofcore.suggested_pose(scene), correlations=phasor_correlations([80e6]),
+                           spp=3, max_depth=3, seed=4, ambient=tofcore.Ambient(radiance_w_m2_sr=0.25))
+    assert (reference.ambient_sum > 0).mean() > 0.2  # rays do leave the scene
     assert_same_frame(reference, fast)
 
 
@@ -225,7 +237,7 @@ def test_unsupported_features_fall_back_to_numpy_and_say_why(monkeypatch):
     monkeypatch.setenv(compiled.TRACER_ENV, "auto")
     args, kwargs = room_trace_args(spp=1, max_depth=2)
     cases = {
-        "ambient light": {"ambient": tofcore.Ambient(radiance_w_m2_sr=0.1)},
+        "ambient light from an environment map": {"ambient": tofcore.Ambient(environment=np.full((4, 8), 0.2))},
         "transient": {"transient_bin_m": 0.1, "transient_max_m": 20.0},
         "is not one of tofcore.modulation's functions": {"correlations": [lambda tau: np.cos(tau)]},
     }
@@ -256,8 +268,8 @@ def test_numpy_forced_or_numba_missing(monkeypatch):
 def test_forcing_the_compiled_tracer_where_it_cannot_run_is_an_error(monkeypatch):
     args, kwargs = room_trace_args(spp=1, max_depth=1)
     monkeypatch.setenv(compiled.TRACER_ENV, "compiled")
-    with pytest.raises(ConfigError, match="ambient light"):
-        trace(*args, **kwargs, ambient=tofcore.Ambient(radiance_w_m2_sr=0.1))
+    with pytest.raises(ConfigError, match="environment map"):
+        trace(*args, **kwargs, ambient=tofcore.Ambient(environment=np.full((4, 8), 0.2)))
     monkeypatch.setenv(compiled.TRACER_ENV, "fast")
     with pytest.raises(ConfigError, match=r"TOFCORE_TRACER must be one of \['auto', 'numpy', 'compiled'\], got 'fast'"):
         trace(*args, **kwargs)
@@ -281,7 +293,7 @@ ref = tofcore.trace(scene, cam, leds, device="cpu", spp=3, progressive=False, al
 packed = setup.pack(make_setup(scene, cam, leds, TraceSettings(**shared), backend.select_device("cpu")))
 for groups_of in (10 ** 6, 7):  # one group, and groups of at most 7 paths (several sample indices each)
     cuda.MAX_GROUP_PATHS = groups_of
-    out = cuda.Sums(np.zeros((4, 30)), np.zeros((4, 2, 30)), np.zeros((qmc.REPLICATES, 4, 30)))
+    out = cuda.Sums(np.zeros((4, 30)), np.zeros((4, 2, 30)), np.zeros((qmc.REPLICATES, 4, 30)), np.zeros(30))
     n = cuda.trace_pass(cuda.upload(packed, scene.bvh), out, np.zeros(30, np.int64), counts, threads_per_block=32)
     for name in ("signal_sum", "correlation_sum", "replicate_sum"):
         np.testing.assert_array_equal(getattr(out, name), getattr(ref, name), err_msg=f"{groups_of} {name}")
@@ -294,7 +306,7 @@ packed = setup.pack(make_setup(scene, cam, leds, TraceSettings(**shared), backen
 sums = []
 for turn in range(2):
     device_scene = cuda.upload(packed, scene.bvh)
-    out = cuda.Sums(np.zeros((4, 30)), np.zeros((4, 2, 30)), np.zeros((qmc.REPLICATES, 4, 30)))
+    out = cuda.Sums(np.zeros((4, 30)), np.zeros((4, 2, 30)), np.zeros((qmc.REPLICATES, 4, 30)), np.zeros(30))
     cuda.trace_pass(device_scene, out, np.zeros(30, np.int64), counts, threads_per_block=32)
     sums.append(out)
     if turn == 0:
@@ -308,6 +320,18 @@ for turn in range(2):
 assert device_scene is fresh
 for name in ("signal_sum", "correlation_sum", "replicate_sum"):
     np.testing.assert_array_equal(getattr(sums[1], name), getattr(sums[0], name), err_msg=f"reused {name}")
+# constant ambient light: rays that leave the open corner see β · L_amb
+corner, camera = tofcore.demo_scene("corner", detail=2), Camera.from_fov(5, 4, 90.0)
+lit = dict(world_from_sensor=tofcore.suggested_pose(corner), correlations=phasor_correlations([80e6]), max_depth=3,
+           seed=5, ambient=tofcore.Ambient(radiance_w_m2_sr=0.25))
+ref = tofcore.trace(corner, camera, leds[:1], device="cpu", spp=2, progressive=False, **lit)
+assert (ref.ambient_sum > 0).any()
+packed = setup.pack(make_setup(corner, camera, leds[:1], TraceSettings(**lit), backend.select_device("cpu")))
+out = cuda.Sums(np.zeros((3, 20)), np.zeros((3, 2, 20)), np.zeros((qmc.REPLICATES, 4, 20)), np.zeros(20))
+cuda.trace_pass(cuda.upload(packed, corner.bvh), out, np.zeros(20, np.int64), np.full(20, 2, np.int64),
+                threads_per_block=32)
+for name in ("signal_sum", "correlation_sum", "replicate_sum", "ambient_sum"):
+    np.testing.assert_array_equal(getattr(out, name), getattr(ref, name), err_msg=f"ambient {name}")
 print("ok")
 """
 
@@ -315,7 +339,7 @@ print("ok")
 @needs_numba
 def test_cuda_build_of_the_kernels_traces_the_numpy_frame_in_the_simulator(tmp_path):
     """The CUDA build of kernels.py — the wavefront's stages, groups of several sample indices, uneven sample
-    counts, two LEDs — run by numba's CUDA simulator on the CPU gives the NumPy tracer's sums bit for bit
+    counts, two LEDs, a reused device scene, constant ambient light — run by numba's CUDA simulator on the CPU gives the NumPy tracer's sums bit for bit
     (the simulator runs Python's float64, the GPU's libm and FMAs aside) with the same rays: the driver's
     indexing and sum order are checked in CI; tests/tofcore/test_gpu.py checks the device."""
     import os
@@ -338,10 +362,10 @@ def test_the_wavefronts_light_table_round_trips_a_light_vertex():
     surf = ((1.0, 2.0, 3.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.6, 0.8),
             (0.5, 0.2, 0.0, 1.5, 0.0))
     light = (True, surf, (0.0, -0.6, -0.8), 2.5, 0.125, 3.0e-2, 1e-6)
-    table = np.zeros((3, kernels.LIGHT_COLUMNS))
+    table = np.zeros((kernels.LIGHT_COLUMNS, 3))
     kernels.store_light(table, 1, light)
     assert kernels.load_light(table, 1) == light
-    assert not table[[0, 2]].any()
+    assert not table[:, [0, 2]].any()  # the other paths' columns untouched
 
 
 @needs_numba

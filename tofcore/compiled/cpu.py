@@ -21,7 +21,8 @@ def trace_chunk(packed, out, p0: int, p1: int, first: np.ndarray, counts: np.nda
     counters = np.zeros((p1 - p0, N_COUNTERS), np.int64)
     scene = (packed.geo, packed.cam, packed.cam_table, packed.frame, packed.leds, packed.corr_kinds,
              packed.corr_table)
-    settings = (packed.key, packed.max_depth, packed.independent, packed.light_paths)
+    settings = (packed.key, packed.max_depth, packed.independent, packed.light_paths, packed.ambient)
     pixels = (p0, p1, np.ascontiguousarray(first, dtype=np.int64), np.ascontiguousarray(counts, dtype=np.int64))
-    kernels.trace_pixels(scene, settings, pixels, (out.signal_sum, out.correlation_sum, out.replicate_sum, counters))
+    kernels.trace_pixels(scene, settings, pixels, (out.signal_sum, out.correlation_sum, out.replicate_sum,
+                                                   out.ambient_sum, counters))
     return counters.sum(axis=0)

@@ -83,8 +83,8 @@ def load_kernels():
 @dataclass(eq=False)
 class DeviceScene:
     """A render's packed arrays (:class:`tofcore.compiled.setup.Packed`) on the GPU (``arrays``, CuPy; NumPy
-    under numba's CUDA simulator) and as the kernels take them (``scene``), its sampler settings (key,
-    max_depth, independent, light_paths), the scene's BVH (its records are uploaded by
+    under numba's CUDA simulator) and as the kernels take them (``scene``), its settings (key, max_depth,
+    independent, light_paths, ambient radiance), the scene's BVH (its records are uploaded by
     :mod:`tofcore.gpu.traversal` at the first ray), and the wavefront's :class:`Workspace` (made at the
     first pass). After its trace (:func:`release`) it serves the next trace of the same ``layout``: the
     arrays get the new contents, the workspace and its prepared kernels stay. ``host`` keeps the host arrays
@@ -119,7 +119,8 @@ def upload(packed, bvh) -> DeviceScene:
     corr_table = packed.corr_table if n_corr else np.zeros((1, 6))  # numba types an empty table by a row
     host = (tuple(np.ascontiguousarray(a) for a in packed.geo), packed.cam, packed.cam_table, packed.frame,
             tuple(np.ascontiguousarray(a) for a in packed.leds), packed.corr_kinds, corr_table)
-    settings = (packed.key, int(packed.max_depth), bool(packed.independent), bool(packed.light_paths))
+    settings = (packed.key, int(packed.max_depth), bool(packed.independent), bool(packed.light_paths),
+                float(packed.ambient))
     layout = (tuple((a.shape, a.dtype.str) for a in _leaves(host)), int(packed.max_depth))
     device_scene = _IDLE.pop(layout, None)
     if device_scene is None:
@@ -197,8 +198,8 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
                threads_per_block: int = THREADS_PER_BLOCK) -> np.ndarray:
     """Trace samples [first[p], first[p] + counts[p]) of every pixel into ``out``'s sums on the GPU.
 
-    ``out`` holds CuPy arrays ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P) and ``replicate_sum``
-    (R, J + 2, P) (a :class:`tofcore.tracer.transport.Transport` on the GPU); NumPy arrays under numba's
+    ``out`` holds CuPy arrays ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P), ``replicate_sum``
+    (R, J + 2, P) and ``ambient_sum`` (P,) (a :class:`tofcore.tracer.transport.Transport` on the GPU); NumPy arrays under numba's
     CUDA simulator (tests). Per group of sample indices (:func:`groups`): start every path, trace the
     camera and light rays, the light vertices; per depth shade the live paths, trace the shadow rays that
     need a test, resolve, gather the depth's addends, trace the next rays. No synchronisation until the pass's ray counts are
@@ -215,12 +216,13 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
     ws.begin_pass(device_scene.settings, order, first, offsets)
     for s0, s1, n in plan:
         ws.trace_group(device_scene.bvh, s0, s1, n, int(active[s0]))
-    nee_w, nee_wg, con_w, con_wg, replicate = ws.sums
+    nee_w, nee_wg, con_w, con_wg, replicate, ambient = ws.sums
     out.signal_sum += con_w          # the reference's order: connections, then next-event estimates
     out.signal_sum += nee_w
     out.correlation_sum += con_wg
     out.correlation_sum += nee_wg
     out.replicate_sum += replicate
+    out.ambient_sum += ambient
     return ws.end_pass()
 
 
@@ -267,14 +269,15 @@ class Workspace:
         self.pixels = (xp.zeros(n_pix, np.int64), xp.zeros(n_pix, np.int64))  # order, first
         self.offsets = xp.zeros(room, np.int64)
         self.sums = (xp.zeros((k_max, n_pix)), xp.zeros((k_max, n_corr, n_pix)), xp.zeros((k_max, n_pix)),
-                     xp.zeros((k_max, n_corr, n_pix)), xp.zeros((qmc.REPLICATES, n_corr + 2, n_pix)))
+                     xp.zeros((k_max, n_corr, n_pix)), xp.zeros((qmc.REPLICATES, n_corr + 2, n_pix)), xp.zeros(n_pix))
         k = _kernel_arrays
         scene = device_scene.scene
         settings = (Slot("key", np.uint64), Slot("max_depth"), Slot("independent", np.bool_),
-                    Slot("light_paths", np.bool_))  # the sampler's: set per pass (begin_pass)
+                    Slot("light_paths", np.bool_), Slot("ambient", np.float64))  # set per pass (begin_pass)
         group = (*k(self.pixels), _kernel_array(self.offsets), Slot("s0"), Slot("s1"))
         path, counters = k(a["path"]), _kernel_array(a["counters"])
-        buffers = (k(a["pstate"]), _kernel_array(a["light"]), k(a["pend"]), k(a["shadow"]), k(a["rays"]), counters)
+        buffers = (k(a["pstate"]), _kernel_array(a["light"]), k(a["pend"]), k(a["shadow"]), k(a["rays"]), counters,
+                   _kernel_array(a["total"]))
         self.arguments = {
             "wf_start": (scene, settings, group, path, buffers[0], buffers[4], k(a["light_rays"]), counters),
             "wf_light": (scene, settings, Slot("n"), path, k(self.light_hits[:3]), buffers[1]),
@@ -288,10 +291,10 @@ class Workspace:
                         for name, arguments in self.arguments.items()}
 
     def begin_pass(self, settings: tuple, order: np.ndarray, first: np.ndarray, offsets: np.ndarray) -> None:
-        """Set the sampler's ``settings`` (key, max_depth, independent, light_paths); upload the pass's pixel
-        order, first sample indices and offsets; zero its sums and ray counts."""
+        """Set the render's ``settings`` (key, max_depth, independent, light_paths, ambient); upload the pass's
+        pixel order, first sample indices and offsets; zero its sums and ray counts."""
         xp = self.xp
-        values = dict(zip(("key", "max_depth", "independent", "light_paths"), settings))
+        values = dict(zip(("key", "max_depth", "independent", "light_paths", "ambient"), settings))
         for name in ("wf_start", "wf_light", "wf_shade"):
             self.kernels[name].set(**values)
         self.light_paths = bool(values["light_paths"])
@@ -334,7 +337,7 @@ class Workspace:
     def gather_outputs(self, depth: int) -> int:
         """Sums per pixel that wf_gather adds to after ``depth`` (kernels.gather_outputs)."""
         n_corr = self.n_corr
-        return (1 + n_corr) * (2 if depth < self.max_depth else 1) + (n_corr + 2 if depth == self.max_depth else 0)
+        return (1 + n_corr) * (2 if depth < self.max_depth else 1) + (n_corr + 3 if depth == self.max_depth else 0)
 
     def end_pass(self) -> np.ndarray:
         """The pass's ray counts (N_COUNTERS,) on the host (the pass's one synchronisation), after checking
@@ -380,11 +383,11 @@ def _group_arrays(xp, n: int, k_max: int, n_corr: int, slots: int, light_columns
     """The per-path arrays of a group of ``n`` paths (the table in kernels.py's wavefront section)."""
     f32, i32 = np.float32, np.int32
     return {"path": (xp.empty(n, np.int64), xp.empty(n, np.int64), xp.zeros(n, np.int8), xp.zeros(n, np.int8)),
-            "pstate": (xp.empty((n, 13)), xp.empty(n, i32)),
+            "pstate": (xp.empty((13, n)), xp.empty(n, i32)),
             "rays": (xp.empty((n, 3), f32), xp.empty((n, 3), f32), xp.empty(n, i32), xp.empty(n, f32)),
             "light_rays": (xp.zeros((n, 3), f32), xp.zeros((n, 3), f32), xp.full(n, -1, i32)),
-            "light": xp.zeros((n, light_columns)),
-            "pend": (xp.zeros((n, slots)), xp.zeros((n, slots))),
+            "light": xp.zeros((light_columns, n)),
+            "pend": (xp.zeros((slots, n)), xp.zeros((slots, n))),
             "shadow": (xp.zeros((n * slots, 3), f32), xp.zeros((n * slots, 3), f32), xp.zeros(n * slots, f32),
                        xp.full(n * slots, -1, i32)),
             "total": xp.zeros((n_corr + 2, n)),
@@ -423,13 +426,14 @@ class Sums:
     signal_sum: object
     correlation_sum: object
     replicate_sum: object
+    ambient_sum: object
 
 
 def trace_frame(packed, bvh, n_pix: int, spp: int, threads_per_block: int = THREADS_PER_BLOCK) -> dict:
     """One pass of ``spp`` samples of every pixel on the GPU, for benchmarks and checks.
 
     Returns host arrays ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P), ``replicate_sum``
-    (R, J + 2, P), ``counters`` (N_COUNTERS,), the seconds of the pass (``kernel_s``, synchronised) and
+    (R, J + 2, P), ``ambient_sum`` (P,), ``counters`` (N_COUNTERS,), the seconds of the pass (``kernel_s``, synchronised) and
     of the whole call (``seconds``: uploads, pass, read-back).
     """
     from .. import backend
@@ -440,7 +444,7 @@ def trace_frame(packed, bvh, n_pix: int, spp: int, threads_per_block: int = THRE
     device_scene = upload(packed, bvh)
     n_corr = device_scene.n_correlations
     out = Sums(xp.zeros((packed.max_depth, n_pix)), xp.zeros((packed.max_depth, n_corr, n_pix)),
-               xp.zeros((qmc.REPLICATES, n_corr + 2, n_pix)))
+               xp.zeros((qmc.REPLICATES, n_corr + 2, n_pix)), xp.zeros(n_pix))
     first, counts = np.zeros(n_pix, np.int64), np.full(n_pix, spp, np.int64)
     cuda.synchronize()
     launch = time.perf_counter()
@@ -448,5 +452,6 @@ def trace_frame(packed, bvh, n_pix: int, spp: int, threads_per_block: int = THRE
     cuda.synchronize()
     kernel_s = time.perf_counter() - launch
     return {"signal_sum": backend.to_host(out.signal_sum), "correlation_sum": backend.to_host(out.correlation_sum),
-            "replicate_sum": backend.to_host(out.replicate_sum), "counters": counters, "kernel_s": kernel_s,
+            "replicate_sum": backend.to_host(out.replicate_sum), "ambient_sum": backend.to_host(out.ambient_sum),
+            "counters": counters, "kernel_s": kernel_s,
             "seconds": time.perf_counter() - start}

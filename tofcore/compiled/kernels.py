@@ -783,7 +783,8 @@ def correlation(kind, par, tau):
 #
 # The path's arguments travel in tuples (numba compiles heterogeneous tuples of arrays and scalars):
 #   scene    = (geo, cam, cam_table, frame, leds, corr_kinds, corr_table)      the render's arrays
-#   settings = (key, max_depth, independent, light_paths)                      the render's switches
+#   settings = (key, max_depth, independent, light_paths, ambient)             the render's switches and its
+#                                                                              constant ambient radiance, W/(m² sr)
 #   rng      = (key, pixel, sample, independent)                               one sample's random numbers
 #   vertex   = (surface, spawn point, wo in the local frame, triangle index)  a camera vertex x
 #   state    = (throughput β, depth, bsdf_area_pdf, prev_delta, use_mis)      the path at x
@@ -1030,7 +1031,7 @@ def trace_path(scene, settings, pixel, sample, sums, work):
     """Trace sample ``sample`` of pixel ``pixel`` and add its contributions (transport._trace_chunk for one path).
 
     ``scene`` = (geo, cam, cam_table, frame, leds, corr_kinds, corr_table); ``settings`` = (key, max_depth,
-    independent, light_paths). Adds to the pixel's ``sums`` of next-event contributions ``nee_w`` (K,) and
+    independent, light_paths, ambient radiance). Adds to the pixel's ``sums`` of next-event contributions ``nee_w`` (K,) and
     ``nee_wg`` (K, J) and of light-vertex connections ``con_w``, ``con_wg`` per bounce bucket, in the order
     the reference adds them, and writes the path's channel totals (signal, J correlations, ambient) to
     ``total`` (J + 2,). ``work`` = (counters (layout.N_COUNTERS,) int64 ray counts, stack, stack_t, wg (J,)
@@ -1039,7 +1040,7 @@ def trace_path(scene, settings, pixel, sample, sums, work):
     emission probability, first-hit shadow skipped; cdf (L − 1,)).
     """
     geo = scene[0]
-    key, max_depth, independent, light_paths = settings
+    key, max_depth, independent, light_paths, ambient = settings
     rng = (key, pixel, sample, independent)
     total = sums[4]
     for c in range(total.shape[0]):
@@ -1058,7 +1059,8 @@ def trace_path(scene, settings, pixel, sample, sums, work):
     prev_delta = False    # ... and whether it was a mirror lobe
     for depth in range(1, max_depth + 1):
         prim, u, v = next_hit(geo, origin, direction, depth, prev_prim, work)
-        if prim < 0:
+        if prim < 0:  # the ray left the scene: it sees the ambient radiance, β · L_amb (stages.intersect)
+            total[total.shape[0] - 1] += throughput * ambient
             break
         surf = surface_at(geo, prim, u, v, origin, direction)
         position, ng = surf[0], surf[1]
@@ -1090,15 +1092,15 @@ def trace_pixels(scene, settings, pixels, out):
     """Trace samples [first[p], first[p] + counts[p]) of pixels p0 ≤ p < p1 into the frame's sums.
 
     ``scene`` and ``settings`` as in :func:`trace_path`; ``pixels`` = (p0, p1, first, counts); ``out`` =
-    (signal_sum (K, P), correlation_sum (K, J, P), replicate_sum (R, J + 2, P) as in
+    (signal_sum (K, P), correlation_sum (K, J, P), replicate_sum (R, J + 2, P), ambient_sum (P,) as in
     :class:`tofcore.transport.Transport`, counters (p1 − p0, N_COUNTERS) receiving each pixel's ray counts).
     """
     # numba's parallel loop takes arrays, scalars and flat tuples of arrays, not a tuple of tuples:
     # the scene is unpacked here and packed again inside the loop.
     geo, cam, cam_table, frame, leds, corr_kinds, corr_table = scene
-    key, max_depth, independent, light_paths = settings
+    key, max_depth, independent, light_paths, ambient = settings
     p0, p1, first, counts = pixels
-    signal_sum, correlation_sum, replicate_sum, counters = out
+    signal_sum, correlation_sum, replicate_sum, ambient_sum, counters = out
     n_depth = signal_sum.shape[0]
     n_corr = corr_kinds.shape[0]
     n_rep = replicate_sum.shape[0]
@@ -1114,12 +1116,14 @@ def trace_pixels(scene, settings, pixels, out):
         count = np.zeros(N_COUNTERS, np.int64)
         work = (count, np.empty(STACK_SIZE, np.int64), np.empty(STACK_SIZE, np.float32), np.zeros(n_corr))
         sums = (nee_w, nee_wg, con_w, con_wg, total)
+        seen = 0.0  # the pixel's ambient radiance of this pass (accumulate.Tally.finish)
         for sample in range(first[p], first[p] + counts[p]):
             trace_path((geo, cam, cam_table, frame, leds, corr_kinds, corr_table),
-                       (key, max_depth, independent, light_paths), p, sample, sums, work)
+                       (key, max_depth, independent, light_paths, ambient), p, sample, sums, work)
             r = sample % n_rep
             for c in range(n_ch):
                 replicate[r, c] += total[c]
+            seen += total[n_ch - 1]
         for k in range(n_depth):
             signal_sum[k, p] += con_w[k]
             signal_sum[k, p] += nee_w[k]
@@ -1129,6 +1133,7 @@ def trace_pixels(scene, settings, pixels, out):
         for r in range(n_rep):
             for c in range(n_ch):
                 replicate_sum[r, c, p] += replicate[r, c]
+        ambient_sum[p] += seen
         for c in range(N_COUNTERS):
             counters[local, c] = count[c]
 
@@ -1147,16 +1152,17 @@ GPU_MAX_CHANNELS = 32
 # offsets[l + 1] and is pixel order[offsets[s0] + j − offsets[l]]; the group has n = offsets[s1] −
 # offsets[s0] paths. The buffers below are the pass's, sized for its largest group (rows j ≥ n unused),
 # so a launch's arguments are the same from group to group (tofcore.compiled.launch).
-# Per-path state in global memory (column or row j):
+# Per-path state in global memory, column j of (values, paths) tables, so that a warp's threads read and
+# write neighbouring words (rows of (n, 3) only for the rays the traversal reads, 12 bytes a ray):
 #   path    = (pixel, sample, alive, shaded)                  int64 ×2, int8 ×2
-#   pstate  = (f (n, 13), prev_prim (n,))                     f: β, path length, prev pdf, prev delta,
+#   pstate  = (f (13, n), prev_prim (n,))                     f: β, path length, prev pdf, prev delta,
 #                                                             prev point xyz, origin xyz, direction xyz
 #   rays    = (origin (n, 3) f32, direction (n, 3) f32, ignore (n,) i32, t_max (n,) f32)   the next
 #             closest-hit ray; t_max −1 for a path that has ended (the traversal leaves it at the root)
 #   hits    = (prim (n,) i32, u (n,) f32, v (n,) f32)
-#   light   = (n, 28) float64: the light tuple of light_vertex_at, flattened (LIGHT_* columns)
-#   pend    = (w (n, L + 1), tau (n, L + 1))                  next-event estimates (LED i) and the
-#                                                             connection (column L) before their shadow test
+#   light   = (28, n) float64: the light tuple of light_vertex_at, flattened (LIGHT_* rows)
+#   pend    = (w (L + 1, n), tau (L + 1, n))                  next-event estimates (LED i) and the
+#                                                             connection (row L) before their shadow test
 #   shadow  = (origin (n(L+1), 3), direction, t_max, ignore)  their shadow rays; t_max −1: no test
 #   contrib = (nee (J + 1, n), con (J + 1, n))   the path's addends of the current depth: weight and
 #             channels of its next-event estimates (bucket depth − 1) and of its connection (bucket depth);
@@ -1168,56 +1174,65 @@ NO_RAY = np.float32(-1.0)
 
 
 @fn
-def store_vec(a, j, col, v):
-    a[j, col] = v[0]
-    a[j, col + 1] = v[1]
-    a[j, col + 2] = v[2]
+def store_vec(a, j, row, v):
+    """Rows row … row + 2 of column j of a (values, paths) table: a warp's threads write neighbouring words."""
+    a[row, j] = v[0]
+    a[row + 1, j] = v[1]
+    a[row + 2, j] = v[2]
 
 
 @fn
-def load_vec(a, j, col):
-    return a[j, col], a[j, col + 1], a[j, col + 2]
+def load_vec(a, j, row):
+    return a[row, j], a[row + 1, j], a[row + 2, j]
+
+
+@fn
+def store_xyz(a, j, v):
+    """Row j of an (n, 3) array (the rays the traversal reads: one ray's 12 bytes side by side)."""
+    a[j, 0] = v[0]
+    a[j, 1] = v[1]
+    a[j, 2] = v[2]
 
 
 @fn
 def store_light(out, j, light):
-    """Row j of the light table from a light tuple (light_vertex_at)."""
+    """Column j of the light table from a light tuple (light_vertex_at)."""
     surf = light[1]
-    out[j, LIGHT_FOUND] = 1.0 if light[0] else 0.0
+    out[LIGHT_FOUND, j] = 1.0 if light[0] else 0.0
     store_vec(out, j, LIGHT_SURF, surf[0])  # a heterogeneous tuple takes constant indices only
     store_vec(out, j, LIGHT_SURF + 3, surf[1])
     store_vec(out, j, LIGHT_SURF + 6, surf[2])
     store_vec(out, j, LIGHT_SURF + 9, surf[3])
     store_vec(out, j, LIGHT_SURF + 12, surf[4])
     params = surf[5]
-    out[j, LIGHT_PARAMS] = params[0]
-    out[j, LIGHT_PARAMS + 1] = params[1]
-    out[j, LIGHT_PARAMS + 2] = params[2]
-    out[j, LIGHT_PARAMS + 3] = params[3]
-    out[j, LIGHT_PARAMS + 4] = params[4]
+    out[LIGHT_PARAMS, j] = params[0]
+    out[LIGHT_PARAMS + 1, j] = params[1]
+    out[LIGHT_PARAMS + 2, j] = params[2]
+    out[LIGHT_PARAMS + 3, j] = params[3]
+    out[LIGHT_PARAMS + 4, j] = params[4]
     store_vec(out, j, LIGHT_TO_LED, light[2])
-    out[j, LIGHT_REST] = light[3]
-    out[j, LIGHT_REST + 1] = light[4]
-    out[j, LIGHT_REST + 2] = light[5]
-    out[j, LIGHT_REST + 3] = light[6]
+    out[LIGHT_REST, j] = light[3]
+    out[LIGHT_REST + 1, j] = light[4]
+    out[LIGHT_REST + 2, j] = light[5]
+    out[LIGHT_REST + 3, j] = light[6]
 
 
 @fn
 def load_light(table, j):
-    """The light tuple of row j (store_light)."""
+    """The light tuple of column j (store_light)."""
     surf = (load_vec(table, j, LIGHT_SURF), load_vec(table, j, LIGHT_SURF + 3), load_vec(table, j, LIGHT_SURF + 6),
             load_vec(table, j, LIGHT_SURF + 9), load_vec(table, j, LIGHT_SURF + 12),
-            (table[j, LIGHT_PARAMS], table[j, LIGHT_PARAMS + 1], table[j, LIGHT_PARAMS + 2],
-             table[j, LIGHT_PARAMS + 3], table[j, LIGHT_PARAMS + 4]))
-    return (table[j, LIGHT_FOUND] != 0.0, surf, load_vec(table, j, LIGHT_TO_LED), table[j, LIGHT_REST],
-            table[j, LIGHT_REST + 1], table[j, LIGHT_REST + 2], table[j, LIGHT_REST + 3])
+            (table[LIGHT_PARAMS, j], table[LIGHT_PARAMS + 1, j], table[LIGHT_PARAMS + 2, j],
+             table[LIGHT_PARAMS + 3, j], table[LIGHT_PARAMS + 4, j]))
+    return (table[LIGHT_FOUND, j] != 0.0, surf, load_vec(table, j, LIGHT_TO_LED), table[LIGHT_REST, j],
+            table[LIGHT_REST + 1, j], table[LIGHT_REST + 2, j], table[LIGHT_REST + 3, j])
 
 
 @fn
 def store_ray(rays, j, origin, direction, ignore):
     o, d, ig = rays[0], rays[1], rays[2]
-    store_vec(o, j, 0, origin)
-    store_vec(d, j, 0, direction)
+    store_xyz(o, j, origin)
+    store_xyz(d, j, direction)
     ig[j] = ignore
 
 
@@ -1248,14 +1263,14 @@ def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
     samples[j] = sample
     shaded[j] = 0
     alive[j] = 1
-    key, max_depth, independent, light_paths = settings
+    key, max_depth, independent, light_paths, ambient = settings
     rng = (key, p, sample, independent)
     origin, direction = camera_start(scene, rng)
     f = pstate[0]
-    f[j, 0] = 1.0
-    f[j, 1] = 0.0
-    f[j, 2] = 0.0
-    f[j, 3] = 0.0
+    f[0, j] = 1.0
+    f[1, j] = 0.0
+    f[2, j] = 0.0
+    f[3, j] = 0.0
     store_vec(f, j, 4, origin)
     store_vec(f, j, 7, origin)
     store_vec(f, j, 10, direction)
@@ -1277,7 +1292,7 @@ def wf_light(scene, settings, n, path, light_hits, light):
     pixel, samples = path[0], path[1]
     if j >= n:
         return
-    key, max_depth, independent, light_paths = settings
+    key, max_depth, independent, light_paths, ambient = settings
     ray = light_ray(scene[3], scene[4], (key, pixel[j], samples[j], independent))
     prim, u, v = light_hits
     store_light(light, j, light_vertex_at(scene[0], scene[4], ray, prim[j], u[j], v[j]))
@@ -1292,8 +1307,8 @@ def queue_next_events(leds, frame, vertex, state, path_length, j, buffers):
     n_led = leds[0].shape[0]
     for i in range(n_led):
         w, dist, led = led_estimate(frame, leds, vertex, state, i)
-        pend_w[j, i] = w
-        pend_tau[j, i] = (path_length + dist) / SPEED_OF_LIGHT_M_S
+        pend_w[i, j] = w
+        pend_tau[i, j] = (path_length + dist) / SPEED_OF_LIGHT_M_S
         if w > 0:
             if state[1] == 1 and leds[1][i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
                 counters[4, j] += 1
@@ -1311,14 +1326,14 @@ def queue_connection(vertex, throughput, path_length, j, buffers):
     into slot j(L+1) + L, as connect_light decides it."""
     light, shadow, counters = buffers[1], buffers[3], buffers[5]
     pend_w, pend_tau = buffers[2]
-    n_led = pend_w.shape[1] - 1
+    n_led = pend_w.shape[0] - 1
     y = load_light(light, j)
     w = 0.0
     extra = 0.0
     if y[0]:
         w, extra = light_estimate(vertex, throughput, y)
-    pend_w[j, n_led] = w
-    pend_tau[j, n_led] = (path_length + extra) / SPEED_OF_LIGHT_M_S
+    pend_w[n_led, j] = w
+    pend_tau[n_led, j] = (path_length + extra) / SPEED_OF_LIGHT_M_S
     if w > 0:
         k = j * (n_led + 1) + n_led
         o, d, t_max = shadow_ray(vertex[1], y[1][0], y[6])
@@ -1335,9 +1350,9 @@ def continue_path(surf, vertex, rng, depth, throughput, j, buffers):
     new_dir, weight, pdf, is_delta = next_direction(surf, vertex[2], rng, depth)
     if not (weight > 0 and dot(new_dir, surf[1]) > 0):
         return False
-    f[j, 0] = throughput * weight
-    f[j, 2] = pdf
-    f[j, 3] = 1.0 if is_delta else 0.0
+    f[0, j] = throughput * weight
+    f[2, j] = pdf
+    f[3, j] = 1.0 if is_delta else 0.0
     store_vec(f, j, 4, surf[0])
     origin = vertex[1]
     direction = divide(new_dir, norm(new_dir))
@@ -1355,7 +1370,7 @@ def wf_shade(scene, settings, depth, n, path, hits, buffers):
     """Stage 3 at ``depth``: the surface each live path of the group's n hit, its next-event estimates and
     connection with their shadow rays, and its next ray — trace_path's loop body, minus traversal.
 
-    ``buffers`` = (pstate, light, pend, shadow, rays, counters), see the table above.
+    ``buffers`` = (pstate, light, pend, shadow, rays, counters, total), see the table above.
     """
     j = cuda.grid(1)
     pixel, samples, alive, shaded = path
@@ -1367,19 +1382,22 @@ def wf_shade(scene, settings, depth, n, path, hits, buffers):
     for i in range(slots):
         shadow[2][j * slots + i] = NO_RAY
     prim = hits[0][j]
+    key, max_depth, independent, light_paths, ambient = settings
+    f = buffers[0][0]
     if alive[j] == 0 or prim < 0:
+        if alive[j] != 0:  # the ray left the scene: it sees the ambient radiance, β · L_amb (trace_path)
+            total = buffers[6]
+            total[total.shape[0] - 1, j] += f[0, j] * ambient
         alive[j] = 0
         rays[3][j] = NO_RAY
         return
     geo = scene[0]
-    key, max_depth, independent, light_paths = settings
-    f = buffers[0][0]
-    throughput, path_length, prev_pdf, prev_delta = f[j, 0], f[j, 1], f[j, 2], f[j, 3] != 0.0
+    throughput, path_length, prev_pdf, prev_delta = f[0, j], f[1, j], f[2, j], f[3, j] != 0.0
     direction = load_vec(f, j, 10)
     surf = surface_at(geo, prim, hits[1][j], hits[2][j], load_vec(f, j, 7), direction)
     segment = norm(sub(surf[0], load_vec(f, j, 4)))
     path_length = path_length + segment
-    f[j, 1] = path_length
+    f[1, j] = path_length
     vertex = camera_vertex(geo, prim, surf, direction)
     use_mis = light_paths and depth >= 2
     bsdf_area_pdf = prev_pdf * dot(neg(direction), surf[1]) / (segment * segment) if use_mis else 0.0
@@ -1413,18 +1431,18 @@ def wf_resolve(scene, depth, n, path, pend, occluded, total, contrib):
     if shaded[j] == 0:
         return
     pend_w, pend_tau = pend
-    n_led = pend_w.shape[1] - 1
+    n_led = pend_w.shape[0] - 1
     for i in range(n_led):
-        w = 0.0 if occluded[j * (n_led + 1) + i] else pend_w[j, i]
-        tau = pend_tau[j, i]
+        w = 0.0 if occluded[j * (n_led + 1) + i] else pend_w[i, j]
+        tau = pend_tau[i, j]
         nee[0, j] += w
         for c in range(n_corr):
             nee[1 + c, j] += correlation(corr_kinds[c], corr_table[c], tau) * w
     for c in range(n_corr + 1):
         total[c, j] += nee[c, j]
     if shaded[j] == 2:
-        w = 0.0 if occluded[j * (n_led + 1) + n_led] else pend_w[j, n_led]
-        tau = pend_tau[j, n_led]
+        w = 0.0 if occluded[j * (n_led + 1) + n_led] else pend_w[n_led, j]
+        tau = pend_tau[n_led, j]
         con[0, j] = w
         total[0, j] += w
         for c in range(n_corr):
@@ -1437,8 +1455,8 @@ def wf_resolve(scene, depth, n, path, pend, occluded, total, contrib):
 def gather_outputs(depth, n_depth, n_corr):
     """How many sums :func:`wf_gather` adds each pixel's addends of ``depth`` to: the next-event weight and
     channels (bucket depth − 1), the connection's (bucket depth, below the last depth), and at the last
-    depth the replicate channels (J + 2)."""
-    return (1 + n_corr) * (2 if depth < n_depth else 1) + (n_corr + 2 if depth == n_depth else 0)
+    depth the replicate channels (J + 2) and the ambient sum."""
+    return (1 + n_corr) * (2 if depth < n_depth else 1) + (n_corr + 3 if depth == n_depth else 0)
 
 
 @fn
@@ -1461,7 +1479,7 @@ def wf_gather(launch, depth, samples, contrib, total, sums):
 
     ``launch`` as in :func:`wf_start`; thread t = o · m + i serves pixel order[i] (the m pixels of sample
     index s0 include every later index's) and sum o (:func:`gather_outputs`). ``sums`` = (nee_w (K, P),
-    nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate (R, J + 2, P)): each pixel's addends arrive
+    nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate (R, J + 2, P), ambient (P,)): each pixel's addends arrive
     in the order trace_pixels adds them on the CPU (a bucket's sums take one depth's addends only). One
     thread per sum rather than per pixel: a pixel that adaptive sampling gives hundreds of samples would
     otherwise keep one thread adding for milliseconds.
@@ -1469,7 +1487,7 @@ def wf_gather(launch, depth, samples, contrib, total, sums):
     t = cuda.grid(1)
     order, offsets, s0, s1 = launch[0], launch[2], launch[3], launch[4]
     nee, con = contrib
-    pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate = sums
+    pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate, pass_ambient = sums
     n_depth, n_corr = pass_nee_wg.shape[0], pass_nee_wg.shape[1]
     m = offsets[s0 + 1] - offsets[s0]
     if t >= m * gather_outputs(depth, n_depth, n_corr):
@@ -1491,6 +1509,9 @@ def wf_gather(launch, depth, samples, contrib, total, sums):
             wg_sum[k, row - 1, p] = in_sample_order(wg_sum[k, row - 1, p], source, row, i, offsets, s0, s1)
         return
     c = o - per_kind - n_con
+    if c == n_corr + 2:  # the ambient radiance the paths saw
+        pass_ambient[p] = in_sample_order(pass_ambient[p], total, n_corr + 1, i, offsets, s0, s1)
+        return
     for lane in range(s0, s1):
         if i >= offsets[lane + 1] - offsets[lane]:
             break

@@ -74,7 +74,7 @@ class PreparedKernel:
                 raise KeyError(f"{self.dispatcher.py_func.__name__} has no argument slot {name!r}")
             self.slots[name] = type(self.slots[name])(value)
             for cell in self.slot_cells.get(name, ()):
-                cell.value = int(value)
+                cell.value = float(value) if isinstance(cell, (ctypes.c_double, ctypes.c_float)) else int(value)
 
     def launch(self, n_threads: int, **slots) -> None:
         """Launch over ``n_threads`` threads, with the :class:`Slot` arguments ``slots`` set first (:meth:`set`)."""

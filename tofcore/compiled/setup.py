@@ -33,12 +33,13 @@ class Packed:
     max_depth: int
     independent: bool
     light_paths: bool
+    ambient: float        # constant ambient radiance, W/(m² sr) (0 without ambient light)
 
 
 def unsupported(ctx) -> str:
     """Why the compiled tracer cannot render this trace context exactly as the NumPy one, or ""."""
-    if ctx.ambient is not None:
-        return "ambient light is not compiled yet"
+    if ctx.ambient is not None and ctx.ambient.environment is not None and ctx.ambient.environment_strength > 0:
+        return "ambient light from an environment map is not compiled yet (a constant ambient radiance is)"
     if ctx.transient_bins:
         return "transient histograms are not compiled yet"
     if ctx.table.has_textures:
@@ -56,7 +57,8 @@ def pack(ctx) -> Packed:
     return Packed(geo=scene_arrays(ctx.scene, ctx.table), cam=camera_numbers(ctx.camera),
                   cam_table=camera_table(ctx.camera), frame=frame_array(ctx), leds=led_arrays(ctx),
                   corr_kinds=kinds, corr_table=table, key=np.uint64(ctx.sampler.key), max_depth=int(ctx.max_depth),
-                  independent=ctx.sampler.kind == "independent", light_paths=bool(ctx.light_paths))
+                  independent=ctx.sampler.kind == "independent", light_paths=bool(ctx.light_paths),
+                  ambient=float(ctx.ambient.radiance_w_m2_sr) if ctx.ambient is not None else 0.0)
 
 
 def scene_arrays(scene, table) -> tuple:
