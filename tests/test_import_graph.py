@@ -28,7 +28,8 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # tracer.rng, the counter-based hash, stands below the tracer and the sensor: the tracer's samplers and
     # the sensor's noise (tofcore.sensor.noise) draw from it, so one seed gives the same numbers on both devices
     ("tofcore.scene", "tofcore.tracer.rng"),
-    ("tofcore.tracer", "tofcore.sensor", "tofcore.plan"),
+    # gpu.traversal, the BVH's CUDA twin, needs only the scene: the compiled GPU tracer (above) drives it
+    ("tofcore.tracer", "tofcore.sensor", "tofcore.plan", "tofcore.gpu.traversal"),
     ("tofcore.output", "tofcore.gpu", "tofcore.compiled"),
     ("tofcore.render",),
     ("tofcore", "tofcore.cli"),   # "tofcore": the package face (tofcore/__init__.py)
