@@ -21,10 +21,10 @@ import numpy as np
 import pytest
 
 import tofcore
-from tofcore import backend
+from tofcore import backend, rng
 from tofcore.scene import fresnel
 from tofcore.sensor import modulation, noise
-from tofcore.tracer import qmc, rng
+from tofcore.tracer import qmc
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
 import fakecupy  # noqa: E402

@@ -26,7 +26,7 @@ parameter                  unit  meaning
 =========================  ====  ==============================================================
 
 All randomness comes from a :class:`NoiseStream`: counter-based, every number
-the hash of (key, element index, draw) (:mod:`tofcore.tracer.rng`), so one seed
+the hash of (key, element index, draw) (:mod:`tofcore.rng`), so one seed
 gives the same noise on the CPU and on the GPU, and the same stream state gives
 the same noise.
 """
@@ -41,7 +41,7 @@ import numpy as np
 from ..backend import asarray, device_twin, namespace
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..errors import ConfigError
-from ..tracer import rng as counter_rng
+from .. import rng as counter_rng
 
 _DIMS_PER_DRAW = 64
 """Hash dimensions each draw of a stream owns (a Poisson draw uses 1 + 2 × 24 rounds + 2 = 51)."""
@@ -52,7 +52,7 @@ class NoiseStream:
     """Counter-based random numbers for sensor noise, the same on every device.
 
     Every draw (:meth:`uniforms`) takes the next block of hash dimensions; within it, the number of
-    element i of an array is :func:`tofcore.tracer.rng.uniform` of (key, i, 0, dimension). So a
+    element i of an array is :func:`tofcore.rng.uniform` of (key, i, 0, dimension). So a
     value depends on the key, the order of the draws and the element's flat index only: not on the
     device, the chunking, or which other elements are drawn.
     """

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..backend import device_twin
+from .backend import device_twin
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _MIX_PIXEL = np.uint64(0xD1B54A32D192ED03)
