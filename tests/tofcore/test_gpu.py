@@ -12,8 +12,6 @@ Two GPU stand-ins run these tests:
 from __future__ import annotations
 
 import dataclasses
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,8 +24,7 @@ from tofcore.sensor.presets import load_preset
 from tofcore.render import render
 from tofcore.sensor.config import Noise, Scattering
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-import fakecupy  # noqa: E402
+from tests import fakecupy
 
 
 def _cuda_available() -> str | None:

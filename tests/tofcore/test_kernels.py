@@ -14,7 +14,6 @@ from __future__ import annotations
 
 import importlib
 import inspect
-import sys
 from pathlib import Path
 
 import numpy as np
@@ -26,8 +25,7 @@ from tofcore.scene import fresnel
 from tofcore.sensor import modulation, noise
 from tofcore.tracer import qmc
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-import fakecupy  # noqa: E402
+from tests import fakecupy
 
 ROOT = Path(__file__).resolve().parents[2]
 
