@@ -141,7 +141,7 @@ def wrong_arrows(graph: dict[str, set[str]], layers=LAYERS) -> list[str]:
 
 
 def room_floors(graph: dict[str, set[str]]) -> dict[str, int]:
-    """Floor of each room, a room being a top-level folder or file of a package (``tofcore.tracer.rng`` →
+    """Floor of each room, a room being a top-level folder or file of a package (``tofcore.tracer.qmc`` →
     ``tofcore.tracer``): 1 + the highest floor it imports from, 1 for a room that imports none.
 
     A module that stands lower than its folder (a part nested in another part of :data:`LAYERS`) lifts every
