@@ -84,9 +84,9 @@ def kernel_costs(n: int = 200_000) -> dict:
     import numba
 
     import tofcore
+    from tofcore import rng
     from tofcore.compiled import kernels as k
     from tofcore.compiled import setup
-    from tofcore.tracer import rng
     from tofcore.tracer.surface import MaterialTable
 
     scene = tofcore.demo_scene("room", detail=10)

@@ -36,7 +36,6 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
-sys.path.append(str(ROOT / "tests"))  # fakecupy
 
 import tofcore  # noqa: E402
 from tofcore.tracer.trace import trace_progressive  # noqa: E402
@@ -92,7 +91,7 @@ def main() -> None:
     args = parser.parse_args()
     scene = tofcore.demo_scene("room")
     sensor = tofcore.load_preset("kinect_v2")
-    import fakecupy
+    from tests import fakecupy
     import pytest
 
     patches = pytest.MonkeyPatch()

@@ -240,9 +240,10 @@ def install(monkeypatch) -> None:
     import sys
 
     from tofcore import backend
+    from tofcore import rng
     from tofcore.scene import bvh, fresnel
     from tofcore.sensor import modulation, noise
-    from tofcore.tracer import qmc, rng
+    from tofcore.tracer import qmc
     from tofcore.gpu import fused, traversal
 
     module = sys.modules[__name__]

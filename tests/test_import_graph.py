@@ -1,7 +1,7 @@
 """The project's modules import each other without a circle, and every import points down the data flow.
 
 The sources are parsed, not imported (no bpy, CuPy or Dask needed). Every import counts, at module level or
-inside a function: ``from . import a``, ``from ..scene.bvh import BVH``, ``import tofcore.tracer.rng`` and
+inside a function: ``from . import a``, ``from ..scene.bvh import BVH``, ``import tofcore.rng`` and
 ``from tofcore import limits``. A circle means a module can only be imported half-initialised (or needs a
 function-local import to dodge it); the assertion names it, e.g. ``tofcore.output.writers →
 tofcore.output.convergence_plot → tofcore.output.writers``.
@@ -25,9 +25,9 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     ("tofcore.constants", "tofcore.errors", "tofcore.progress", "tofcore.units", "tofcore.native", "tofcore.console",
      "tofcore._interrupt"),
     ("tofcore.backend", "tofcore.limits"),
-    # tracer.rng, the counter-based hash, stands below the tracer and the sensor: the tracer's samplers and
+    # rng, the counter-based hash, stands below the tracer and the sensor: the tracer's samplers and
     # the sensor's noise (tofcore.sensor.noise) draw from it, so one seed gives the same numbers on both devices
-    ("tofcore.scene", "tofcore.tracer.rng"),
+    ("tofcore.scene", "tofcore.rng"),
     # gpu.traversal, the BVH's CUDA twin, needs only the scene: the compiled GPU tracer (above) drives it
     ("tofcore.tracer", "tofcore.sensor", "tofcore.plan", "tofcore.gpu.traversal"),
     ("tofcore.output", "tofcore.gpu", "tofcore.compiled"),
@@ -141,6 +141,31 @@ def wrong_arrows(graph: dict[str, set[str]], layers=LAYERS) -> list[str]:
     return wrong
 
 
+def room_floors(graph: dict[str, set[str]]) -> dict[str, int]:
+    """Floor of each room, a room being a top-level folder or file of a package (``tofcore.tracer.qmc`` →
+    ``tofcore.tracer``): 1 + the highest floor it imports from, 1 for a room that imports none.
+
+    A module that stands lower than its folder (a part nested in another part of :data:`LAYERS`) lifts every
+    room that imports it above the whole folder, so the house seen folder by folder grows a floor.
+    """
+    def room(module: str) -> str:
+        return ".".join(module.split(".")[:2])
+
+    rooms: dict[str, set[str]] = {}
+    for module, targets in graph.items():
+        rooms.setdefault(room(module), set()).update(room(t) for t in targets if room(t) != room(module))
+    floors: dict[str, int] = {}
+
+    def floor(name: str) -> int:
+        if name not in floors:
+            floors[name] = 1 + max((floor(t) for t in rooms.get(name, ())), default=0)
+        return floors[name]
+
+    for name in rooms:
+        floor(name)
+    return floors
+
+
 def test_the_project_has_no_import_cycle():
     graph = import_graph()
     assert {"tofcore.tracer.transport", "batch.cli", "addon.operators"} <= set(graph)  # the parser found them
@@ -152,6 +177,15 @@ def test_the_project_has_no_import_cycle():
 def test_every_import_points_down_the_flow():
     wrong = wrong_arrows(import_graph())
     assert not wrong, "imports against the layers (tests/test_import_graph.py LAYERS):\n" + "\n".join(wrong)
+
+
+def test_the_folders_stand_on_the_floors_of_the_layers():
+    """Folder by folder, tofcore has as many floors as :data:`LAYERS` gives it (docs/architecture.md): no
+    module sits below its own folder, as ``tracer/rng.py`` once did (9 floors, the sensor above the tracer)."""
+    floors = room_floors(import_graph(packages=("tofcore",)))
+    layer_floors = sum(any(p == "tofcore" or p.startswith("tofcore.") for p in parts) for parts in LAYERS)
+    assert floors["tofcore.sensor"] == floors["tofcore.tracer"]
+    assert max(floors.values()) == layer_floors == 8, sorted(floors.items(), key=lambda item: item[1])
 
 
 def test_find_cycle_names_the_circle(tmp_path):

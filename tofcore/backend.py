@@ -262,7 +262,7 @@ def scatter_sum(index, weights, length: int):
 
 # ------------------------------------------------------------------ device twins
 KERNELS: dict[str, str] = {
-    "tofcore.tracer.rng.uniform": "tofcore.gpu.fused:uniform",
+    "tofcore.rng.uniform": "tofcore.gpu.fused:uniform",
     "tofcore.tracer.qmc.scrambled_2d": "tofcore.gpu.fused:scrambled_2d",
     "tofcore.tracer.qmc.scrambled_1d": "tofcore.gpu.fused:scrambled_1d",
     "tofcore.scene.fresnel.fresnel_dielectric": "tofcore.gpu.fused:fresnel_dielectric",

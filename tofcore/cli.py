@@ -487,11 +487,12 @@ def main(argv: list[str] | None = None) -> int:
     Output any locale can show (:func:`tofcore.console.use_safe_output`). Ctrl-C (SIGINT) raises
     KeyboardInterrupt here from the first line (the entry points hold it during the imports before):
     one line, exit code 130; the tracer's worker processes ignore SIGINT and are stopped by this one.
-    SIGTERM exits with 143.
+    SIGTERM exits with 143. Called with ``argv`` (as a function, e.g. by a test) it gives the caller its
+    SIGINT and SIGTERM handlers back on return.
     """
     use_safe_output()
-    signal.signal(signal.SIGINT, signal.default_int_handler)
-    signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))
+    previous = {signal.SIGINT: signal.signal(signal.SIGINT, signal.default_int_handler),
+                signal.SIGTERM: signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))}
     try:
         args = build_parser().parse_args(argv)
         return args.func(args)
@@ -501,3 +502,8 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("\ninterrupted (SIGINT): files are written atomically: none is left half-written", file=sys.stderr)
         return 130
+    finally:
+        if argv is not None:
+            for sig, handler in previous.items():
+                if handler is not None:  # None: a handler not set from Python, which cannot be put back
+                    signal.signal(sig, handler)

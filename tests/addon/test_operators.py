@@ -627,8 +627,7 @@ def test_modal_render_and_escape(tof, tmp_path):
 
 # --------------------------------------------------------------------------- the render device (preferences)
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))    # tests/: the CuPy stand-in
-import fakecupy  # noqa: E402
+from tests import fakecupy  # noqa: E402  (the CuPy stand-in)
 
 from addon import gpu, preferences  # noqa: E402
 from tofcore import backend  # noqa: E402

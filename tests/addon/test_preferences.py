@@ -20,9 +20,7 @@ bpy = pytest.importorskip("bpy")
 pytestmark = pytest.mark.bpy
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[2]))  # the repository root: `import addon`
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # tests/: the CuPy stand-in
-
-import fakecupy  # noqa: E402
+from tests import fakecupy  # noqa: E402  (the CuPy stand-in)
 
 import addon  # noqa: E402
 from addon_helpers import Reports  # noqa: E402

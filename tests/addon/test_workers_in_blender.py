@@ -11,10 +11,12 @@ import json
 import os
 import subprocess
 import sys
+from pathlib import Path
 
 import pytest
 
-from conftest import REPO_ROOT
+#: The repository's top folder (a module named ``conftest`` is whichever folder's conftest was imported last).
+REPO_ROOT = Path(__file__).resolve().parents[2]
 
 pytest.importorskip("bpy")
 pytestmark = pytest.mark.bpy

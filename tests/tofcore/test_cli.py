@@ -137,3 +137,16 @@ def test_warmup_renders_a_tiny_frame_and_names_the_tracer(capsys):
     out = capsys.readouterr().out.strip()
     # the suite runs the NumPy reference (tests/conftest.py): the line says so and why
     assert out.startswith("numpy tracer on the CPU (TOFCORE_TRACER=numpy): ready in "), out
+
+
+def test_main_called_as_a_function_gives_the_signal_handlers_back(capsys):
+    """main(argv) installs its SIGINT/SIGTERM handlers for the command and puts the caller's back after, also
+    when argparse exits: a test calling it must not leave this process with a SIGTERM that calls sys.exit."""
+    import signal
+
+    before = signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)
+    assert main(["presets"]) == 0 and "kinect_v2" in capsys.readouterr().out
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+    with pytest.raises(SystemExit):
+        main(["no-such-command"])
+    assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before

@@ -183,7 +183,8 @@ def test_kernels_match_their_numpy_twins():
     import numba
 
     from tofcore.compiled import kernels, setup
-    from tofcore.tracer import qmc, rng
+    from tofcore import rng
+    from tofcore.tracer import qmc
     from tofcore.tracer.surface import MaterialTable
 
     key = rng.seed_key(7)

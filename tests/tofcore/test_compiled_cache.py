@@ -29,12 +29,12 @@ PROBE = """
 import json, sys
 import numpy as np
 if sys.argv[1] == "changed":
-    from tofcore.tracer import rng
+    from tofcore import rng
     rng._M1 = np.uint64(0x9E3779B97F4A7C15)
 from tofcore import compiled
 from tofcore.compiled import kernels as k
 value = k.uniform(np.uint64(1), 2, 3, 4)
-from tofcore.tracer import rng
+from tofcore import rng
 print(json.dumps({"value": float(value), "numpy": float(rng.uniform(np.uint64(1), np.array([2]), np.array([3]), 4)[0]),
                   "hits": sum(k.uniform.stats.cache_hits.values()), "folder": k.uniform.stats.cache_path,
                   "location": compiled.cache_location()}))

@@ -12,8 +12,6 @@ Two GPU stand-ins run these tests:
 from __future__ import annotations
 
 import dataclasses
-import sys
-from pathlib import Path
 
 import numpy as np
 import pytest
@@ -26,8 +24,7 @@ from tofcore.sensor.presets import load_preset
 from tofcore.render import render
 from tofcore.sensor.config import Noise, Scattering
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-import fakecupy  # noqa: E402
+from tests import fakecupy
 
 
 def _cuda_available() -> str | None:
@@ -96,15 +93,40 @@ def assert_frames_agree(cpu, gpu_frame, gpu: str):
     np.testing.assert_array_equal(gpu_frame.gt_distance, cpu.gt_distance)
 
 
+def _numba_cuda_missing() -> str | None:
+    if _NO_CUDA is not None:
+        return _NO_CUDA
+    from tofcore import compiled
+    return compiled.cuda_unavailable() or None
+
+
+numba_cuda_only = pytest.mark.skipif(_numba_cuda_missing() is not None,
+                                     reason=f"needs numba-cuda and a CUDA GPU: {_numba_cuda_missing()}")
+
+#: (GPU stand-in, tracer) of the frame on the device: the NumPy tracer's array code on the CuPy stand-in and
+#: on CUDA, and kernels.py compiled for CUDA (the wavefront of tofcore.compiled.cuda).
+GPU_TRACERS = [
+    pytest.param("fake", "numpy", id="fake"),
+    pytest.param("cuda", "numpy", marks=[pytest.mark.gpu, cuda_only], id="cuda"),
+    pytest.param("cuda", "compiled", marks=[pytest.mark.gpu, numba_cuda_only], id="cuda-compiled"),
+]
+
+
+@pytest.mark.parametrize("gpu, tracer", GPU_TRACERS, indirect=["gpu"])
 @pytest.mark.parametrize("sensor_name", list(SENSORS))
-def test_frame_on_gpu_equals_cpu_frame(gpu, sensor_name):
+def test_frame_on_gpu_equals_cpu_frame(gpu, tracer, sensor_name, monkeypatch):
+    """The same scene, sensor and seed on the device and on the CPU (the NumPy reference): the same frame."""
     sensor = SENSORS[sensor_name]()
     scene = tofcore.demo_scene("box_on_wall")
     settings = dict(spp=4, max_depth=3, seed=7)
     cpu = render(scene, sensor, device="cpu", **settings)
+    monkeypatch.setenv("TOFCORE_TRACER", tracer)
     on_gpu = render(scene, sensor, device="gpu", **settings)
     assert on_gpu.stats["device"]["name"] == "gpu" and cpu.stats["device"]["name"] == "cpu"
+    assert on_gpu.stats["transport"]["tracer"] == tracer, on_gpu.stats["transport"]
     assert_frames_agree(cpu, on_gpu, gpu)
+    for key in ("camera_rays", "bounce_rays", "shadow_rays", "light_rays"):
+        assert abs(on_gpu.stats["transport"][key] - cpu.stats["transport"][key]) <= 1e-3 * cpu.stats["transport"][key]
 
 
 def test_gpu_frame_with_ambient_textures_and_transient(gpu):
@@ -278,35 +300,6 @@ def test_kinect_frame_stays_within_the_gpu_memory_budget():
 
 
 # ------------------------------------------------------------------ the compiled tracer on the GPU (numba.cuda)
-def _numba_cuda_missing() -> str | None:
-    if _NO_CUDA is not None:
-        return _NO_CUDA
-    from tofcore import compiled
-    return compiled.cuda_unavailable() or None
-
-
-numba_cuda_only = pytest.mark.skipif(_numba_cuda_missing() is not None,
-                                     reason=f"needs numba-cuda and a CUDA GPU: {_numba_cuda_missing()}")
-
-
-@pytest.mark.gpu
-@numba_cuda_only
-@pytest.mark.parametrize("sensor_name", list(SENSORS))
-def test_compiled_gpu_frame_equals_cpu_frame(sensor_name, monkeypatch):
-    """kernels.py compiled for CUDA (the wavefront of tofcore.compiled.cuda) against the NumPy reference."""
-    sensor = SENSORS[sensor_name]()
-    scene = tofcore.demo_scene("box_on_wall")
-    settings = dict(spp=4, max_depth=3, seed=7)
-    cpu = render(scene, sensor, device="cpu", **settings)
-    monkeypatch.setenv("TOFCORE_TRACER", "compiled")
-    on_gpu = render(scene, sensor, device="gpu", **settings)
-    assert on_gpu.stats["transport"]["tracer"] == "compiled", on_gpu.stats["transport"]
-    assert on_gpu.stats["device"]["name"] == "gpu"
-    assert_frames_agree(cpu, on_gpu, "cuda")
-    for key in ("camera_rays", "bounce_rays", "shadow_rays", "light_rays"):
-        assert abs(on_gpu.stats["transport"][key] - cpu.stats["transport"][key]) <= 1e-3 * cpu.stats["transport"][key]
-
-
 @pytest.mark.gpu
 @numba_cuda_only
 def test_compiled_gpu_sums_with_uneven_sample_counts_equal_cpu_sums(monkeypatch):

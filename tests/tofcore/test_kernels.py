@@ -14,20 +14,18 @@ from __future__ import annotations
 
 import importlib
 import inspect
-import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
 import tofcore
-from tofcore import backend
+from tofcore import backend, rng
 from tofcore.scene import fresnel
 from tofcore.sensor import modulation, noise
-from tofcore.tracer import qmc, rng
+from tofcore.tracer import qmc
 
-sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
-import fakecupy  # noqa: E402
+from tests import fakecupy
 
 ROOT = Path(__file__).resolve().parents[2]
 

@@ -15,8 +15,8 @@ import pytest
 
 import tofcore
 from tofcore import LED, Camera, trace
+from tofcore import rng as tof_rng
 from tofcore.tracer import qmc
-from tofcore.tracer import rng as tof_rng
 from tofcore.tracer.estimator import bsdf_strategy_weight
 from tofcore.tracer.light_paths import led_probabilities
 from tofcore.tracer.sampler import EMISSION

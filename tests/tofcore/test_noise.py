@@ -140,6 +140,22 @@ def test_raw_noise_is_deterministic_per_seed_and_differs_between_seeds():
     assert first.shape == raw.shape
 
 
+def test_raw_noise_is_the_same_whatever_the_block_size(monkeypatch):
+    """The host code draws block by block (noise.BLOCK elements): a value depends on its flat index only. Charges
+    from 0 to 1e12 e⁻ reach every branch (inversion, PTRS, Gaussian); blocks of 7 and 64 elements and one
+    block for all give the same frame."""
+    from tofcore.sensor import noise
+
+    g = np.random.default_rng(15)
+    raw = np.exp(g.uniform(np.log(0.05), np.log(1e12), (3, 20, 21))) - 0.1
+    frames = []
+    for block in (7, 64, raw.size):
+        monkeypatch.setattr(noise, "BLOCK", block)
+        frames.append(add_raw_noise(raw, read_noise_e=3.0, rng=NoiseStream.from_seed(5)))
+    np.testing.assert_array_equal(frames[0], frames[2])
+    np.testing.assert_array_equal(frames[1], frames[2])
+
+
 def _chi2_critical(dof: int, z: float = 3.719) -> float:
     """Upper 1e-4 quantile of χ²(dof) (z = 3.719 standard normal) by Wilson–Hilferty (rel. error < 1 %, dof ≥ 3)."""
     a = 2.0 / (9.0 * dof)

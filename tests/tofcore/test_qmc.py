@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
+from tofcore import rng as tof_rng
 from tofcore.tracer import qmc
-from tofcore.tracer import rng as tof_rng
 
 U32 = np.uint32
 R = qmc.REPLICATES

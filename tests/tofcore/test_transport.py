@@ -5,7 +5,7 @@ import pytest
 
 import tofcore
 from tofcore import LED, Ambient, Camera, ConfigError, Material, Scene
-from tofcore.tracer import rng as tof_rng
+from tofcore import rng as tof_rng
 from tofcore.tracer import qmc, sampler
 from tofcore.constants import SPEED_OF_LIGHT_M_S
 from tofcore.tracer.trace import pass_schedule, trace

@@ -33,7 +33,7 @@ from ..constants import SPEED_OF_LIGHT_M_S
 from ..scene import bsdf as _bsdf
 from ..scene.camera import _NEWTON_MAX_ITER, _NEWTON_STEP_TOL
 from ..tracer import qmc as _qmc
-from ..tracer import rng as _rng
+from .. import rng as _rng
 from ..tracer import sampler as _sampler
 from ..tracer import surface as _surface
 from ._target import cpu_parallel_function, device_function, gpu_kernel_function, gpu_module

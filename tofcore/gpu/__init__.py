@@ -10,7 +10,7 @@ walks, on the GPU machine comparing each kernel with its reference):
 module                      kernel                                          NumPy reference
 ==========================  ==============================================  ==================================
 :mod:`.traversal`           closest hit / any hit over the BVH records      ``BVH.intersect`` / ``BVH.occluded``
-:mod:`.fused`               counter-based uniforms (SplitMix64 ×2)          :func:`tofcore.tracer.rng.uniform`
+:mod:`.fused`               counter-based uniforms (SplitMix64 ×2)          :func:`tofcore.rng.uniform`
 :mod:`.fused`               Owen-scrambled Sobol' points (2-D and 1-D)      :func:`tofcore.tracer.qmc.scrambled_2d`,
                                                                             :func:`~tofcore.tracer.qmc.scrambled_1d`
 :mod:`.fused`               dielectric and conductor Fresnel                ``fresnel.fresnel_dielectric`` /

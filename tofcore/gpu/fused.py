@@ -4,7 +4,7 @@ On the GPU every NumPy-style operation is a kernel launch and a pass over device
 of them is launch- and bandwidth-bound. The chains here are the ones the GPU profile found hot,
 each bit-identical to its NumPy twin (integer arithmetic; float operations in the same order).
 
-* :func:`uniform` — :func:`tofcore.tracer.rng.uniform`: two SplitMix64 finalisers over a mix of
+* :func:`uniform` — :func:`tofcore.rng.uniform`: two SplitMix64 finalisers over a mix of
   (key, pixel, sample, dimension), 53 bits → [0, 1); 14 array operations in NumPy, one kernel here.
 * :func:`fresnel_dielectric`, :func:`fresnel_conductor` — :mod:`tofcore.scene.fresnel`: evaluated several
   times per vertex (BSDF value, pdf, lobe choice); 28 % of the bytes the GPU trace moved (counted on
@@ -25,7 +25,7 @@ import math
 from .. import backend
 from ..sensor import noise as _noise
 from ..tracer import qmc
-from ..tracer import rng as _rng
+from .. import rng as _rng
 
 _MASK64 = (1 << 64) - 1
 
@@ -50,7 +50,7 @@ def _uniform_kernel(cp):
 
 
 def uniform(key, pixel, sample, dim: int):
-    """:func:`tofcore.tracer.rng.uniform` for CuPy ``pixel`` and ``sample`` arrays, bit for bit."""
+    """:func:`tofcore.rng.uniform` for CuPy ``pixel`` and ``sample`` arrays, bit for bit."""
     cp = backend.namespace(pixel, sample)
     dim_mix = (int(dim) * int(_rng._MIX_DIM)) & _MASK64
     return _uniform_kernel(cp)(pixel.astype(cp.int64, copy=False), sample.astype(cp.int64, copy=False),

@@ -77,8 +77,11 @@ def preview_denoise(depth: np.ndarray, amplitude: np.ndarray, sigma_m: np.ndarra
     h, w = d.shape
     d_pad, la_pad = np.pad(d, r), np.pad(log_amp, r)
     ok_pad = np.pad(usable, r).astype(np.float32)
-    # weighted moments of the offsets (1, Δx, Δy, Δx², ΔxΔy, Δy²) and of the depth relative to p (t)
-    s0, sx, sy, sxx, sxy, syy, t0, tx, ty = (np.zeros((h, w), np.float32) for _ in range(9))
+    # weighted moments of the offsets, s = Σ w (1, Δx, Δy, Δx², ΔxΔy, Δy²), and of the depth relative to p,
+    # t = Σ w (d_q − d_p)(1, Δx, Δy); the loop adds into their rows (views)
+    s, t = np.zeros((6, h, w), np.float32), np.zeros((3, h, w), np.float32)
+    s0, sx, sy, sxx, sxy, syy = s
+    t0, tx, ty = t
     for dy in range(-r, r + 1):
         for dx in range(-r, r + 1):
             window = (slice(r + dy, r + dy + h), slice(r + dx, r + dx + w))
@@ -102,13 +105,23 @@ def preview_denoise(depth: np.ndarray, amplitude: np.ndarray, sigma_m: np.ndarra
                 ty += np.float32(dy) * (w_q * rel)
             if dx and dy:
                 sxy += np.float32(dx * dy) * w_q
-    smooth = d + _plane_at_centre(s0, sx, sy, sxx, sxy, syy, t0, tx, ty)
+    smooth = d + _plane_at_centre(s, t)
     return np.where(filtered, smooth, depth).astype(np.asarray(depth).dtype, copy=False)
 
 
-def _plane_at_centre(s0, sx, sy, sxx, sxy, syy, t0, tx, ty) -> np.ndarray:
+def _plane_at_centre(s: np.ndarray, t: np.ndarray) -> np.ndarray:
     """c_0 of the weighted least-squares plane (Cramer's rule on the 3 × 3 normal equations), or the
-    weighted mean t0/s0 where the system is nearly singular (det < 10⁻³ s0³)."""
+    weighted mean t0/s0 where the system is nearly singular (det < 10⁻³ s0³).
+
+    ``s`` (6, H, W): the weighted moments Σ w (1, Δx, Δy, Δx², ΔxΔy, Δy²) of the offsets; ``t`` (3, H, W):
+    Σ w (d_q − d_p)(1, Δx, Δy). The normal equations are
+
+    .. math:: \\begin{pmatrix} s_0 & s_x & s_y \\\\ s_x & s_{xx} & s_{xy} \\\\ s_y & s_{xy} & s_{yy} \\end{pmatrix}
+              \\begin{pmatrix} c_0 \\\\ c_x \\\\ c_y \\end{pmatrix}
+              = \\begin{pmatrix} t_0 \\\\ t_x \\\\ t_y \\end{pmatrix}.
+    """
+    s0, sx, sy, sxx, sxy, syy = s
+    t0, tx, ty = t
     minor_xx = sxx * syy - sxy * sxy
     det = s0 * minor_xx - sx * (sx * syy - sxy * sy) + sy * (sx * sxy - sxx * sy)
     numerator = t0 * minor_xx - sx * (tx * syy - sxy * ty) + sy * (tx * sxy - sxx * ty)

@@ -26,7 +26,7 @@ parameter                  unit  meaning
 =========================  ====  ==============================================================
 
 All randomness comes from a :class:`NoiseStream`: counter-based, every number
-the hash of (key, element index, draw) (:mod:`tofcore.tracer.rng`), so one seed
+the hash of (key, element index, draw) (:mod:`tofcore.rng`), so one seed
 gives the same noise on the CPU and on the GPU, and the same stream state gives
 the same noise.
 """
@@ -41,7 +41,7 @@ import numpy as np
 from ..backend import asarray, device_twin, namespace
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..errors import ConfigError
-from ..tracer import rng as counter_rng
+from .. import rng as counter_rng
 
 _DIMS_PER_DRAW = 64
 """Hash dimensions each draw of a stream owns (a Poisson draw uses 1 + 2 × 24 rounds + 2 = 51)."""
@@ -52,7 +52,7 @@ class NoiseStream:
     """Counter-based random numbers for sensor noise, the same on every device.
 
     Every draw (:meth:`uniforms`) takes the next block of hash dimensions; within it, the number of
-    element i of an array is :func:`tofcore.tracer.rng.uniform` of (key, i, 0, dimension). So a
+    element i of an array is :func:`tofcore.rng.uniform` of (key, i, 0, dimension). So a
     value depends on the key, the order of the draws and the element's flat index only: not on the
     device, the chunking, or which other elements are drawn.
     """
@@ -83,28 +83,47 @@ def _check_non_negative(where: str, name: str, value) -> None:
         raise ConfigError(f"{where}: {name} must be a finite number >= 0, got {value!r}")
 
 
-def _uniform_open(stream: NoiseStream, index, zeros, dim: int):
+#: Elements per block of the NumPy noise code: its chains of uint64 and float64 operations run block by
+#: block on arrays that stay in the CPU's cache, about twice as fast as over a whole frame (docs/benchmarks.md,
+#: "Sensor noise on the CPU"). A value depends on its element's flat index only, never on the block.
+BLOCK = 1 << 16
+
+
+def _blocks(size: int):
+    """Slices of at most :data:`BLOCK` elements that cover ``range(size)`` in order."""
+    return (slice(start, min(start + BLOCK, size)) for start in range(0, size, BLOCK))
+
+
+def _uniform_open(key: np.uint64, index, zeros, dim: int):
     """Uniforms in (0, 1): the hash's 53-bit [0, 1) value + 2⁻⁵⁴ (no 0 for logarithms, no 1)."""
-    return counter_rng.uniform(stream.key, index, zeros, dim) + 2.0 ** -54
+    u = counter_rng.uniform(key, index, zeros, dim)
+    u += 2.0 ** -54
+    return u
 
 
-def _normal(stream: NoiseStream, index, zeros, dim: int):
+def _normal(key: np.uint64, index, zeros, dim: int):
     """Standard normals by Box–Muller, :math:`z = \\sqrt{-2 \\ln u_1} \\cos 2\\pi u_2` (exact in
     distribution), from dimensions ``dim`` and ``dim + 1``."""
-    u1, u2 = _uniform_open(stream, index, zeros, dim), _uniform_open(stream, index, zeros, dim + 1)
+    u1, u2 = _uniform_open(key, index, zeros, dim), _uniform_open(key, index, zeros, dim + 1)
     return np.sqrt(-2.0 * np.log(u1)) * np.cos(2.0 * np.pi * u2)
 
 
-def _indices(shape, xp):
-    """(flat element index, zeros), int64 arrays of ``shape``: the counters of the elements."""
-    size = int(np.prod(shape, dtype=np.int64))
-    return xp.arange(size, dtype=np.int64).reshape(shape), xp.zeros(shape, np.int64)
-
-
 def standard_normal(shape, stream: NoiseStream, xp=np):
-    """(shape) standard normals of the next draw of ``stream``, on the array module ``xp``."""
-    index, zeros = _indices(tuple(shape), xp)
-    return _normal(stream, index, zeros, stream.next_draw())
+    """(shape) standard normals of the next draw of ``stream``, on the array module ``xp``.
+
+    On a device one fused kernel per uniform (:func:`tofcore.gpu.fused.uniform`) over all elements; on the
+    host block by block (:data:`BLOCK`), the same numbers.
+    """
+    shape = tuple(shape)
+    dim = stream.next_draw()
+    size = int(np.prod(shape, dtype=np.int64))
+    if xp is not np:
+        index = xp.arange(size, dtype=np.int64).reshape(shape)
+        return _normal(stream.key, index, xp.zeros(shape, np.int64), dim)
+    out = np.empty(size)
+    for block in _blocks(size):
+        out[block] = _normal(stream.key, np.arange(block.start, block.stop, dtype=np.int64), np.int64(0), dim)
+    return out.reshape(shape)
 
 
 #: Below this mean, Poisson counts by inversion of the cumulative pmf; from it, PTRS.
@@ -154,33 +173,42 @@ def poisson(mean, key: np.uint64, dim: int, *, check: bool = True):
 
     The numbers of element i are uniforms of (key, i, dimension): the draw's first dimension for the
     inversion, the next two per PTRS round, the two after the last round for the Gaussian. So NumPy
-    draws round by round only the elements still open, and the device twin
+    draws, block by block (:data:`BLOCK`), round by round only the elements still open, and the device twin
     (:func:`tofcore.gpu.fused.poisson`) runs the same loop per element in one kernel: both give the
     same counts.
     """
     lam = asarray(mean, dtype=np.float64)
     if check and not bool(np.all(lam >= 0.0) & np.all(np.isfinite(lam))):
         raise ConfigError("poisson: mean must be finite and >= 0")
-    stream = NoiseStream(key)
-    shape = lam.shape
-    lam = lam.ravel()
-    index, zeros = _indices(lam.shape, np)
+    counts = np.empty(lam.size)
+    flat = lam.ravel()
+    for block in _blocks(lam.size):
+        counts[block] = _poisson_block(flat[block], key, dim, block.start)
+    return counts.reshape(lam.shape)
+
+
+def _poisson_block(lam, key: np.uint64, dim: int, first: int):
+    """:func:`poisson` of the flat means ``lam`` of elements ``first``, ``first + 1``, … (NumPy)."""
+    index = np.arange(first, first + lam.size, dtype=np.int64)
+    zero = np.int64(0)
     counts = np.zeros(lam.shape)
     small = np.flatnonzero(lam < PTRS_MIN_MEAN)
-    counts[small] = _inversion(lam[small], _uniform_open(stream, index[small], zeros[small], dim))
+    counts[small] = _inversion(lam[small], _uniform_open(key, index[small], zero, dim))
     open_ = np.flatnonzero((lam >= PTRS_MIN_MEAN) & (lam < GAUSSIAN_MIN_MEAN))
+    hat = _ptrs_hat(lam[open_])
     for r in range(PTRS_ROUNDS):
         if not open_.size:
             break
-        u = _uniform_open(stream, index[open_], zeros[open_], dim + 1 + 2 * r)
-        v = _uniform_open(stream, index[open_], zeros[open_], dim + 2 + 2 * r)
-        k, accepted = _ptrs(lam[open_], *_ptrs_hat(lam[open_]), u, v)
+        u = _uniform_open(key, index[open_], zero, dim + 1 + 2 * r)
+        v = _uniform_open(key, index[open_], zero, dim + 2 + 2 * r)
+        k, accepted = _ptrs(lam[open_], *hat, u, v)
         counts[open_[accepted]] = k[accepted]
         open_ = open_[~accepted]
+        hat = tuple(h[~accepted] for h in hat)
     rest = np.union1d(open_, np.flatnonzero(lam >= GAUSSIAN_MIN_MEAN))
-    z = _normal(stream, index[rest], zeros[rest], dim + 1 + 2 * PTRS_ROUNDS)
+    z = _normal(key, index[rest], zero, dim + 1 + 2 * PTRS_ROUNDS)
     counts[rest] = np.maximum(np.floor(lam[rest] + np.sqrt(lam[rest]) * z + 0.5), 0.0)
-    return counts.reshape(shape)
+    return counts
 
 
 def _inversion(lam, u):
@@ -196,29 +224,34 @@ def _inversion(lam, u):
 
 
 def _ptrs_hat(lam):
-    """The per-mean constants of PTRS's hat function (Hörmann 1993, Table 1): b, a, ln(1/α), v_r, ln λ."""
+    """The per-mean constants of PTRS's hat function that every round needs (Hörmann 1993, Table 1): b, a, v_r.
+
+    ln(1/α) and ln λ are needed only where the squeeze does not decide: :func:`_ptrs` takes them there.
+    """
     b = 0.931 + 2.53 * np.sqrt(lam)
-    return b, -0.059 + 0.02483 * b, np.log(1.1239 + 1.1328 / (b - 3.4)), 0.9277 - 3.6224 / (b - 2.0), np.log(lam)
+    return b, -0.059 + 0.02483 * b, 0.9277 - 3.6224 / (b - 2.0)
 
 
-def _ptrs(lam, b, a, log_inv_alpha, v_r, log_lam, u, v):
+def _ptrs(lam, b, a, v_r, u, v):
     """One round of PTRS (λ ≥ 10): (candidate count k, accepted), from uniforms u, v in (0, 1).
 
     .. math:: u_s = \\tfrac12 - |u - \\tfrac12|, \\quad k = \\lfloor (2a/u_s + b)(u - \\tfrac12) + \\lambda
               + 0.43 \\rfloor; \\quad \\text{accept if } u_s \\ge 0.07,\\ v \\le v_r \\text{ (squeeze), else if }
               \\ln v - \\ln\\alpha - \\ln(a/u_s^2 + b) \\le -\\lambda + k \\ln\\lambda - \\ln k!
 
-    (and k ≥ 0, not (u_s < 0.013 and v > u_s)). The log test runs only where the squeeze does not decide.
+    with :math:`\\ln(1/\\alpha) = \\ln(1.1239 + 1.1328 / (b - 3.4))` (and k ≥ 0, not (u_s < 0.013 and v > u_s)).
+    The log test, with its logarithms, runs only where the squeeze does not decide.
     """
     u = u - 0.5
     us = 0.5 - np.abs(u)
     k = np.maximum(np.floor((2.0 * a / us + b) * u + lam + 0.43), -1.0)
     squeeze = (us >= 0.07) & (v <= v_r)
     test = np.flatnonzero(~squeeze & (k >= 0.0) & ~((us < 0.013) & (v > us)))  # the squeeze does not decide
-    ks = k[test]
-    hat = np.log(v[test]) + log_inv_alpha[test] - np.log(a[test] / (us[test] * us[test]) + b[test])
+    ks, lam_t, b_t = k[test], lam[test], b[test]
+    log_inv_alpha = np.log(1.1239 + 1.1328 / (b_t - 3.4))
+    hat = np.log(v[test]) + log_inv_alpha - np.log(a[test] / (us[test] * us[test]) + b_t)
     accepted = squeeze.copy()
-    accepted[test] = hat <= -lam[test] + ks * log_lam[test] - _log_factorial(ks)
+    accepted[test] = hat <= -lam_t + ks * np.log(lam_t) - _log_factorial(ks)
     return np.maximum(k, 0.0), accepted
 
 

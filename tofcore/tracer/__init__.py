@@ -11,7 +11,7 @@ The modules, in the order of the data (docs/architecture.md):
 * :mod:`~tofcore.tracer.trace` — :func:`trace` / :func:`trace_progressive`: settings → passes of samples;
 * :mod:`~tofcore.tracer.setup` — the settings checked into one typed :class:`TraceSetup`;
 * :mod:`~tofcore.tracer.sampler` — the one table of sample dimensions (:mod:`~tofcore.tracer.qmc`,
-  :mod:`~tofcore.tracer.rng` below it);
+  :mod:`~tofcore.rng` below it);
 * :mod:`~tofcore.tracer.path` — the path state (structure of arrays), a surface vertex, a contribution;
 * :mod:`~tofcore.tracer.stages` — camera rays, intersect, shade, next event, light vertex, scatter
   (:mod:`~tofcore.tracer.surface` and :mod:`~tofcore.tracer.light_paths` below them);

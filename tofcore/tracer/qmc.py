@@ -13,7 +13,7 @@ every prefix of 2^m points puts one point in each of the 2^m elementary boxes of
 
 Scrambles are hash-based (Laine & Karras 2011, with Burley's constants): a function of a 32-bit seed in
 which each output bit depends only on the input bits above it — exactly the structure of an Owen scramble.
-Seeds are hashes of (seed key, pixel, replicate, dimension) from :mod:`tofcore.tracer.rng`, so, as with the plain
+Seeds are hashes of (seed key, pixel, replicate, dimension) from :mod:`tofcore.rng`, so, as with the plain
 counter-based uniforms, a sample depends only on its coordinates, never on chunk size, worker count or
 device (the CUDA twins of :func:`scrambled_2d` and :func:`scrambled_1d` compute the same bits).
 
@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 
 from ..backend import device_twin
-from . import rng
+from .. import rng
 
 REPLICATES = 4
 """Independent randomizations per pixel (sample i belongs to replicate i mod R); the error estimate of
@@ -119,7 +119,7 @@ def _seeds(key, pixel, sample, dim: int):
 
 SAMPLERS = ("sobol", "independent")
 """``"sobol"``: the scrambled nets of this module; ``"independent"``: plain counter-based uniforms
-(:func:`tofcore.tracer.rng.uniform`), kept for comparisons (the ablation in docs/benchmarks.md)."""
+(:func:`tofcore.rng.uniform`), kept for comparisons (the ablation in docs/benchmarks.md)."""
 
 
 def sample_2d(key, pixel, sample, dim: int, sampler: str = "sobol"):
@@ -127,7 +127,7 @@ def sample_2d(key, pixel, sample, dim: int, sampler: str = "sobol"):
 
     Parameters
     ----------
-    key : the stream key (:func:`tofcore.tracer.rng.seed_key`).
+    key : the stream key (:func:`tofcore.rng.seed_key`).
     pixel, sample : integer arrays of equal shape: flat pixel index, sample index of that pixel.
     dim : which decision of the path (each pair of coordinates owns one number).
     sampler : one of :data:`SAMPLERS`.

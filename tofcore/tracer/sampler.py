@@ -17,7 +17,7 @@ dimension                  kind   decision
 
 A dimension d of the ``"sobol"`` sampler is one Owen-scrambled Sobol' (0, 2)-sequence per pixel and
 replicate (:mod:`tofcore.tracer.qmc`); the ``"independent"`` sampler maps d to the counter-based uniforms
-2d and 2d + 1 (:mod:`tofcore.tracer.rng`). Either way a sample is a function of (seed, pixel, sample index,
+2d and 2d + 1 (:mod:`tofcore.rng`). Either way a sample is a function of (seed, pixel, sample index,
 dimension) only, so the frame does not depend on chunks, workers or the device.
 """
 
@@ -27,7 +27,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from . import qmc, rng
+from .. import rng
+from . import qmc
 
 PIXEL = 0
 LENS = 1

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..backend import device_twin
+from .backend import device_twin
 
 _GOLDEN = np.uint64(0x9E3779B97F4A7C15)
 _MIX_PIXEL = np.uint64(0xD1B54A32D192ED03)
@@ -37,10 +37,16 @@ def seed_key(seed: int) -> np.uint64:
 
 
 def _splitmix(x: np.ndarray) -> np.ndarray:
-    x = x + _GOLDEN
-    x = (x ^ (x >> _S30)) * _M1
-    x = (x ^ (x >> _S27)) * _M2
-    return x ^ (x >> _S31)
+    """SplitMix64's finaliser, in place on ``x`` (an array of the caller's own): z ← z + φ,
+    z ← (z ⊕ z ≫ 30)·M1, z ← (z ⊕ z ≫ 27)·M2, z ⊕ z ≫ 31 (mod 2⁶⁴); in place it allocates one temporary
+    per shift instead of one per operation."""
+    x += _GOLDEN
+    x ^= x >> _S30
+    x *= _M1
+    x ^= x >> _S27
+    x *= _M2
+    x ^= x >> _S31
+    return x
 
 
 def bits(key: np.uint64, pixel, sample, dim: int):
@@ -49,10 +55,9 @@ def bits(key: np.uint64, pixel, sample, dim: int):
     Array code only (NumPy or CuPy); :func:`uniform` and :mod:`tofcore.tracer.qmc` take their numbers from it.
     """
     with np.errstate(over="ignore"):
-        x = (key
-             ^ (pixel.astype(np.uint64) * _MIX_PIXEL)
-             ^ (sample.astype(np.uint64) * _MIX_SAMPLE)
-             ^ (np.uint64(dim) * _MIX_DIM))
+        x = pixel.astype(np.uint64) * _MIX_PIXEL  # a new array: the hash runs in place on it
+        x ^= sample.astype(np.uint64) * _MIX_SAMPLE
+        x ^= key ^ (np.uint64(dim) * _MIX_DIM)
         return _splitmix(_splitmix(x))
 
 
@@ -63,7 +68,8 @@ def uniform(key: np.uint64, pixel: np.ndarray, sample: np.ndarray, dim: int) -> 
     Parameters
     ----------
     key : the stream key from :func:`seed_key`.
-    pixel, sample : integer arrays of equal shape (flat pixel index, sample index).
+    pixel, sample : integer arrays of equal shape (flat pixel index, sample index); on the host ``sample``
+        may be a NumPy integer scalar, broadcast over ``pixel``.
     dim : the random dimension (which decision of the path this number drives).
 
     Returns
@@ -71,4 +77,8 @@ def uniform(key: np.uint64, pixel: np.ndarray, sample: np.ndarray, dim: int) -> 
     float64 array of the shape of ``pixel``, 53 random bits each; on the GPU (CuPy arrays) one fused
     kernel (:func:`tofcore.gpu.fused.uniform`) computes the same bits.
     """
-    return (bits(key, pixel, sample, dim) >> _S11).astype(np.float64) * (1.0 / 9007199254740992.0)
+    x = bits(key, pixel, sample, dim)
+    x >>= _S11
+    u = x.astype(np.float64)
+    u *= 1.0 / 9007199254740992.0
+    return u
