@@ -320,6 +320,25 @@ def test_compiled_gpu_sums_with_uneven_sample_counts_equal_cpu_sums(monkeypatch)
         assert close.mean() >= 1 - FRAME_TOLERANCE["max_disagreeing"], name
 
 
+@pytest.mark.gpu
+@numba_cuda_only
+def test_compiled_gpu_constant_ambient_light_equals_cpu(monkeypatch):
+    """Rays that leave the open corner see a constant ambient radiance: the wavefront adds β · L_amb to the
+    ambient sums and the replicates' ambient channel as the CPU tracer does."""
+    scene = tofcore.demo_scene("corner", detail=2)
+    kwargs = dict(world_from_sensor=tofcore.suggested_pose(scene), correlations=phasor_correlations([80e6]), spp=4,
+                  max_depth=3, seed=4, ambient=tofcore.Ambient(radiance_w_m2_sr=0.25), progressive=False)
+    args = (scene, Camera.from_fov(64, 48, 90.0), [tofcore.LED(position_m=(0.02, 0.0, 0.0))])
+    ref = tofcore.trace(*args, device="cpu", **kwargs)
+    monkeypatch.setenv("TOFCORE_TRACER", "compiled")
+    got = tofcore.trace(*args, device="gpu", **kwargs)
+    assert got.stats.tracer == "compiled" and (ref.ambient_sum > 0).mean() > 0.2
+    for name in ("signal_sum", "correlation_sum", "replicate_sum", "ambient_sum"):
+        x, y = getattr(ref, name), backend.to_host(getattr(got, name))
+        close = np.isclose(y, x, rtol=1e-9, atol=1e-12 * np.abs(x).max(initial=0.0))
+        assert close.mean() >= 1 - FRAME_TOLERANCE["max_disagreeing"], name
+
+
 # ------------------------------------------------------------------ device work after the trace
 POST_TRACE_BUDGET = {
     # Counted on the CuPy stand-in for a Kinect v2 frame (3 frequencies, bilateral filter, scattering, raw
