@@ -123,9 +123,9 @@ def kernel_costs(n: int = 200_000) -> dict:
             c = 0.1 + 0.8 * (i % 1000) / 1000.0
             wo = (np.sqrt(1.0 - c * c), 0.0, c)
             if sample:
-                total += k.sample_bsdf(params, wo, k.outgoing_terms(params, wo), (i % 997) / 997.0, (i % 991) / 991.0, (i % 983) / 983.0)[1]
+                total += k.sample_bsdf(params, wo, (i % 997) / 997.0, (i % 991) / 991.0, (i % 983) / 983.0)[1]
             else:
-                total += k.eval_bsdf(params, wo, k.outgoing_terms(params, wo), (0.0, np.sqrt(0.75), 0.5))
+                total += k.eval_bsdf(params, wo, (0.0, np.sqrt(0.75), 0.5))
         return total
 
     @numba.njit

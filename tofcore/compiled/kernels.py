@@ -323,47 +323,6 @@ def inverse_direction(d):
 
 
 @fn
-def leaf_hit(leaves, row, ray, ignore, any_hit, best):
-    """The closest (or, for ``any_hit``, the first) triangle of the leaf at ``row`` nearer than best[0].
-
-    tofcore.bvh._watertight in float32 with the same products and sums in the same order; the divisions
-    only once the ray is inside the triangle. ``leaves`` = (leaf vertices, leaf triangles), ``ray`` =
-    (o, d, b1, b2) with (b1, b2) its :func:`ray_frame`, ``best`` = (t, prim, u, v); returns the new best.
-    """
-    leaves_f, leaves_i = leaves
-    o, d, b1, b2 = ray
-    for k in range(leaves_i.shape[1]):
-        prim = leaves_i[row + PRIM_ROW, k]
-        if prim < 0 or prim == ignore:
-            continue
-        ax, ay, az = leaves_f[row, k] - o[0], leaves_f[row + 1, k] - o[1], leaves_f[row + 2, k] - o[2]
-        px, py, pz = leaves_f[row + 3, k] - o[0], leaves_f[row + 4, k] - o[1], leaves_f[row + 5, k] - o[2]
-        cx, cy, cz = leaves_f[row + 6, k] - o[0], leaves_f[row + 7, k] - o[1], leaves_f[row + 8, k] - o[2]
-        a1 = ax * b1[0] + ay * b1[1] + az * b1[2]
-        a2 = ax * b2[0] + ay * b2[1] + az * b2[2]
-        p1 = px * b1[0] + py * b1[1] + pz * b1[2]
-        p2 = px * b2[0] + py * b2[1] + pz * b2[2]
-        c1 = cx * b1[0] + cy * b1[1] + cz * b1[2]
-        c2 = cx * b2[0] + cy * b2[1] + cz * b2[2]
-        w_u = c1 * p2 - c2 * p1
-        w_v = a1 * c2 - a2 * c1
-        w_w = p1 * a2 - p2 * a1
-        # The edge functions share a sign (zero counts as both): only then the divisions.
-        if not ((w_u >= F32_ZERO and w_v >= F32_ZERO and w_w >= F32_ZERO)
-                or (w_u <= F32_ZERO and w_v <= F32_ZERO and w_w <= F32_ZERO)):
-            continue
-        det = w_u + w_v + w_w
-        t = (w_u * (ax * d[0] + ay * d[1] + az * d[2]) + w_v * (px * d[0] + py * d[1] + pz * d[2])
-             + w_w * (cx * d[0] + cy * d[1] + cz * d[2])) / det
-        if not (t > F32_ZERO and t < best[0]):
-            continue
-        best = (t, prim, w_v / det, w_w / det)
-        if any_hit:
-            return best
-    return best
-
-
-@fn
 def push_child(stack, stack_t, top, first, child, t_in, any_hit):
     """Push ``child`` entered at ``t_in`` above stack[top − 1]; for a closest hit, insertion-sorted into the
     children pushed since ``first`` so the nearest is popped first. Returns the new top."""
@@ -383,45 +342,68 @@ def traverse(bvh, o, d, t_max, ignore, any_hit, stack, stack_t):
 
     Same slab test as tofcore.bvh.BVH._trace (entry plane chosen by the sign of the direction, tiny
     direction components replaced by ±1e-30 (:func:`inverse_direction`), boxes clipped at the best t so
-    far) and the same watertight triangle test (:func:`leaf_hit`). For a closest hit, children are
+    far) and the same watertight triangle test in float32 (the same products and sums in the same order;
+    the divisions only once the ray is inside the triangle). For a closest hit, children are
     visited near to far (:func:`push_child`); an any-hit ray, whose answer does not depend on the order,
     visits them as they come. Returns (t, prim, u, v); prim −1 on a miss.
     ``bvh`` = (node planes, node children, leaf vertices, leaf triangles): the first four arrays of the
     scene tuple (tofcore.compiled.setup.scene_arrays); ``stack`` (int64) and ``stack_t`` (float32) are
     scratch arrays of STACK_SIZE entries, the first row of a node record and its entry distance.
     """
-    nodes_f, nodes_i = bvh[0], bvh[1]
+    nodes_f, nodes_i, leaves_f, leaves_i = bvh
     inv = inverse_direction(d)
-    entry = (3 if d[0] < F32_ZERO else 0, 4 if d[1] < F32_ZERO else 1, 5 if d[2] < F32_ZERO else 2)
+    # Entry-plane rows per axis: the box minimum (row a) for a positive direction, else the maximum (3 + a).
+    ex, ey, ez = 3 if d[0] < F32_ZERO else 0, 4 if d[1] < F32_ZERO else 1, 5 if d[2] < F32_ZERO else 2
     b1, b2 = ray_frame(d)
-    best = (t_max, -1, F32_ZERO, F32_ZERO)
+    best_t, best_prim, best_u, best_v = t_max, -1, F32_ZERO, F32_ZERO
     stack[0] = 0
     stack_t[0] = F32_ZERO
     top = 1
     while top > 0:
         top -= 1
-        if stack_t[top] > best[0]:
+        if stack_t[top] > best_t:
             continue
         node = stack[top]
         first = top  # the children entered go to stack[first:top], far (bottom) to near (top)
         for c in range(WIDTH):  # the slab test of child c, its exit clipped at the best t so far
-            near_x = (nodes_f[node + entry[0], c] - o[0]) * inv[0]
-            far_x = (nodes_f[node + 3 - entry[0], c] - o[0]) * inv[0]
-            near_y = (nodes_f[node + entry[1], c] - o[1]) * inv[1]
-            far_y = (nodes_f[node + 5 - entry[1], c] - o[1]) * inv[1]
-            near_z = (nodes_f[node + entry[2], c] - o[2]) * inv[2]
-            far_z = (nodes_f[node + 7 - entry[2], c] - o[2]) * inv[2]
+            near_x = (nodes_f[node + ex, c] - o[0]) * inv[0]
+            far_x = (nodes_f[node + 3 - ex, c] - o[0]) * inv[0]
+            near_y = (nodes_f[node + ey, c] - o[1]) * inv[1]
+            far_y = (nodes_f[node + 5 - ey, c] - o[1]) * inv[1]
+            near_z = (nodes_f[node + ez, c] - o[2]) * inv[2]
+            far_z = (nodes_f[node + 7 - ez, c] - o[2]) * inv[2]
             t_in = max(max(max(near_x, near_y), near_z), F32_ZERO)
-            if not t_in <= min(min(min(far_x, far_y), far_z), best[0]):
+            if not t_in <= min(min(min(far_x, far_y), far_z), best_t):
                 continue
             child = nodes_i[node + CHILD_ROW, c]
             if child >= 0:
                 top = push_child(stack, stack_t, top, first, child, t_in, any_hit)
                 continue
-            best = leaf_hit((bvh[2], bvh[3]), ~child, (o, d, b1, b2), ignore, any_hit, best)
-            if any_hit and best[1] >= 0:
-                return best
-    return best
+            row = ~child  # a leaf: its triangles now (tofcore.bvh._watertight written out: a call costs)
+            for k in range(leaves_i.shape[1]):
+                prim = leaves_i[row + PRIM_ROW, k]
+                if prim < 0 or prim == ignore:
+                    continue
+                ax, ay, az = leaves_f[row, k] - o[0], leaves_f[row + 1, k] - o[1], leaves_f[row + 2, k] - o[2]
+                px, py, pz = leaves_f[row + 3, k] - o[0], leaves_f[row + 4, k] - o[1], leaves_f[row + 5, k] - o[2]
+                cx, cy, cz = leaves_f[row + 6, k] - o[0], leaves_f[row + 7, k] - o[1], leaves_f[row + 8, k] - o[2]
+                a1, a2 = ax * b1[0] + ay * b1[1] + az * b1[2], ax * b2[0] + ay * b2[1] + az * b2[2]
+                p1, p2 = px * b1[0] + py * b1[1] + pz * b1[2], px * b2[0] + py * b2[1] + pz * b2[2]
+                c1, c2 = cx * b1[0] + cy * b1[1] + cz * b1[2], cx * b2[0] + cy * b2[1] + cz * b2[2]
+                w_u, w_v, w_w = c1 * p2 - c2 * p1, a1 * c2 - a2 * c1, p1 * a2 - p2 * a1
+                # The edge functions share a sign (zero counts as both): only then the divisions.
+                if not ((w_u >= F32_ZERO and w_v >= F32_ZERO and w_w >= F32_ZERO)
+                        or (w_u <= F32_ZERO and w_v <= F32_ZERO and w_w <= F32_ZERO)):
+                    continue
+                det = w_u + w_v + w_w
+                t = (w_u * (ax * d[0] + ay * d[1] + az * d[2]) + w_v * (px * d[0] + py * d[1] + pz * d[2])
+                     + w_w * (cx * d[0] + cy * d[1] + cz * d[2])) / det
+                if not (t > F32_ZERO and t < best_t):
+                    continue
+                if any_hit:
+                    return t, prim, w_v / det, w_w / det
+                best_t, best_prim, best_u, best_v = t, prim, w_v / det, w_w / det
+    return best_t, best_prim, best_u, best_v
 
 
 @fn
@@ -608,15 +590,11 @@ def half_vector(wo, wi):
 
 
 @fn
-def polar_angle(cos_theta):
-    """θ = arccos of the cosine clipped to [0, 1] (bsdf.oren_nayar's θ_i and θ_o)."""
-    return math.acos(min(max(cos_theta, 0.0), 1.0))
-
-
-@fn
-def oren_nayar(reflectance, roughness, theta_i, theta_o, cos_phi):
-    """Oren–Nayar f_r without cosine (bsdf.oren_nayar, eq. 2.28–2.30), from the polar angles (:func:`polar_angle`)."""
+def oren_nayar(reflectance, roughness, cos_theta_i, cos_theta_o, cos_phi):
+    """Oren–Nayar f_r without cosine (bsdf.oren_nayar, eq. 2.28–2.30)."""
     s = roughness * roughness
+    theta_i = math.acos(min(max(cos_theta_i, 0.0), 1.0))
+    theta_o = math.acos(min(max(cos_theta_o, 0.0), 1.0))
     theta_max = max(theta_i, theta_o)
     theta_min = min(theta_i, theta_o)
     scaled_min = 2.0 * theta_min / PI
@@ -631,42 +609,29 @@ def oren_nayar(reflectance, roughness, theta_i, theta_o, cos_phi):
 
 
 @fn
-def cos_azimuth_difference(wo, planar_o, wi):
-    """cos(φ_o − φ_i), 0 where a direction lies on the normal (bsdf.cos_azimuth_difference); ``planar_o`` =
-    hypot(ω_o,x, ω_o,y)."""
+def cos_azimuth_difference(wo, wi):
+    """cos(φ_o − φ_i), 0 where a direction lies on the normal (bsdf.cos_azimuth_difference)."""
     planar_dot = wo[0] * wi[0] + wo[1] * wi[1]
-    planar_norms = planar_o * math.hypot(wi[0], wi[1])
+    planar_norms = math.hypot(wo[0], wo[1]) * math.hypot(wi[0], wi[1])
     if not planar_norms > 0.0:
         return 0.0
     return min(max(planar_dot / planar_norms, -1.0), 1.0)
 
 
 @fn
-def outgoing_terms(params, wo):
-    """The terms of ω_o alone, shared by every evaluation at a vertex: (F_d(cos θ_o), P_s, θ_o,
-    hypot(ω_o,x, ω_o,y)) (bsdf._outgoing, the θ_o of bsdf.oren_nayar, bsdf.cos_azimuth_difference's norm)."""
-    fresnel_o, probability = outgoing(params, wo[2])
-    return fresnel_o, probability, polar_angle(wo[2]), math.hypot(wo[0], wo[1])
-
-
-@fn
-def eval_terms(params, wo, out, wi):
-    """f_r and the direction-pair terms (cos θ_i, valid, h, ω_o·ω_h, α, D) (bsdf._pair and bsdf._eval);
-    ``out`` = :func:`outgoing_terms` of ω_o. D is 0 for an invalid pair (no density is taken of it), and a
-    pure metal's diffuse lobe 0 without its terms, as the reference's (1 − m) = 0 product gives it."""
+def eval_terms(params, wo, wi, fresnel_o):
+    """f_r and the direction-pair terms (cos θ_i, valid, h, ω_o·ω_h, α, D) (bsdf._pair and bsdf._eval)."""
     cos_o, cos_i = wo[2], wi[2]
     h = half_vector(wo, wi)
     cos_oh = wo[0] * h[0] + wo[1] * h[1] + wo[2] * h[2]
     alpha = rough_alpha(params)
+    distribution = beckmann_distribution(h[2], alpha)
     valid = cos_o > 0.0 and cos_i > 0.0
     if not valid:
-        return 0.0, cos_i, valid, h, cos_oh, alpha, 0.0
-    distribution = beckmann_distribution(h[2], alpha)
-    diffuse = 0.0
-    if params[2] != 1.0:
-        transmitted = (1.0 - fresnel_dielectric(cos_i, params[3])) * (1.0 - out[0])
-        diffuse = (1.0 - params[2]) * transmitted * oren_nayar(params[0], params[1], polar_angle(cos_i), out[2],
-                                                               cos_azimuth_difference(wo, out[3], wi))
+        return 0.0, cos_i, valid, h, cos_oh, alpha, distribution
+    transmitted = (1.0 - fresnel_dielectric(cos_i, params[3])) * (1.0 - fresnel_o)
+    diffuse = (1.0 - params[2]) * transmitted * oren_nayar(params[0], params[1], cos_i, cos_o,
+                                                           cos_azimuth_difference(wo, wi))
     # V-cavity G (eq. 2.27) and Torrance–Sparrow (eq. 2.24)
     geometry = 0.0
     if cos_oh > 0.0:
@@ -695,24 +660,24 @@ def pdf_terms(wo, probability, cos_i, valid, h, cos_oh, alpha, distribution):
 
 
 @fn
-def eval_bsdf(params, wo, out, wi):
-    """f_r (1/sr) without the cosine (bsdf.eval_bsdf); ``out`` = :func:`outgoing_terms` of ω_o."""
-    return eval_terms(params, wo, out, wi)[0]
+def eval_bsdf(params, wo, wi):
+    """f_r (1/sr) without the cosine (bsdf.eval_bsdf)."""
+    return eval_terms(params, wo, wi, fresnel_dielectric(wo[2], params[3]))[0]
 
 
 @fn
-def eval_pdf_bsdf(params, wo, out, wi):
-    """(f_r, pdf) of one direction pair (bsdf.eval_pdf_bsdf); ``out`` = :func:`outgoing_terms` of ω_o."""
-    f, cos_i, valid, h, cos_oh, alpha, distribution = eval_terms(params, wo, out, wi)
-    return f, pdf_terms(wo, out[1], cos_i, valid, h, cos_oh, alpha, distribution)
+def eval_pdf_bsdf(params, wo, wi):
+    """(f_r, pdf) of one direction pair (bsdf.eval_pdf_bsdf)."""
+    fresnel_o, probability = outgoing(params, wo[2])
+    f, cos_i, valid, h, cos_oh, alpha, distribution = eval_terms(params, wo, wi, fresnel_o)
+    return f, pdf_terms(wo, probability, cos_i, valid, h, cos_oh, alpha, distribution)
 
 
 @fn
-def sample_bsdf(params, wo, out, u_lobe, u1, u2):
-    """(wi, weight, pdf, is_delta) of one BSDF sample (bsdf.sample_bsdf); see its contract. ``out`` =
-    :func:`outgoing_terms` of ω_o."""
+def sample_bsdf(params, wo, u_lobe, u1, u2):
+    """(wi, weight, pdf, is_delta) of one BSDF sample (bsdf.sample_bsdf); see its contract."""
     cos_o = wo[2]
-    fresnel_o, probability = out[0], out[1]
+    fresnel_o, probability = outgoing(params, cos_o)
     pick_specular = u_lobe < probability
     if pick_specular:
         u_swap = u_lobe / (probability if probability > 0.0 else 1.0)
@@ -739,7 +704,7 @@ def sample_bsdf(params, wo, out, u_lobe, u1, u2):
     if pick_specular and alpha == 0.0 and cos_o > 0.0:  # the mirror: a delta lobe
         mirror_fresnel = specular_fresnel(params, cos_o) if params[2] != 0.0 else fresnel_o
         return wi, mirror_fresnel / (probability if probability > 0.0 else 1.0), probability, True
-    f, cos_i, valid, h, cos_oh, a, distribution = eval_terms(params, wo, out, wi)
+    f, cos_i, valid, h, cos_oh, a, distribution = eval_terms(params, wo, wi, fresnel_o)
     pdf = pdf_terms(wo, probability, cos_i, valid, h, cos_oh, a, distribution)
     f_cos = f * max(cos_i, 0.0)
     return wi, (f_cos / pdf if pdf > 0.0 else 0.0), pdf, False
@@ -797,8 +762,7 @@ def correlation(kind, par, tau):
 #   scene    = (geo, cam, cam_table, frame, leds, corr_kinds, corr_table)      the render's arrays
 #   settings = (key, max_depth, independent, light_paths)                      the render's switches
 #   rng      = (key, pixel, sample, independent)                               one sample's random numbers
-#   vertex   = (surface, spawn point, wo in the local frame, triangle index,  a camera vertex x
-#               outgoing_terms of wo)
+#   vertex   = (surface, spawn point, wo in the local frame, triangle index)  a camera vertex x
 #   state    = (throughput β, depth, bsdf_area_pdf, prev_delta, use_mis)      the path at x
 #   light    = (found, surface of y, y → LED, |y − LED|, emitted, p_B, margin) the light vertex (light_vertex)
 #   sums     = (nee_w, nee_wg, con_w, con_wg, total)                           a pixel's sums (trace_path)
@@ -807,7 +771,7 @@ def correlation(kind, par, tau):
 def led_estimate(frame, leds, vertex, state, i):
     """Next-event estimate to LED ``i`` before its shadow test: (w, distance to the LED, the LED's position)
     (transport._connect_led)."""
-    surf, wo = vertex[0], vertex[2]
+    surf, spawn, wo, prim = vertex
     throughput, depth, bsdf_area_pdf, prev_delta, use_mis = state
     led_positions, led_table = leds[0], leds[1]
     position, ng, ns, params = surf[0], surf[1], surf[4], surf[5]
@@ -819,7 +783,7 @@ def led_estimate(frame, leds, vertex, state, i):
     cos_shading = dot(wi_world, ns)
     cos_axis = -dot(wi_world, (frame[4, 0], frame[4, 1], frame[4, 2]))
     kind = np.int64(led_table[i, 0])
-    f = eval_bsdf(params, wo, vertex[4], to_local(surf, wi_world))
+    f = eval_bsdf(params, wo, to_local(surf, wi_world))
     w = throughput * f * max(cos_shading, 0.0) * led_intensity(kind, led_table[i, 1], cos_axis) / (dist * dist)
     if not cos_geo > 0:
         w = 0.0
@@ -906,7 +870,7 @@ def light_vertex(geo, frame, leds, rng, work):
 def light_estimate(vertex, throughput, light):
     """Strategy B at camera vertex x before its shadow test: (w_B, extra path length |x − y| + |y − LED|)
     (light_paths.connect)."""
-    x, wo = vertex[0], vertex[2]
+    x, spawn, wo, prim = vertex
     y, y_to_led, y_led_distance, y_emitted, y_pdf_area = light[1], light[2], light[3], light[4], light[5]
     to_y = sub(y[0], x[0])
     dist = norm(to_y)
@@ -915,9 +879,8 @@ def light_estimate(vertex, throughput, light):
     w_xy = divide(to_y, dist)
     cos_x = dot(w_xy, x[1])
     cos_y = -dot(w_xy, y[1])
-    f_x, pdf_x = eval_pdf_bsdf(x[5], wo, vertex[4], to_local(x, w_xy))
-    wo_y = to_local(y, neg(w_xy))
-    f_y = eval_bsdf(y[5], wo_y, outgoing_terms(y[5], wo_y), to_local(y, y_to_led))
+    f_x, pdf_x = eval_pdf_bsdf(x[5], wo, to_local(x, w_xy))
+    f_y = eval_bsdf(y[5], to_local(y, neg(w_xy)), to_local(y, y_to_led))
     g = max(dot(w_xy, x[4]), 0.0) * max(cos_y, 0.0) / (dist * dist)
     w = throughput * f_x * g * f_y * y_emitted
     p_bsdf = pdf_x * max(cos_y, 0.0) / (dist * dist)
@@ -976,13 +939,11 @@ def next_hit(geo, origin, direction, depth, prev_prim, work):
 
 @fn
 def camera_vertex(geo, prim, surf, direction):
-    """The ``vertex`` tuple of a hit: its surface, the point a ray leaving it starts from, wo, prim and
-    the terms of wo that its BSDF evaluations share (:func:`outgoing_terms`)."""
+    """The ``vertex`` tuple of a hit: its surface, the point a ray leaving it starts from, wo, prim."""
     position, ng = surf[0], surf[1]
     offset = spawn_offset(geo, prim, position, ng)
     spawn = (position[0] + ng[0] * offset, position[1] + ng[1] * offset, position[2] + ng[2] * offset)
-    wo = to_local(surf, neg(direction))
-    return surf, spawn, wo, prim, outgoing_terms(surf[5], wo)
+    return surf, spawn, to_local(surf, neg(direction)), prim
 
 
 @fn
@@ -1031,14 +992,13 @@ def add_connection(scene, vertex, state, path_length, light, sums, work):
 
 
 @fn
-def next_direction(vertex, rng, depth):
-    """The BSDF-sampled world direction leaving ``vertex`` at ``depth``, its weight, pdf and whether it
+def next_direction(surf, wo, rng, depth):
+    """The BSDF-sampled world direction leaving the vertex at ``depth``, its weight, pdf and whether it
     is a mirror lobe (tofcore.scene.bsdf.sample)."""
     key, pixel, sample, independent = rng
-    surf = vertex[0]
     u1, u2 = sample_2d(key, pixel, sample, 2 * depth + 1, independent)
     u_lobe = sample_1d(key, pixel, sample, 2 * depth, independent)
-    wi, weight, pdf, is_delta = sample_bsdf(surf[5], vertex[2], vertex[4], u_lobe, u1, u2)
+    wi, weight, pdf, is_delta = sample_bsdf(surf[5], wo, u_lobe, u1, u2)
     return to_world(surf, wi), weight, pdf, is_delta
 
 
@@ -1092,7 +1052,7 @@ def trace_path(scene, settings, pixel, sample, sums, work):
             break
         if light_paths:
             add_connection(scene, vertex, state, path_length, light, sums, work)
-        new_dir, weight, pdf, is_delta = next_direction(vertex, rng, depth)
+        new_dir, weight, pdf, is_delta = next_direction(surf, vertex[2], rng, depth)
         # A direction below the geometric surface would leak through it (shading normals): end the path.
         if not (weight > 0 and dot(new_dir, ng) > 0):
             break
@@ -1344,7 +1304,7 @@ def continue_path(surf, vertex, rng, depth, throughput, j, buffers):
     """Sample path j's next direction at ``depth`` and store its state and next ray; False where the path
     ends there (next_direction below the geometric surface or with zero weight, as trace_path)."""
     f, rays = buffers[0][0], buffers[4]
-    new_dir, weight, pdf, is_delta = next_direction(vertex, rng, depth)
+    new_dir, weight, pdf, is_delta = next_direction(surf, vertex[2], rng, depth)
     if not (weight > 0 and dot(new_dir, surf[1]) > 0):
         return False
     f[j, 0] = throughput * weight
