@@ -19,8 +19,11 @@ c/(4πf) · arg(P · conj P_ref), so phase wrapping does not matter.
   instead (light vertices, seed apart, its variance from its replicates) where mitransient's own
   reference cannot converge in useful time (the room's fireflies); the JSON records how that
   reference agrees with mitransient's (z-scores of the phasor differences).
-* tofcore: ``trace_progressive`` (passes of 1, 1, 2, 4, 8, 16, 16, … spp); after every pass the
-  wall time since the call (minus the time this script spends evaluating) and the error. Two
+* tofcore: ``trace_progressive`` (passes of 1, 1, 2, 4, 8, 16, 16, … spp) after a warm-up trace of
+  the same set-up (4 spp; as mitransient's warm-up render, it keeps the process's first-use costs —
+  kernel loading, the GPU's first allocations — out of the estimator's curve: bench/bench_gpu.py
+  reports the cold first frame); after every pass the wall time since the call (minus the time this
+  script spends evaluating) and the error. Two
   variants: ``tofcore`` — the estimator of issue 10 (scrambled Sobol' replicates, light vertices with
   MIS, adaptive sampling driven by the replicates' 80 MHz depth error) — and ``tofcore-mc``, plain
   Monte Carlo (independent uniforms, next-event estimation only, uniform spp), as before issue 10.
@@ -110,12 +113,17 @@ def run_tofcore(s: cc.Setup, spp: int, ref, ref_var, mask, log, variant: str = "
         return tofcore.tracer.estimator.allocate_samples(depth_sigma(t, FREQS[MAIN]),
                                                          tofcore.backend.to_host(t.sample_count), n)
 
+    def passes(n_spp: int):
+        return tofcore.trace_progressive(s.scene, s.camera, [s.led], world_from_sensor=s.pose,
+                                         correlations=cc.sine_correlations(FREQS), spp=n_spp, max_depth=5, seed=7,
+                                         sampler=settings["sampler"], light_paths=settings["light_paths"],
+                                         allocate=allocate if settings["adaptive"] else None, device=cc.DEVICE)
+
+    for _ in passes(4):  # warm-up, as mitransient's warm-up render: the process's first-use costs are not
+        pass             # the estimator's (bench/bench_gpu.py reports the cold first frame)
     rows, spent_eval = [], 0.0
     t0 = time.perf_counter()
-    for t in tofcore.trace_progressive(s.scene, s.camera, [s.led], world_from_sensor=s.pose,
-                                       correlations=cc.sine_correlations(FREQS), spp=spp, max_depth=5, seed=7,
-                                       sampler=settings["sampler"], light_paths=settings["light_paths"],
-                                       allocate=allocate if settings["adaptive"] else None, device=cc.DEVICE):
+    for t in passes(spp):
         now = time.perf_counter()
         e0 = now
         p = cc.phasors_from_correlation(tofcore.backend.to_host(t.correlation()))

@@ -287,6 +287,27 @@ for groups_of in (10 ** 6, 7):  # one group, and groups of at most 7 paths (seve
         np.testing.assert_array_equal(getattr(out, name), getattr(ref, name), err_msg=f"{groups_of} {name}")
     assert n[1:4].tolist() == [ref.stats.bounce_rays, ref.stats.shadow_rays, ref.stats.light_rays], n
     assert n[0] == counts.sum() and ref.stats.camera_rays == counts.sum() + 30  # + the first-hit rays
+# a finished trace's device scene serves the next trace of its layout (another seed: new key, same arrays),
+# and traces it as a fresh one does
+shared["seed"] = 4
+packed = setup.pack(make_setup(scene, cam, leds, TraceSettings(**shared), backend.select_device("cpu")))
+sums = []
+for turn in range(2):
+    device_scene = cuda.upload(packed, scene.bvh)
+    out = cuda.Sums(np.zeros((4, 30)), np.zeros((4, 2, 30)), np.zeros((qmc.REPLICATES, 4, 30)))
+    cuda.trace_pass(device_scene, out, np.zeros(30, np.int64), counts, threads_per_block=32)
+    sums.append(out)
+    if turn == 0:
+        fresh = device_scene
+        cuda.release(fresh)
+        moved = np.array(shared["world_from_sensor"], dtype=float)
+        moved[0, 3] += 0.1  # other contents first: another seed and camera position
+        cuda.upload(setup.pack(make_setup(scene, cam, leds, TraceSettings(**dict(shared, seed=9, world_from_sensor=moved)),
+                                          backend.select_device("cpu"))), scene.bvh)
+        cuda.release(fresh)
+assert device_scene is fresh
+for name in ("signal_sum", "correlation_sum", "replicate_sum"):
+    np.testing.assert_array_equal(getattr(sums[1], name), getattr(sums[0], name), err_msg=f"reused {name}")
 print("ok")
 """
 
@@ -317,7 +338,20 @@ def test_the_wavefronts_light_table_round_trips_a_light_vertex():
     surf = ((1.0, 2.0, 3.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.6, 0.8),
             (0.5, 0.2, 0.0, 1.5, 0.0))
     light = (True, surf, (0.0, -0.6, -0.8), 2.5, 0.125, 3.0e-2, 1e-6)
-    table = np.zeros((3, kernels.LIGHT_COLUMNS))
+    table = np.zeros((kernels.LIGHT_COLUMNS, 3))
     kernels.store_light(table, 1, light)
     assert kernels.load_light(table, 1) == light
-    assert not table[[0, 2]].any()
+    assert not table[:, [0, 2]].any()  # the other paths' columns untouched
+
+
+@needs_numba
+def test_sobol_bit_by_bit_equals_the_lookup_tables():
+    """The GPU build's Sobol' dimension 2 (a loop over the index's bits: constant-memory tables serialise a
+    warp) is the CPU build's table lookup, number for number: every single-bit index, and 20,000 random ones."""
+    from tofcore.compiled import kernels
+
+    rng = np.random.default_rng(5)
+    indices = np.concatenate([np.uint64(1) << np.arange(32, dtype=np.uint64), [0, 0xFFFFFFFF],
+                              rng.integers(0, 2 ** 32, 20_000, dtype=np.uint64)]).astype(np.uint64)
+    for i in indices:
+        assert kernels.sobol_dim1_bits(i) == kernels.sobol_dim1_lookup(i), hex(int(i))

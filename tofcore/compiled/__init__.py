@@ -79,6 +79,13 @@ def choose(ctx) -> Choice:
     return Choice("compiled", "", packed, cuda.upload(packed, ctx.scene.bvh))
 
 
+def release(choice: Choice) -> None:
+    """The trace of ``choice`` has ended: its GPU arrays may serve the next trace (tofcore.compiled.cuda.release)."""
+    if choice.device_scene is not None:
+        from . import cuda
+        cuda.release(choice.device_scene)
+
+
 def cuda_unavailable() -> str:
     """Why numba cannot run the compiled tracer on this machine's GPU, or ""."""
     try:

@@ -24,7 +24,7 @@ from __future__ import annotations
 import importlib.util
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -35,6 +35,7 @@ import numba  # noqa: E402
 from numba import cuda  # noqa: E402
 
 from ._target import CUDA_SUFFIX  # noqa: E402
+from .launch import PreparedKernel, Slot  # noqa: E402
 from .layout import N_COUNTERS  # noqa: E402
 
 THREADS_PER_BLOCK = 256
@@ -45,6 +46,7 @@ GROUP_BYTES = 512 << 20
 the Kinect v2 frame peaked at 2.3 GiB on the device with 768 MiB)."""
 
 MAX_GROUP_PATHS = 1 << 20
+
 
 STAGE_SECONDS: dict[str, float] = {}
 """Seconds per stage summed over the passes traced while :data:`PROFILE` is on (benchmarks only: each stage
@@ -78,32 +80,81 @@ def load_kernels():
     return _MODULE
 
 
-@dataclass(frozen=True, eq=False)
+@dataclass(eq=False)
 class DeviceScene:
-    """A render's packed arrays (:class:`tofcore.compiled.setup.Packed`) on the GPU, uploaded once, and the
-    scene's BVH (its records are uploaded by :mod:`tofcore.gpu.traversal` at the first ray)."""
+    """A render's packed arrays (:class:`tofcore.compiled.setup.Packed`) on the GPU (``arrays``, CuPy; NumPy
+    under numba's CUDA simulator) and as the kernels take them (``scene``), its sampler settings (key,
+    max_depth, independent, light_paths), the scene's BVH (its records are uploaded by
+    :mod:`tofcore.gpu.traversal` at the first ray), and the wavefront's :class:`Workspace` (made at the
+    first pass). After its trace (:func:`release`) it serves the next trace of the same ``layout``: the
+    arrays get the new contents, the workspace and its prepared kernels stay. ``host`` keeps the host arrays
+    last copied, so an array the next trace passes again (the same memory: a BVH's records, a mesh's tables)
+    is not copied again — the policy of :func:`tofcore.backend.device_copy`: host tables are not changed in
+    place."""
 
+    arrays: tuple
+    host: tuple
     scene: tuple
     settings: tuple
     n_correlations: int
     max_depth: int
     bvh: object
+    layout: tuple
+    work: dict = field(default_factory=dict)
+
+
+_IDLE: dict = {}
+"""The device scene of the last finished trace, by layout (at most one, so its memory stays bounded)."""
 
 
 def upload(packed, bvh) -> DeviceScene:
-    """Copy the packed scene, camera, LED and channel tables to the GPU."""
+    """The packed scene, camera, LED and channel tables on the GPU: copied into the arrays of the last
+    finished trace's device scene where their shapes and types match (its kernels stay prepared), else
+    into new ones."""
     module = load_kernels()
     n_corr = len(packed.corr_kinds)
     if n_corr + 2 > module.GPU_MAX_CHANNELS:
         raise ValueError(f"the GPU tracer takes at most {module.GPU_MAX_CHANNELS - 2} correlation channels, "
                          f"got {n_corr}")
-    dev = cuda.to_device
     corr_table = packed.corr_table if n_corr else np.zeros((1, 6))  # numba types an empty table by a row
-    scene = (tuple(dev(np.ascontiguousarray(a)) for a in packed.geo), dev(packed.cam), dev(packed.cam_table),
-             dev(packed.frame), tuple(dev(np.ascontiguousarray(a)) for a in packed.leds), dev(packed.corr_kinds),
-             dev(corr_table))
-    settings = (packed.key, packed.max_depth, packed.independent, packed.light_paths)
-    return DeviceScene(scene, settings, n_corr, int(packed.max_depth), bvh)
+    host = (tuple(np.ascontiguousarray(a) for a in packed.geo), packed.cam, packed.cam_table, packed.frame,
+            tuple(np.ascontiguousarray(a) for a in packed.leds), packed.corr_kinds, corr_table)
+    settings = (packed.key, int(packed.max_depth), bool(packed.independent), bool(packed.light_paths))
+    layout = (tuple((a.shape, a.dtype.str) for a in _leaves(host)), int(packed.max_depth))
+    device_scene = _IDLE.pop(layout, None)
+    if device_scene is None:
+        arrays = _nest_map(_device_namespace().array, host)  # a copy: the host arrays stay the caller's
+        return DeviceScene(arrays, host, _nest_map(_kernel_array, arrays), settings, n_corr, int(packed.max_depth),
+                           bvh, layout)
+    for target, values, before in zip(_leaves(device_scene.arrays), _leaves(host), _leaves(device_scene.host)):
+        if _same_memory(values, before):
+            continue
+        if hasattr(target, "set"):
+            target.set(values)  # CuPy: one copy to the device
+        else:
+            target[...] = values
+    device_scene.host, device_scene.settings, device_scene.bvh = host, settings, bvh
+    return device_scene
+
+
+def _same_memory(a: np.ndarray, b: np.ndarray) -> bool:
+    """Whether host arrays ``a`` and ``b`` are the same memory seen the same way (``b`` is kept alive, so its
+    address cannot have been given to another array)."""
+    return (a.__array_interface__["data"][0] == b.__array_interface__["data"][0] and a.shape == b.shape
+            and a.strides == b.strides and a.dtype == b.dtype)
+
+
+def _device_namespace():
+    """CuPy, or NumPy under numba's CUDA simulator (tests)."""
+    from .. import backend
+
+    return np if numba.config.ENABLE_CUDASIM else backend.select_device("gpu").xp
+
+
+def release(device_scene: DeviceScene) -> None:
+    """Keep a finished trace's device scene for the next trace of its layout (dropping any other kept one)."""
+    _IDLE.clear()
+    _IDLE[device_scene.layout] = device_scene
 
 
 def launch_plan(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -132,7 +183,14 @@ def groups(active: np.ndarray, limit: int) -> list[tuple[int, int]]:
 def path_bytes(n_depth: int, n_corr: int, n_led: int) -> int:
     """Device bytes of one path's state in a group: what :func:`_group_arrays` allocates for one path."""
     arrays = _group_arrays(np, 1, n_depth, n_corr, n_led + 1, load_kernels().LIGHT_COLUMNS)
-    return sum(a.nbytes for v in arrays.values() for a in (v if isinstance(v, tuple) else (v,)))
+    return sum(a.nbytes for a in _leaves(arrays))
+
+
+def group_limit(device_scene: DeviceScene) -> int:
+    """Most paths a group holds: :data:`GROUP_BYTES` of path state, at most :data:`MAX_GROUP_PATHS`."""
+    n_led = int(device_scene.scene[4][0].shape[0])
+    return max(1, min(MAX_GROUP_PATHS, GROUP_BYTES // path_bytes(device_scene.max_depth,
+                                                                 device_scene.n_correlations, n_led)))
 
 
 def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.ndarray,
@@ -143,103 +201,218 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
     (R, J + 2, P) (a :class:`tofcore.tracer.transport.Transport` on the GPU); NumPy arrays under numba's
     CUDA simulator (tests). Per group of sample indices (:func:`groups`): start every path, trace the
     camera and light rays, the light vertices; per depth shade the live paths, trace the shadow rays that
-    need a test, resolve, trace the next rays; gather. Returns the pass's ray counts (N_COUNTERS,) on the host.
+    need a test, resolve, gather the depth's addends, trace the next rays. No synchronisation until the pass's ray counts are
+    read back at its end. Returns those counts (N_COUNTERS,) on the host.
     """
     from .. import backend
 
-    module = load_kernels()
     xp = backend.namespace(out.signal_sum)
-    bvh, scene, settings = device_scene.bvh, device_scene.scene, device_scene.settings
     n_pix = int(np.asarray(counts).size)
-    k_max, n_corr = device_scene.max_depth, device_scene.n_correlations
-    n_led = int(scene[4][0].shape[0])
-    slots = n_led + 1
     order, active = launch_plan(counts)
-    sums = (xp.zeros((k_max, n_pix)), xp.zeros((k_max, n_corr, n_pix)), xp.zeros((k_max, n_pix)),
-            xp.zeros((k_max, n_corr, n_pix)), xp.zeros(out.replicate_sum.shape))
-    dev_sums = _kernel_arrays(sums)
-    rays_counted = xp.zeros(N_COUNTERS, np.int64)
-    pixels = tuple(cuda.to_device(np.ascontiguousarray(a, dtype=np.int64)) for a in (order, first, counts))
-    limit = max(1, min(MAX_GROUP_PATHS, GROUP_BYTES // path_bytes(k_max, n_corr, n_led)))
-
-    def launch(kernel, n, *args):
-        kernel[(n + threads_per_block - 1) // threads_per_block, threads_per_block](*args)
-
-    for s0, s1 in groups(active, limit):
-        offsets = np.concatenate([[0], np.cumsum(active[s0:s1])]).astype(np.int64)
-        group = (*pixels, s0, cuda.to_device(offsets))
-        arrays = _group_arrays(xp, int(offsets[-1]), k_max, n_corr, slots, module.LIGHT_COLUMNS)
-        _trace_group(module, device_scene, group, arrays, launch)
-        t = time.perf_counter()
-        launch(module.wf_gather, int(offsets[1]), group, _kernel_array(arrays["path"][1]),
-               _kernel_arrays(arrays["contrib"]), _kernel_array(arrays["total"]), dev_sums)
-        rays_counted += arrays["counters"].sum(axis=1)
-        _stage_done("gather", t)
-    nee_w, nee_wg, con_w, con_wg, replicate = sums
+    offsets = np.concatenate([[0], np.cumsum(active)]).astype(np.int64)
+    plan = [(s0, s1, int(offsets[s1] - offsets[s0])) for s0, s1 in groups(active, group_limit(device_scene))]
+    ws = workspace(device_scene, xp, n_pix, len(offsets), max((n for *_, n in plan), default=0), threads_per_block)
+    ws.begin_pass(device_scene.settings, order, first, offsets)
+    for s0, s1, n in plan:
+        ws.trace_group(device_scene.bvh, s0, s1, n, int(active[s0]))
+    nee_w, nee_wg, con_w, con_wg, replicate = ws.sums
     out.signal_sum += con_w          # the reference's order: connections, then next-event estimates
     out.signal_sum += nee_w
     out.correlation_sum += con_wg
     out.correlation_sum += nee_wg
     out.replicate_sum += replicate
-    return backend.to_host(rays_counted)
+    return ws.end_pass()
+
+
+def workspace(device_scene: DeviceScene, xp, n_pix: int, n_offsets: int, n_paths: int,
+              threads_per_block: int) -> Workspace:
+    """The scene's :class:`Workspace` for a pass of ``n_pix`` pixels, ``n_offsets`` − 1 sample indices and
+    groups of at most ``n_paths`` paths: the last pass's where it has the room, else a new one (with twice
+    the room it grows from, as far as :func:`group_limit` allows, so progressive passes make few)."""
+    ws = device_scene.work.get("wavefront")
+    if (ws is not None and ws.n_pix == n_pix and ws.limit >= n_paths and len(ws.offsets) >= n_offsets
+            and ws.threads_per_block == threads_per_block):
+        return ws
+    grown = 2 * ws.limit if ws is not None and ws.n_pix == n_pix else 0
+    paths = max(n_paths, min(grown, group_limit(device_scene)), 1)
+    room = max(n_offsets, 2 * len(ws.offsets) if ws is not None else 0, 65)
+    ws = device_scene.work["wavefront"] = None  # the old buffers go back to the pool before new ones are taken
+    ws = device_scene.work["wavefront"] = Workspace(device_scene, xp, n_pix, paths, room, threads_per_block)
+    return ws
+
+
+class Workspace:
+    """The wavefront's device buffers for one render's passes and its kernels prepared over them
+    (:class:`tofcore.compiled.launch.PreparedKernel`): from group to group only the group's bounds (s0,
+    s1, n) and the depth change, so each stage is one ``cuLaunchKernel`` and each ray set one traversal
+    launch — no allocation, no host synchronisation inside a pass."""
+
+    def __init__(self, device_scene: DeviceScene, xp, n_pix: int, limit: int, room: int, threads_per_block: int):
+        from ..tracer import qmc
+
+        module = load_kernels()
+        self.xp, self.n_pix, self.limit, self.max_depth = xp, n_pix, limit, device_scene.max_depth
+        self.threads_per_block = threads_per_block
+        k_max, n_corr = device_scene.max_depth, device_scene.n_correlations
+        self.slots = int(device_scene.scene[4][0].shape[0]) + 1
+        self.n_corr = n_corr
+        self.arrays = _group_arrays(xp, limit, k_max, n_corr, self.slots, module.LIGHT_COLUMNS)
+        a = self.arrays
+        self.hits = (xp.empty(limit, np.int32), xp.empty(limit, np.float32), xp.empty(limit, np.float32),
+                     xp.empty(limit, np.float32))  # prim, u, v, t
+        self.light_hits = tuple(xp.empty_like(h) for h in self.hits)
+        self.light_t_max = xp.full(limit, np.inf, np.float32)
+        self.occluded = xp.zeros(limit * self.slots, np.bool_)
+        self.status = xp.zeros(1, np.int32)
+        self.pixels = (xp.zeros(n_pix, np.int64), xp.zeros(n_pix, np.int64))  # order, first
+        self.offsets = xp.zeros(room, np.int64)
+        self.sums = (xp.zeros((k_max, n_pix)), xp.zeros((k_max, n_corr, n_pix)), xp.zeros((k_max, n_pix)),
+                     xp.zeros((k_max, n_corr, n_pix)), xp.zeros((qmc.REPLICATES, n_corr + 2, n_pix)))
+        k = _kernel_arrays
+        scene = device_scene.scene
+        settings = (Slot("key", np.uint64), Slot("max_depth"), Slot("independent", np.bool_),
+                    Slot("light_paths", np.bool_))  # the sampler's: set per pass (begin_pass)
+        group = (*k(self.pixels), _kernel_array(self.offsets), Slot("s0"), Slot("s1"))
+        path, counters = k(a["path"]), _kernel_array(a["counters"])
+        buffers = (k(a["pstate"]), _kernel_array(a["light"]), k(a["pend"]), k(a["shadow"]), k(a["rays"]), counters)
+        self.arguments = {
+            "wf_start": (scene, settings, group, path, buffers[0], buffers[4], k(a["light_rays"]), counters),
+            "wf_light": (scene, settings, Slot("n"), path, k(self.light_hits[:3]), buffers[1]),
+            "wf_shade": (scene, settings, Slot("depth"), Slot("n"), path, k(self.hits[:3]), buffers),
+            "wf_resolve": (scene, Slot("depth"), Slot("n"), path, buffers[2], _kernel_array(self.occluded),
+                           _kernel_array(a["total"]), k(a["contrib"])),
+            "wf_gather": (group, Slot("depth"), _kernel_array(a["path"][1]), k(a["contrib"]),
+                          _kernel_array(a["total"]), k(self.sums))}
+        """Each stage kernel's arguments (:class:`tofcore.compiled.launch.Slot` where they change)."""
+        self.kernels = {name: PreparedKernel(getattr(module, name), arguments, threads_per_block)
+                        for name, arguments in self.arguments.items()}
+
+    def begin_pass(self, settings: tuple, order: np.ndarray, first: np.ndarray, offsets: np.ndarray) -> None:
+        """Set the sampler's ``settings`` (key, max_depth, independent, light_paths); upload the pass's pixel
+        order, first sample indices and offsets; zero its sums and ray counts."""
+        xp = self.xp
+        values = dict(zip(("key", "max_depth", "independent", "light_paths"), settings))
+        for name in ("wf_start", "wf_light", "wf_shade"):
+            self.kernels[name].set(**values)
+        self.light_paths = bool(values["light_paths"])
+        self.pixels[0][:] = xp.asarray(order, dtype=np.int64)
+        self.pixels[1][:] = xp.asarray(first, dtype=np.int64)
+        self.offsets[:len(offsets)] = xp.asarray(offsets)
+        for a in (*self.sums, self.arrays["counters"]):
+            a.fill(0)
+
+    def trace_group(self, bvh, s0: int, s1: int, n: int, lead: int) -> None:
+        """The stages of the group of sample indices [s0, s1) (n paths; ``lead`` pixels in its first index):
+        start, light vertices, then per depth trace, shade, trace the shadow rays, resolve, gather. Every
+        slot is traced at every depth: an ended path's ray and a shadow slot without a test have t_max −1,
+        which the traversal rejects at the root — no compaction and no host synchronisation to count them."""
+        a, tr, kernel = self.arrays, _traversal(), self.kernels
+        a["total"].fill(0)
+        t = _stage_done("zero", time.perf_counter())
+        kernel["wf_start"].launch(n, s0=s0, s1=s1)
+        t = _stage_done("start", t)
+        if self.light_paths:
+            o, d, ig = a["light_rays"]
+            tr.closest_hits_into(bvh, (o, d, self.light_t_max, ig), n, self.light_hits, self.status)
+            t = _stage_done("trace", t)
+            kernel["wf_light"].launch(n, n=n)
+            t = _stage_done("light", t)
+        rays, shadow = a["rays"], a["shadow"]
+        for depth in range(1, self.max_depth + 1):
+            tr.closest_hits_into(bvh, (rays[0], rays[1], rays[3], rays[2]), n, self.hits, self.status)
+            t = _stage_done("trace", t)
+            kernel["wf_shade"].launch(n, depth=depth, n=n)
+            t = _stage_done("shade", t)
+            tr.occluded_into(bvh, (shadow[0], shadow[1], shadow[2], shadow[3]), n * self.slots, self.occluded,
+                             self.status)
+            t = _stage_done("trace shadows", t)
+            kernel["wf_resolve"].launch(n, depth=depth, n=n)
+            t = _stage_done("resolve", t)
+            kernel["wf_gather"].launch(lead * self.gather_outputs(depth), depth=depth, s0=s0, s1=s1)
+            t = _stage_done("gather", t)
+
+    def gather_outputs(self, depth: int) -> int:
+        """Sums per pixel that wf_gather adds to after ``depth`` (kernels.gather_outputs)."""
+        n_corr = self.n_corr
+        return (1 + n_corr) * (2 if depth < self.max_depth else 1) + (n_corr + 2 if depth == self.max_depth else 0)
+
+    def end_pass(self) -> np.ndarray:
+        """The pass's ray counts (N_COUNTERS,) on the host (the pass's one synchronisation), after checking
+        that no traversal overflowed its stack."""
+        from .. import backend
+
+        _traversal().check_status(self.status)
+        return backend.to_host(self.arrays["counters"].sum(axis=1))
+
+
+def _traversal():
+    """The traversal of the rays (tofcore.gpu.traversal on the GPU; the NumPy BVH under the simulator)."""
+    if numba.config.ENABLE_CUDASIM:
+        return _SimulatedTraversal
+    from ..gpu import traversal
+
+    return traversal
+
+
+class _SimulatedTraversal:
+    """tofcore.gpu.traversal's wavefront entry points over the NumPy BVH (numba's CUDA simulator, tests)."""
+
+    @staticmethod
+    def closest_hits_into(bvh, rays, n, hits, status):
+        if n:
+            o, d, t_max, ignore = (r[:n] for r in rays)
+            h = bvh.intersect(o, d, t_max, ignore_prim=ignore)
+            for dst, src in zip(hits, (h.prim, h.u, h.v, h.t)):
+                dst[:n] = src
+
+    @staticmethod
+    def occluded_into(bvh, rays, n, out, status):
+        if n:
+            o, d, t_max, ignore = (r[:n] for r in rays)
+            out[:n] = bvh.occluded(o, d, t_max, ignore_prim=ignore)
+
+    @staticmethod
+    def check_status(status):
+        pass
 
 
 def _group_arrays(xp, n: int, k_max: int, n_corr: int, slots: int, light_columns: int) -> dict:
     """The per-path arrays of a group of ``n`` paths (the table in kernels.py's wavefront section)."""
     f32, i32 = np.float32, np.int32
     return {"path": (xp.empty(n, np.int64), xp.empty(n, np.int64), xp.zeros(n, np.int8), xp.zeros(n, np.int8)),
-            "pstate": (xp.empty((n, 13)), xp.empty(n, i32)),
+            "pstate": (xp.empty((13, n)), xp.empty(n, i32)),
             "rays": (xp.empty((n, 3), f32), xp.empty((n, 3), f32), xp.empty(n, i32), xp.empty(n, f32)),
             "light_rays": (xp.zeros((n, 3), f32), xp.zeros((n, 3), f32), xp.full(n, -1, i32)),
-            "light": xp.zeros((n, light_columns)),
-            "pend": (xp.zeros((n, slots)), xp.zeros((n, slots))),
+            "light": xp.zeros((light_columns, n)),
+            "pend": (xp.zeros((slots, n)), xp.zeros((slots, n))),
             "shadow": (xp.zeros((n * slots, 3), f32), xp.zeros((n * slots, 3), f32), xp.zeros(n * slots, f32),
                        xp.full(n * slots, -1, i32)),
             "total": xp.zeros((n_corr + 2, n)),
-            "contrib": (xp.zeros((k_max, n)), xp.zeros((k_max, n_corr, n)), xp.zeros((k_max, n)),
-                        xp.zeros((k_max, n_corr, n))),
+            "contrib": (xp.zeros((n_corr + 1, n)), xp.zeros((n_corr + 1, n))),
             "counters": xp.zeros((N_COUNTERS, n), np.int64)}
 
 
-def _trace_group(module, device_scene: DeviceScene, group: tuple, arrays: dict, launch) -> None:
-    """The stages of one group up to its gather: start, light vertices, then per depth trace, shade, trace
-    the shadow rays, resolve. Every slot is traced at every depth: an ended path's ray and a shadow slot
-    without a test have t_max −1, which the traversal rejects at the root — no compaction and no host
-    synchronisation to count them."""
-    bvh, scene, settings = device_scene.bvh, device_scene.scene, device_scene.settings
-    k = _kernel_arrays
-    n = int(arrays["path"][0].shape[0])
-    rays, light_rays, shadow = arrays["rays"], arrays["light_rays"], arrays["shadow"]
-    path, counters = k(arrays["path"]), _kernel_array(arrays["counters"])
-    buffers = (k(arrays["pstate"]), _kernel_array(arrays["light"]), k(arrays["pend"]), k(shadow), k(rays), counters)
-    t = _stage_done("allocate", time.perf_counter())
-    launch(module.wf_start, n, scene, settings, group, path, buffers[0], buffers[4], k(light_rays), counters)
-    t = _stage_done("start", t)
-    if settings[3]:
-        h = bvh.intersect(light_rays[0], light_rays[1])
-        t = _stage_done("trace", t)
-        launch(module.wf_light, n, scene, settings, path, k((h.prim, h.u, h.v)), buffers[1])
-        t = _stage_done("light", t)
-    total, contrib = _kernel_array(arrays["total"]), k(arrays["contrib"])
-    for depth in range(1, device_scene.max_depth + 1):
-        h = bvh.intersect(rays[0], rays[1], rays[3], ignore_prim=rays[2])
-        t = _stage_done("trace", t)
-        launch(module.wf_shade, n, scene, settings, depth, path, k((h.prim, h.u, h.v)), buffers)
-        t = _stage_done("shade", t)
-        occluded = bvh.occluded(shadow[0], shadow[1], shadow[2], ignore_prim=shadow[3])
-        t = _stage_done("trace shadows", t)
-        launch(module.wf_resolve, n, scene, depth, path, buffers[2], _kernel_array(occluded), total, contrib)
-        t = _stage_done("resolve", t)
+def _leaves(tree):
+    """The arrays of a nest of dicts and tuples."""
+    if isinstance(tree, dict):
+        tree = tuple(tree.values())
+    if isinstance(tree, tuple):
+        return [a for t in tree for a in _leaves(t)]
+    return [tree]
+
+
+def _nest_map(function, tree: tuple) -> tuple:
+    """``tree`` (nested tuples) with ``function`` applied to each leaf."""
+    return tuple(_nest_map(function, t) if isinstance(t, tuple) else function(t) for t in tree)
 
 
 def _kernel_arrays(arrays: tuple) -> tuple:
-    """Arrays as the kernels take them (:func:`_kernel_array`), converted once per group, not per launch."""
+    """Arrays as the kernels take them (:func:`_kernel_array`)."""
     return tuple(_kernel_array(a) for a in arrays)
 
 
 def _kernel_array(a):
-    """A CuPy array as numba sees it (one conversion per pass, not per launch); a NumPy array as it is
-    (numba's CUDA simulator)."""
+    """A CuPy array as numba sees it; a NumPy array as it is (numba's CUDA simulator)."""
     return cuda.as_cuda_array(a) if hasattr(a, "__cuda_array_interface__") else a
 
 
@@ -262,7 +435,7 @@ def trace_frame(packed, bvh, n_pix: int, spp: int, threads_per_block: int = THRE
     from .. import backend
     from ..tracer import qmc
 
-    xp = np if numba.config.ENABLE_CUDASIM else backend.select_device("gpu").xp
+    xp = _device_namespace()
     start = time.perf_counter()
     device_scene = upload(packed, bvh)
     n_corr = device_scene.n_correlations

@@ -43,7 +43,8 @@ from .layout import LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE,
 GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
 M1, M2 = _rng._M1, _rng._M2
 S11, S27, S30, S31 = _rng._S11, _rng._S27, _rng._S30, _rng._S31
-U1, U2, U4, U8, U16, U24, U32 = (np.uint64(k) for k in (1, 2, 4, 8, 16, 24, 32))
+U0, U1, U2, U4, U8, U16, U24, U32 = (np.uint64(k) for k in (0, 1, 2, 4, 8, 16, 24, 32))
+V31 = np.uint64(1 << 31)
 MASK32 = np.uint64(0xFFFFFFFF)
 BYTE = np.uint64(0xFF)
 C55, C33, C0F, C00FF = (np.uint64(c) for c in (0x55555555, 0x33333333, 0x0F0F0F0F, 0x00FF00FF))
@@ -177,10 +178,32 @@ def owen_scramble(x, seed):
 
 
 @fn
-def sobol_dim1(index):
+def sobol_dim1_lookup(index):
     """Sobol' dimension 2 of a 32-bit index by four byte lookups (tofcore.qmc.sobol_2d)."""
     return (SOBOL[0, np.int64(index & BYTE)] ^ SOBOL[1, np.int64((index >> U8) & BYTE)]
             ^ SOBOL[2, np.int64((index >> U16) & BYTE)] ^ SOBOL[3, np.int64(index >> U24)])
+
+
+@fn
+def sobol_dim1_bits(index):
+    """Sobol' dimension 2 of a 32-bit index bit by bit, the same number as :func:`sobol_dim1_lookup`: bit b
+    of the index toggles v_b = m_b · 2^(31 − b) with m_0 = 1, m_(b+1) = m_b ⊕ 2 m_b, so v_(b+1) = v_b ⊕
+    (v_b >> 1) (tofcore.qmc._sobol_dim1_tables). On the GPU a table would sit in constant memory, whose
+    loads a warp serialises when its threads read different entries (wf_start stalled 114 cycles per
+    instruction on them); 32 shifts and XORs in registers do not."""
+    out = U0
+    v = V31
+    rest = index
+    for _ in range(32):
+        if rest & U1:
+            out ^= v
+        rest >>= U1
+        v ^= v >> U1
+    return out
+
+
+sobol_dim1 = sobol_dim1_bits if cuda is not None else sobol_dim1_lookup
+"""Sobol' dimension 2: by lookups on the CPU (its caches serve them in a few cycles), bit by bit on the GPU."""
 
 
 @fn
@@ -1121,77 +1144,92 @@ GPU_MAX_CHANNELS = 32
 # The same path as trace_path, cut where it traces rays: each kernel advances every path of a launch
 # group by one stage and leaves its rays in buffers that tofcore.gpu.traversal (a lean kernel, one thread
 # per ray, bit for bit the NumPy traversal) traces in between; tofcore.compiled.cuda.trace_pass drives
-# them. A group holds the paths of sample indices s0 ≤ s < s1 of a pass, path j of lane l = s − s0 being
-# pixel order[j − offsets[l]]. Per-path state in global memory (column or row j):
+# them. A group holds the paths of sample indices s0 ≤ s < s1 of a pass: with offsets[s] the pass's paths
+# of sample indices below s, path j of the group has sample index l where offsets[l] ≤ offsets[s0] + j <
+# offsets[l + 1] and is pixel order[offsets[s0] + j − offsets[l]]; the group has n = offsets[s1] −
+# offsets[s0] paths. The buffers below are the pass's, sized for its largest group (rows j ≥ n unused),
+# so a launch's arguments are the same from group to group (tofcore.compiled.launch).
+# Per-path state in global memory, column j of (values, paths) tables, so that a warp's threads read and
+# write neighbouring words (rows of (n, 3) only for the rays the traversal reads, 12 bytes a ray):
 #   path    = (pixel, sample, alive, shaded)                  int64 ×2, int8 ×2
-#   pstate  = (f (n, 13), prev_prim (n,))                     f: β, path length, prev pdf, prev delta,
+#   pstate  = (f (13, n), prev_prim (n,))                     f: β, path length, prev pdf, prev delta,
 #                                                             prev point xyz, origin xyz, direction xyz
 #   rays    = (origin (n, 3) f32, direction (n, 3) f32, ignore (n,) i32, t_max (n,) f32)   the next
 #             closest-hit ray; t_max −1 for a path that has ended (the traversal leaves it at the root)
 #   hits    = (prim (n,) i32, u (n,) f32, v (n,) f32)
-#   light   = (n, 28) float64: the light tuple of light_vertex_at, flattened (LIGHT_* columns)
-#   pend    = (w (n, L + 1), tau (n, L + 1))                  next-event estimates (LED i) and the
-#                                                             connection (column L) before their shadow test
+#   light   = (28, n) float64: the light tuple of light_vertex_at, flattened (LIGHT_* rows)
+#   pend    = (w (L + 1, n), tau (L + 1, n))                  next-event estimates (LED i) and the
+#                                                             connection (row L) before their shadow test
 #   shadow  = (origin (n(L+1), 3), direction, t_max, ignore)  their shadow rays; t_max −1: no test
-#   contrib = (nee_w (K, n), nee_wg (K, J, n), con_w (K, n), con_wg (K, J, n))   the path's one addend per
-#             bucket; total (J + 2, n) its channel totals; counters (N_COUNTERS, n) its rays
-# wf_gather adds the contributions per pixel in sample order: the pass's sums are the CPU's, addend by addend.
+#   contrib = (nee (J + 1, n), con (J + 1, n))   the path's addends of the current depth: weight and
+#             channels of its next-event estimates (bucket depth − 1) and of its connection (bucket depth);
+#             total (J + 2, n) its channel totals; counters (N_COUNTERS, n) its rays
+# wf_gather adds each depth's addends per pixel in sample order: the pass's sums are the CPU's, addend by addend.
 LIGHT_FOUND, LIGHT_SURF, LIGHT_PARAMS, LIGHT_TO_LED, LIGHT_REST, LIGHT_COLUMNS = 0, 1, 16, 21, 24, 28
 NO_RAY = np.float32(-1.0)
 """t_max of a ray slot that traces nothing (an ended path, an estimate that needs no shadow test)."""
 
 
 @fn
-def store_vec(a, j, col, v):
-    a[j, col] = v[0]
-    a[j, col + 1] = v[1]
-    a[j, col + 2] = v[2]
+def store_vec(a, j, row, v):
+    """Rows row … row + 2 of column j of a (values, paths) table: a warp's threads write neighbouring words."""
+    a[row, j] = v[0]
+    a[row + 1, j] = v[1]
+    a[row + 2, j] = v[2]
 
 
 @fn
-def load_vec(a, j, col):
-    return a[j, col], a[j, col + 1], a[j, col + 2]
+def load_vec(a, j, row):
+    return a[row, j], a[row + 1, j], a[row + 2, j]
+
+
+@fn
+def store_xyz(a, j, v):
+    """Row j of an (n, 3) array (the rays the traversal reads: one ray's 12 bytes side by side)."""
+    a[j, 0] = v[0]
+    a[j, 1] = v[1]
+    a[j, 2] = v[2]
 
 
 @fn
 def store_light(out, j, light):
-    """Row j of the light table from a light tuple (light_vertex_at)."""
+    """Column j of the light table from a light tuple (light_vertex_at)."""
     surf = light[1]
-    out[j, LIGHT_FOUND] = 1.0 if light[0] else 0.0
+    out[LIGHT_FOUND, j] = 1.0 if light[0] else 0.0
     store_vec(out, j, LIGHT_SURF, surf[0])  # a heterogeneous tuple takes constant indices only
     store_vec(out, j, LIGHT_SURF + 3, surf[1])
     store_vec(out, j, LIGHT_SURF + 6, surf[2])
     store_vec(out, j, LIGHT_SURF + 9, surf[3])
     store_vec(out, j, LIGHT_SURF + 12, surf[4])
     params = surf[5]
-    out[j, LIGHT_PARAMS] = params[0]
-    out[j, LIGHT_PARAMS + 1] = params[1]
-    out[j, LIGHT_PARAMS + 2] = params[2]
-    out[j, LIGHT_PARAMS + 3] = params[3]
-    out[j, LIGHT_PARAMS + 4] = params[4]
+    out[LIGHT_PARAMS, j] = params[0]
+    out[LIGHT_PARAMS + 1, j] = params[1]
+    out[LIGHT_PARAMS + 2, j] = params[2]
+    out[LIGHT_PARAMS + 3, j] = params[3]
+    out[LIGHT_PARAMS + 4, j] = params[4]
     store_vec(out, j, LIGHT_TO_LED, light[2])
-    out[j, LIGHT_REST] = light[3]
-    out[j, LIGHT_REST + 1] = light[4]
-    out[j, LIGHT_REST + 2] = light[5]
-    out[j, LIGHT_REST + 3] = light[6]
+    out[LIGHT_REST, j] = light[3]
+    out[LIGHT_REST + 1, j] = light[4]
+    out[LIGHT_REST + 2, j] = light[5]
+    out[LIGHT_REST + 3, j] = light[6]
 
 
 @fn
 def load_light(table, j):
-    """The light tuple of row j (store_light)."""
+    """The light tuple of column j (store_light)."""
     surf = (load_vec(table, j, LIGHT_SURF), load_vec(table, j, LIGHT_SURF + 3), load_vec(table, j, LIGHT_SURF + 6),
             load_vec(table, j, LIGHT_SURF + 9), load_vec(table, j, LIGHT_SURF + 12),
-            (table[j, LIGHT_PARAMS], table[j, LIGHT_PARAMS + 1], table[j, LIGHT_PARAMS + 2],
-             table[j, LIGHT_PARAMS + 3], table[j, LIGHT_PARAMS + 4]))
-    return (table[j, LIGHT_FOUND] != 0.0, surf, load_vec(table, j, LIGHT_TO_LED), table[j, LIGHT_REST],
-            table[j, LIGHT_REST + 1], table[j, LIGHT_REST + 2], table[j, LIGHT_REST + 3])
+            (table[LIGHT_PARAMS, j], table[LIGHT_PARAMS + 1, j], table[LIGHT_PARAMS + 2, j],
+             table[LIGHT_PARAMS + 3, j], table[LIGHT_PARAMS + 4, j]))
+    return (table[LIGHT_FOUND, j] != 0.0, surf, load_vec(table, j, LIGHT_TO_LED), table[LIGHT_REST, j],
+            table[LIGHT_REST + 1, j], table[LIGHT_REST + 2, j], table[LIGHT_REST + 3, j])
 
 
 @fn
 def store_ray(rays, j, origin, direction, ignore):
     o, d, ig = rays[0], rays[1], rays[2]
-    store_vec(o, j, 0, origin)
-    store_vec(d, j, 0, direction)
+    store_xyz(o, j, origin)
+    store_xyz(d, j, direction)
     ig[j] = ignore
 
 
@@ -1199,25 +1237,26 @@ def store_ray(rays, j, origin, direction, ignore):
 def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
     """Stage 1: each path's pixel and sample, its camera ray and its light ray.
 
-    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), counts (P,), s0, offsets (m + 1,)).
+    ``launch`` = (order (P,) pixels by decreasing sample count, first (P,), offsets (≥ S + 1,) over the
+    pass's sample indices, s0, s1): the group of sample indices s0 ≤ s < s1 (the table above).
     """
     j = cuda.grid(1)
-    order, first, counts, s0, offsets = launch
-    m = offsets.shape[0] - 1
-    if j >= offsets[m]:
+    order, first, offsets, s0, s1 = launch
+    g = offsets[s0] + j  # the path's index in the pass
+    if g >= offsets[s1]:
         return
-    lo = 0  # the lane l with offsets[l] <= j < offsets[l + 1]
-    hi = m
+    lo = s0  # its sample index l: offsets[l] <= g < offsets[l + 1]
+    hi = s1
     while hi - lo > 1:
         mid = (lo + hi) // 2
-        if offsets[mid] <= j:
+        if offsets[mid] <= g:
             lo = mid
         else:
             hi = mid
-    p = order[j - offsets[lo]]
+    p = order[g - offsets[lo]]
     pixel, samples, alive, shaded = path
     pixel[j] = p
-    sample = first[p] + s0 + lo
+    sample = first[p] + lo
     samples[j] = sample
     shaded[j] = 0
     alive[j] = 1
@@ -1225,10 +1264,10 @@ def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
     rng = (key, p, sample, independent)
     origin, direction = camera_start(scene, rng)
     f = pstate[0]
-    f[j, 0] = 1.0
-    f[j, 1] = 0.0
-    f[j, 2] = 0.0
-    f[j, 3] = 0.0
+    f[0, j] = 1.0
+    f[1, j] = 0.0
+    f[2, j] = 0.0
+    f[3, j] = 0.0
     store_vec(f, j, 4, origin)
     store_vec(f, j, 7, origin)
     store_vec(f, j, 10, direction)
@@ -1243,11 +1282,12 @@ def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
 
 
 @gpu_kernel
-def wf_light(scene, settings, path, light_hits, light):
-    """Stage 2: the light vertex where each path's light ray hit (light_vertex_at), into the light table."""
+def wf_light(scene, settings, n, path, light_hits, light):
+    """Stage 2: the light vertex where each of the group's n paths' light ray hit (light_vertex_at), into the
+    light table."""
     j = cuda.grid(1)
     pixel, samples = path[0], path[1]
-    if j >= pixel.shape[0]:
+    if j >= n:
         return
     key, max_depth, independent, light_paths = settings
     ray = light_ray(scene[3], scene[4], (key, pixel[j], samples[j], independent))
@@ -1264,8 +1304,8 @@ def queue_next_events(leds, frame, vertex, state, path_length, j, buffers):
     n_led = leds[0].shape[0]
     for i in range(n_led):
         w, dist, led = led_estimate(frame, leds, vertex, state, i)
-        pend_w[j, i] = w
-        pend_tau[j, i] = (path_length + dist) / SPEED_OF_LIGHT_M_S
+        pend_w[i, j] = w
+        pend_tau[i, j] = (path_length + dist) / SPEED_OF_LIGHT_M_S
         if w > 0:
             if state[1] == 1 and leds[1][i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
                 counters[4, j] += 1
@@ -1283,14 +1323,14 @@ def queue_connection(vertex, throughput, path_length, j, buffers):
     into slot j(L+1) + L, as connect_light decides it."""
     light, shadow, counters = buffers[1], buffers[3], buffers[5]
     pend_w, pend_tau = buffers[2]
-    n_led = pend_w.shape[1] - 1
+    n_led = pend_w.shape[0] - 1
     y = load_light(light, j)
     w = 0.0
     extra = 0.0
     if y[0]:
         w, extra = light_estimate(vertex, throughput, y)
-    pend_w[j, n_led] = w
-    pend_tau[j, n_led] = (path_length + extra) / SPEED_OF_LIGHT_M_S
+    pend_w[n_led, j] = w
+    pend_tau[n_led, j] = (path_length + extra) / SPEED_OF_LIGHT_M_S
     if w > 0:
         k = j * (n_led + 1) + n_led
         o, d, t_max = shadow_ray(vertex[1], y[1][0], y[6])
@@ -1307,9 +1347,9 @@ def continue_path(surf, vertex, rng, depth, throughput, j, buffers):
     new_dir, weight, pdf, is_delta = next_direction(surf, vertex[2], rng, depth)
     if not (weight > 0 and dot(new_dir, surf[1]) > 0):
         return False
-    f[j, 0] = throughput * weight
-    f[j, 2] = pdf
-    f[j, 3] = 1.0 if is_delta else 0.0
+    f[0, j] = throughput * weight
+    f[2, j] = pdf
+    f[3, j] = 1.0 if is_delta else 0.0
     store_vec(f, j, 4, surf[0])
     origin = vertex[1]
     direction = divide(new_dir, norm(new_dir))
@@ -1323,15 +1363,15 @@ def continue_path(surf, vertex, rng, depth, throughput, j, buffers):
 
 
 @gpu_kernel
-def wf_shade(scene, settings, depth, path, hits, buffers):
-    """Stage 3 at ``depth``: the surface each live path hit, its next-event estimates and connection with
-    their shadow rays, and its next ray — trace_path's loop body, minus traversal.
+def wf_shade(scene, settings, depth, n, path, hits, buffers):
+    """Stage 3 at ``depth``: the surface each live path of the group's n hit, its next-event estimates and
+    connection with their shadow rays, and its next ray — trace_path's loop body, minus traversal.
 
     ``buffers`` = (pstate, light, pend, shadow, rays, counters), see the table above.
     """
     j = cuda.grid(1)
     pixel, samples, alive, shaded = path
-    if j >= pixel.shape[0]:
+    if j >= n:
         return
     shaded[j] = 0
     shadow, rays = buffers[3], buffers[4]
@@ -1346,12 +1386,12 @@ def wf_shade(scene, settings, depth, path, hits, buffers):
     geo = scene[0]
     key, max_depth, independent, light_paths = settings
     f = buffers[0][0]
-    throughput, path_length, prev_pdf, prev_delta = f[j, 0], f[j, 1], f[j, 2], f[j, 3] != 0.0
+    throughput, path_length, prev_pdf, prev_delta = f[0, j], f[1, j], f[2, j], f[3, j] != 0.0
     direction = load_vec(f, j, 10)
     surf = surface_at(geo, prim, hits[1][j], hits[2][j], load_vec(f, j, 7), direction)
     segment = norm(sub(surf[0], load_vec(f, j, 4)))
     path_length = path_length + segment
-    f[j, 1] = path_length
+    f[1, j] = path_length
     vertex = camera_vertex(geo, prim, surf, direction)
     use_mis = light_paths and depth >= 2
     bsdf_area_pdf = prev_pdf * dot(neg(direction), surf[1]) / (segment * segment) if use_mis else 0.0
@@ -1368,71 +1408,103 @@ def wf_shade(scene, settings, depth, path, hits, buffers):
 
 
 @gpu_kernel
-def wf_resolve(scene, depth, path, pend, occluded, total, contrib):
-    """Stage 4 at ``depth``: each shaded path's unoccluded next-event estimates and connection, as
-    add_next_events and add_connection compute them, into its addends (contrib) and its totals."""
+def wf_resolve(scene, depth, n, path, pend, occluded, total, contrib):
+    """Stage 4 at ``depth``: each shaded path's (of the group's n) unoccluded next-event estimates and
+    connection, as add_next_events and add_connection compute them, into its addends of this depth
+    (``contrib``, zero for a path that was not shaded) and its totals."""
     j = cuda.grid(1)
-    shaded = path[3]
-    if j >= shaded.shape[0] or shaded[j] == 0:
+    if j >= n:
         return
+    shaded = path[3]
     corr_kinds, corr_table = scene[5], scene[6]
-    nee_w, nee_wg, con_w, con_wg = contrib
-    pend_w, pend_tau = pend
-    n_led = pend_w.shape[1] - 1
+    nee, con = contrib
     n_corr = corr_kinds.shape[0]
-    wg = cuda.local.array(GPU_MAX_CHANNELS, np.float64)
-    for c in range(n_corr):
-        wg[c] = 0.0
-    w_sum = 0.0
+    for c in range(n_corr + 1):
+        nee[c, j] = 0.0
+        con[c, j] = 0.0
+    if shaded[j] == 0:
+        return
+    pend_w, pend_tau = pend
+    n_led = pend_w.shape[0] - 1
     for i in range(n_led):
-        w = 0.0 if occluded[j * (n_led + 1) + i] else pend_w[j, i]
-        tau = pend_tau[j, i]
-        w_sum += w
+        w = 0.0 if occluded[j * (n_led + 1) + i] else pend_w[i, j]
+        tau = pend_tau[i, j]
+        nee[0, j] += w
         for c in range(n_corr):
-            wg[c] += correlation(corr_kinds[c], corr_table[c], tau) * w
-    k = depth - 1
-    nee_w[k, j] = w_sum
-    total[0, j] += w_sum
-    for c in range(n_corr):
-        nee_wg[k, c, j] = wg[c]
-        total[1 + c, j] += wg[c]
+            nee[1 + c, j] += correlation(corr_kinds[c], corr_table[c], tau) * w
+    for c in range(n_corr + 1):
+        total[c, j] += nee[c, j]
     if shaded[j] == 2:
-        w = 0.0 if occluded[j * (n_led + 1) + n_led] else pend_w[j, n_led]
-        tau = pend_tau[j, n_led]
-        con_w[depth, j] = w
+        w = 0.0 if occluded[j * (n_led + 1) + n_led] else pend_w[n_led, j]
+        tau = pend_tau[n_led, j]
+        con[0, j] = w
         total[0, j] += w
         for c in range(n_corr):
             wg_c = correlation(corr_kinds[c], corr_table[c], tau) * w
-            con_wg[depth, c, j] = wg_c
+            con[1 + c, j] = wg_c
             total[1 + c, j] += wg_c
 
 
-@gpu_kernel
-def wf_gather(launch, samples, contrib, total, sums):
-    """Stage 5: add the group's paths to the pass's sums, one thread per pixel, its samples in sample order.
+@fn
+def gather_outputs(depth, n_depth, n_corr):
+    """How many sums :func:`wf_gather` adds each pixel's addends of ``depth`` to: the next-event weight and
+    channels (bucket depth − 1), the connection's (bucket depth, below the last depth), and at the last
+    depth the replicate channels (J + 2)."""
+    return (1 + n_corr) * (2 if depth < n_depth else 1) + (n_corr + 2 if depth == n_depth else 0)
 
-    ``launch`` as in :func:`wf_start`; thread i serves pixel order[i] (the pixels of lane 0 include every
-    later lane's). ``sums`` = (nee_w (K, P), nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate
-    (R, J + 2, P)): each pixel's addends arrive in the order trace_pixels adds them on the CPU.
-    """
-    i = cuda.grid(1)
-    order, offsets = launch[0], launch[4]
-    if i >= offsets[1]:
-        return
-    p = order[i]
-    nee_w, nee_wg, con_w, con_wg = contrib
-    pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate = sums
-    n_depth, n_corr = nee_wg.shape[0], nee_wg.shape[1]
-    for lane in range(offsets.shape[0] - 1):
+
+@fn
+def in_sample_order(start, source, row, i, offsets, s0, s1):
+    """``start`` + source[row, j] over the paths j of the pixel that thread i of :func:`wf_gather` serves,
+    added one by one in sample order."""
+    total = start
+    for lane in range(s0, s1):
         if i >= offsets[lane + 1] - offsets[lane]:
             break
-        j = offsets[lane] + i
-        for k in range(n_depth):
-            pass_nee_w[k, p] += nee_w[k, j]
-            pass_con_w[k, p] += con_w[k, j]
-            for c in range(n_corr):
-                pass_nee_wg[k, c, p] += nee_wg[k, c, j]
-                pass_con_wg[k, c, p] += con_wg[k, c, j]
-        r = samples[j] % replicate.shape[0]
-        for c in range(replicate.shape[1]):
-            replicate[r, c, p] += total[c, j]
+        total += source[row, offsets[lane] - offsets[s0] + i]
+    return total
+
+
+@gpu_kernel
+def wf_gather(launch, depth, samples, contrib, total, sums):
+    """Stage 5, after each depth's resolve: add the group's addends of ``depth`` to the pass's sums, one
+    thread per pixel and sum, each sum's addends in sample order; at the last depth also the paths' totals
+    to the replicate sums.
+
+    ``launch`` as in :func:`wf_start`; thread t = o · m + i serves pixel order[i] (the m pixels of sample
+    index s0 include every later index's) and sum o (:func:`gather_outputs`). ``sums`` = (nee_w (K, P),
+    nee_wg (K, J, P), con_w (K, P), con_wg (K, J, P), replicate (R, J + 2, P)): each pixel's addends arrive
+    in the order trace_pixels adds them on the CPU (a bucket's sums take one depth's addends only). One
+    thread per sum rather than per pixel: a pixel that adaptive sampling gives hundreds of samples would
+    otherwise keep one thread adding for milliseconds.
+    """
+    t = cuda.grid(1)
+    order, offsets, s0, s1 = launch[0], launch[2], launch[3], launch[4]
+    nee, con = contrib
+    pass_nee_w, pass_nee_wg, pass_con_w, pass_con_wg, replicate = sums
+    n_depth, n_corr = pass_nee_wg.shape[0], pass_nee_wg.shape[1]
+    m = offsets[s0 + 1] - offsets[s0]
+    if t >= m * gather_outputs(depth, n_depth, n_corr):
+        return
+    o = t // m
+    i = t - o * m
+    p = order[i]
+    per_kind = 1 + n_corr
+    n_con = per_kind if depth < n_depth else 0
+    if o < per_kind + n_con:
+        row = o % per_kind  # 0: the weight, else channel row − 1
+        if o < per_kind:
+            k, source, w_sum, wg_sum = depth - 1, nee, pass_nee_w, pass_nee_wg
+        else:
+            k, source, w_sum, wg_sum = depth, con, pass_con_w, pass_con_wg
+        if row == 0:
+            w_sum[k, p] = in_sample_order(w_sum[k, p], source, 0, i, offsets, s0, s1)
+        else:
+            wg_sum[k, row - 1, p] = in_sample_order(wg_sum[k, row - 1, p], source, row, i, offsets, s0, s1)
+        return
+    c = o - per_kind - n_con
+    for lane in range(s0, s1):
+        if i >= offsets[lane + 1] - offsets[lane]:
+            break
+        j = offsets[lane] - offsets[s0] + i
+        replicate[samples[j] % replicate.shape[0], c, p] += total[c, j]

@@ -55,11 +55,42 @@ def _rays(cp, bvh, origins, directions, t_max, ignore_prim):
 def _launch(cp, kernel_name, n, args):
     status = cp.zeros(1, cp.int32)
     if n:
-        kernel = _module(cp).get_function(kernel_name)
-        kernel(((n + _THREADS - 1) // _THREADS,), (_THREADS,), args + (status,))
-        if int(status[0]):
-            raise TofError("BVH: GPU traversal stack overflow (tree deeper than 32 levels); "
-                           "use device='cpu' for this scene")
+        _launch_into(cp, kernel_name, n, args, status)
+        check_status(status)
+
+
+def _launch_into(cp, kernel_name, n, args, status):
+    kernel = _module(cp).get_function(kernel_name)
+    kernel(((n + _THREADS - 1) // _THREADS,), (_THREADS,), args + (status,))
+
+
+def check_status(status) -> None:
+    """Raise if a traversal flagged a stack overflow in ``status`` (one synchronisation)."""
+    if int(status[0]):
+        raise TofError("BVH: GPU traversal stack overflow (tree deeper than 32 levels); "
+                       "use device='cpu' for this scene")
+
+
+def closest_hits_into(bvh, rays: tuple, n: int, hits: tuple, status) -> None:
+    """Closest hits of rays 0 … n − 1 of ``rays`` = (origins (≥ n, 3) f32, directions, t_max (≥ n,) f32,
+    ignore_prim (≥ n,) i32) into ``hits`` = (prim, u, v, t) CuPy arrays: :func:`intersect` without
+    allocating or synchronising — the wavefront's buffers are reused from group to group, and a stack
+    overflow is flagged in ``status`` for :func:`check_status` at the end of the pass."""
+    if n:
+        cp = backend.namespace(rays[0])
+        nodes, leaves = backend.device_copy(cp, bvh._nodes), backend.device_copy(cp, bvh._leaves)
+        prim, u, v, t = hits
+        _launch_into(cp, "closest_hit", n, (nodes, leaves, np.int32(leaves.shape[1]), *rays, np.int64(n),
+                                           t, prim, u, v), status)
+
+
+def occluded_into(bvh, rays: tuple, n: int, out, status) -> None:
+    """Any hit of rays 0 … n − 1 of ``rays`` (as :func:`closest_hits_into`) into the bool array ``out``:
+    :func:`occluded` without allocating or synchronising."""
+    if n:
+        cp = backend.namespace(rays[0])
+        nodes, leaves = backend.device_copy(cp, bvh._nodes), backend.device_copy(cp, bvh._leaves)
+        _launch_into(cp, "any_hit", n, (nodes, leaves, np.int32(leaves.shape[1]), *rays, np.int64(n), out), status)
 
 
 def intersect(bvh, origins, directions, t_max=None, ignore_prim=None, *, workers: int = 2, counters=None):

@@ -34,7 +34,7 @@ from .estimator import bsdf_strategy_weight
 from .light_paths import LightVertices, connect
 from .path import Contribution, PathState, Vertex
 from .setup import TraceSetup
-from .surface import dot, leaving, point_offset, rotate, shadow_ray, spawn_offset, surface_at
+from .surface import dot, leaving, point_offset, rotate, shadow_ray, spawn_offset, surface_at, surface_geometry
 from .transport import FirstHit, TraceStats
 
 
@@ -48,18 +48,18 @@ def first_hit(setup: TraceSetup, stats: TraceStats) -> FirstHit:
     hits = setup.scene.bvh.intersect(leaving(origin, d), d.astype(np.float32))
     stats.camera_rays += n
     hit = hits.prim >= 0
-    distance = xp.full(n, np.nan)
-    position = xp.full((n, 3), np.nan, np.float32)
-    normal = xp.full((n, 3), np.nan, np.float32)
-    material = xp.full(n, -1, np.int32)
-    obj = xp.full(n, -1, np.int32)
-    if hit.any():
-        surf = surface_at(setup.scene, setup.table, hits.prim[hit], hits.u[hit], hits.v[hit], origin[hit], d[hit])
-        distance[hit] = xp.linalg.norm(surf.position - setup.lens_center, axis=1)
-        position[hit] = surf.position + xp.asarray(setup.scene.origin_m)  # world frame
-        normal[hit] = surf.geometric_normal
-        material[hit] = setup.table.material_ids[hits.prim[hit]]
-        obj[hit] = setup.table.object_ids[hits.prim[hit]]
+    # Every pixel's ray through the same arithmetic (a miss's on triangle 0, then masked): no boolean indexing,
+    # which on the GPU is a host round trip per mask, and no `hit.any()` (one more, and a CUB reduction that
+    # NVRTC compiles for 1.5–2 s per array size in a fresh cache). A hit's numbers are those of its own row.
+    prim = xp.where(hit, hits.prim, 0)
+    with np.errstate(invalid="ignore"):
+        point, facing_normal = surface_geometry(setup.table, prim, hits.u, hits.v, origin, d)
+    distance = xp.where(hit, xp.linalg.norm(point - setup.lens_center, axis=1), np.nan)
+    position = xp.where(hit[:, None], (point + xp.asarray(setup.scene.origin_m)).astype(np.float32),
+                        np.float32(np.nan))  # world frame
+    normal = xp.where(hit[:, None], facing_normal.astype(np.float32), np.float32(np.nan))
+    material = xp.where(hit, setup.table.material_ids[prim], np.int32(-1)).astype(np.int32)
+    obj = xp.where(hit, setup.table.object_ids[prim], np.int32(-1)).astype(np.int32)
     shape = (cam.height, cam.width)
     host = backend.to_host
     return FirstHit(distance_m=host(distance).reshape(shape), position_m=host(position).reshape(shape + (3,)),

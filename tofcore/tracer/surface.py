@@ -199,25 +199,36 @@ class MaterialTable:
         return bool(self.textured)
 
 
-def surface_at(scene: Scene, table: MaterialTable, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
-               ray_origin: np.ndarray, ray_direction: np.ndarray) -> Surface:
-    """Surface where rays (float64 origins, unit directions; world frame) hit triangles ``prim`` at barycentrics (u, v)."""
+def surface_geometry(table: MaterialTable, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
+                     ray_origin: np.ndarray, ray_direction: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(position (N, 3), geometric normal (N, 3) facing the ray) where rays (float64 origins, unit
+    directions) hit triangles ``prim`` at barycentrics (u, v): float64 ray–plane intersection
+    p = o + t d, t = (v₀ − o)·n_g / (d·n_g) — the BVH's float32 barycentrics only select the triangle —
+    or the barycentric point where the ray grazes the plane (|d·n_g| ≤ 1e-9)."""
     tri = table.triangles[prim]
     w0 = (1.0 - u - v).astype(np.float64)[:, None]
     u64 = u.astype(np.float64)[:, None]
     v64 = v.astype(np.float64)[:, None]
     verts = table.vertices
     ng = table.face_normals[prim].astype(np.float64)
-    # Float64 ray-plane intersection (the BVH's float32 barycentrics only select the triangle).
     cos_ray = dot(ray_direction, ng)
     steep = np.abs(cos_ray) > 1e-9
     with np.errstate(divide="ignore", invalid="ignore"):
         t = dot(verts[tri[:, 0]].astype(np.float64) - ray_origin, ng) / cos_ray
     position = np.where(steep[:, None], ray_origin + t[:, None] * ray_direction,
                         w0 * verts[tri[:, 0]] + u64 * verts[tri[:, 1]] + v64 * verts[tri[:, 2]])
-
     facing = np.where(dot(ng, ray_direction) > 0, -1.0, 1.0)[:, None]
-    ng = ng * facing
+    return position, ng * facing
+
+
+def surface_at(scene: Scene, table: MaterialTable, prim: np.ndarray, u: np.ndarray, v: np.ndarray,
+               ray_origin: np.ndarray, ray_direction: np.ndarray) -> Surface:
+    """Surface where rays (float64 origins, unit directions; world frame) hit triangles ``prim`` at barycentrics (u, v)."""
+    position, ng = surface_geometry(table, prim, u, v, ray_origin, ray_direction)
+    tri = table.triangles[prim]
+    w0 = (1.0 - u - v).astype(np.float64)[:, None]
+    u64 = u.astype(np.float64)[:, None]
+    v64 = v.astype(np.float64)[:, None]
     if table.normals is not None:
         nrm = table.normals
         ns = _normalize(w0 * nrm[tri[:, 0]] + u64 * nrm[tri[:, 1]] + v64 * nrm[tri[:, 2]])

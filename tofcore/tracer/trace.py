@@ -150,6 +150,8 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
     finally:
         if shared is not None:
             parallel.unshare(shared, transport)
+        if tracer.packed is not None:
+            importlib.import_module(parallel.COMPILED_TRACER).release(tracer)
 
 
 def _parallel_settings(settings: TraceSettings, setup: TraceSetup) -> tuple[int, int]:
