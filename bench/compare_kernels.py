@@ -37,15 +37,24 @@ def load(name: str, path: Path):
 
 
 def tree_kernels(index: int, tree: Path):
-    """``tree``'s kernels.py as module ``tofcore.compiled.kernels_v<index>``, decorated by ``tree``'s _target.py."""
+    """``tree``'s kernels.py as module ``tofcore.compiled.kernels_v<index>``, decorated by ``tree``'s _target.py.
+
+    Its machine code is cached in ``tree``'s ``__pycache__/compare-v<index>``, not in the tree's own numba
+    cache: code cached under the module name ``kernels_v<index>`` cannot be loaded by a normal import.
+    """
+    import numba
+
     import tofcore.compiled._target as own
 
     compiled = tree / "tofcore" / "compiled"
+    before = numba.config.CACHE_DIR
+    numba.config.CACHE_DIR = str(compiled / "__pycache__" / f"compare-v{index}")
     sys.modules["tofcore.compiled._target"] = load(f"tofcore.compiled._target_v{index}", compiled / "_target.py")
     try:
         return load(f"tofcore.compiled.kernels_v{index}", compiled / "kernels.py")
     finally:
         sys.modules["tofcore.compiled._target"] = own
+        numba.config.CACHE_DIR = before
 
 
 def main() -> int:

@@ -338,32 +338,47 @@ def ray_frame(d):
 
 
 @fn
+def inverse_direction(d):
+    """1/d per axis in float32, components below 1e-30 in magnitude replaced by ±1e-30 (tofcore.bvh)."""
+    return (F32_ONE / (d[0] if abs(d[0]) >= TINY_DIR else (-TINY_DIR if d[0] < F32_ZERO else TINY_DIR)),
+            F32_ONE / (d[1] if abs(d[1]) >= TINY_DIR else (-TINY_DIR if d[1] < F32_ZERO else TINY_DIR)),
+            F32_ONE / (d[2] if abs(d[2]) >= TINY_DIR else (-TINY_DIR if d[2] < F32_ZERO else TINY_DIR)))
+
+
+@fn
+def push_child(stack, stack_t, top, first, child, t_in, any_hit):
+    """Push ``child`` entered at ``t_in`` above stack[top − 1]; for a closest hit, insertion-sorted into the
+    children pushed since ``first`` so the nearest is popped first. Returns the new top."""
+    j = top
+    while not any_hit and j > first and stack_t[j - 1] < t_in:
+        stack[j] = stack[j - 1]
+        stack_t[j] = stack_t[j - 1]
+        j -= 1
+    stack[j] = child
+    stack_t[j] = t_in
+    return top + 1
+
+
+@fn
 def traverse(bvh, o, d, t_max, ignore, any_hit, stack, stack_t):
     """Closest hit (or any hit) of one float32 ray over the 4-wide BVH records, with a per-ray stack.
 
     Same slab test as tofcore.bvh.BVH._trace (entry plane chosen by the sign of the direction, tiny
-    direction components replaced by ±1e-30, boxes clipped at the best t so far) and the same
-    watertight triangle test in float32 (the same products and sums in the same order; the divisions only
-    once the ray is inside the triangle). For a closest hit, children are visited near to far; an any-hit
-    ray, whose answer does not depend on the order, visits them as they come. Returns (t, prim, u, v);
-    prim −1 on a miss.
+    direction components replaced by ±1e-30 (:func:`inverse_direction`), boxes clipped at the best t so
+    far) and the same watertight triangle test in float32 (the same products and sums in the same order;
+    the divisions only once the ray is inside the triangle). For a closest hit, children are
+    visited near to far (:func:`push_child`); an any-hit ray, whose answer does not depend on the order,
+    visits them as they come. Returns (t, prim, u, v); prim −1 on a miss.
     ``bvh`` = (node planes, node children, leaf vertices, leaf triangles): the first four arrays of the
     scene tuple (tofcore.compiled.setup.scene_arrays); ``stack`` (int64) and ``stack_t`` (float32) are
     scratch arrays of STACK_SIZE entries, the first row of a node record and its entry distance.
     """
     nodes_f, nodes_i, leaves_f, leaves_i = bvh
-    inv = (F32_ONE / (d[0] if abs(d[0]) >= TINY_DIR else (-TINY_DIR if d[0] < F32_ZERO else TINY_DIR)),
-           F32_ONE / (d[1] if abs(d[1]) >= TINY_DIR else (-TINY_DIR if d[1] < F32_ZERO else TINY_DIR)),
-           F32_ONE / (d[2] if abs(d[2]) >= TINY_DIR else (-TINY_DIR if d[2] < F32_ZERO else TINY_DIR)))
+    inv = inverse_direction(d)
     # Entry-plane rows per axis: the box minimum (row a) for a positive direction, else the maximum (3 + a).
-    ex = 3 if d[0] < F32_ZERO else 0
-    ey = 4 if d[1] < F32_ZERO else 1
-    ez = 5 if d[2] < F32_ZERO else 2
+    ex, ey, ez = 3 if d[0] < F32_ZERO else 0, 4 if d[1] < F32_ZERO else 1, 5 if d[2] < F32_ZERO else 2
     b1, b2 = ray_frame(d)
-    best_t = t_max
-    best_prim = -1
-    best_u = F32_ZERO
-    best_v = F32_ZERO
+    best_t, best_prim, best_u, best_v = t_max, -1, F32_ZERO, F32_ZERO
     stack[0] = 0
     stack_t[0] = F32_ZERO
     top = 1
@@ -373,7 +388,7 @@ def traverse(bvh, o, d, t_max, ignore, any_hit, stack, stack_t):
             continue
         node = stack[top]
         first = top  # the children entered go to stack[first:top], far (bottom) to near (top)
-        for c in range(WIDTH):
+        for c in range(WIDTH):  # the slab test of child c, its exit clipped at the best t so far
             near_x = (nodes_f[node + ex, c] - o[0]) * inv[0]
             far_x = (nodes_f[node + 3 - ex, c] - o[0]) * inv[0]
             near_y = (nodes_f[node + ey, c] - o[1]) * inv[1]
@@ -381,51 +396,36 @@ def traverse(bvh, o, d, t_max, ignore, any_hit, stack, stack_t):
             near_z = (nodes_f[node + ez, c] - o[2]) * inv[2]
             far_z = (nodes_f[node + 7 - ez, c] - o[2]) * inv[2]
             t_in = max(max(max(near_x, near_y), near_z), F32_ZERO)
-            t_out = min(min(min(far_x, far_y), far_z), best_t)
-            if not t_in <= t_out:
+            if not t_in <= min(min(min(far_x, far_y), far_z), best_t):
                 continue
             child = nodes_i[node + CHILD_ROW, c]
-            if child < 0:  # a leaf: test its triangles now (tofcore.bvh._watertight, written out here: a
-                row = ~child  # call per triangle cost ≈ 8 % of the traversal)
-                for k in range(leaves_i.shape[1]):
-                    prim = leaves_i[row + PRIM_ROW, k]
-                    if prim < 0 or prim == ignore:
-                        continue
-                    ax, ay, az = leaves_f[row, k] - o[0], leaves_f[row + 1, k] - o[1], leaves_f[row + 2, k] - o[2]
-                    px, py, pz = leaves_f[row + 3, k] - o[0], leaves_f[row + 4, k] - o[1], leaves_f[row + 5, k] - o[2]
-                    cx, cy, cz = leaves_f[row + 6, k] - o[0], leaves_f[row + 7, k] - o[1], leaves_f[row + 8, k] - o[2]
-                    a1 = ax * b1[0] + ay * b1[1] + az * b1[2]
-                    a2 = ax * b2[0] + ay * b2[1] + az * b2[2]
-                    p1 = px * b1[0] + py * b1[1] + pz * b1[2]
-                    p2 = px * b2[0] + py * b2[1] + pz * b2[2]
-                    c1 = cx * b1[0] + cy * b1[1] + cz * b1[2]
-                    c2 = cx * b2[0] + cy * b2[1] + cz * b2[2]
-                    w_u = c1 * p2 - c2 * p1
-                    w_v = a1 * c2 - a2 * c1
-                    w_w = p1 * a2 - p2 * a1
-                    # The edge functions share a sign (zero counts as both): only then the divisions.
-                    if not ((w_u >= F32_ZERO and w_v >= F32_ZERO and w_w >= F32_ZERO)
-                            or (w_u <= F32_ZERO and w_v <= F32_ZERO and w_w <= F32_ZERO)):
-                        continue
-                    a3 = ax * d[0] + ay * d[1] + az * d[2]
-                    p3 = px * d[0] + py * d[1] + pz * d[2]
-                    c3 = cx * d[0] + cy * d[1] + cz * d[2]
-                    det = w_u + w_v + w_w
-                    t = (w_u * a3 + w_v * p3 + w_w * c3) / det
-                    if not (t > F32_ZERO and t < best_t):
-                        continue
-                    if any_hit:
-                        return t, prim, w_v / det, w_w / det
-                    best_t, best_prim, best_u, best_v = t, prim, w_v / det, w_w / det
+            if child >= 0:
+                top = push_child(stack, stack_t, top, first, child, t_in, any_hit)
                 continue
-            j = top
-            while not any_hit and j > first and stack_t[j - 1] < t_in:
-                stack[j] = stack[j - 1]
-                stack_t[j] = stack_t[j - 1]
-                j -= 1
-            stack[j] = child
-            stack_t[j] = t_in
-            top += 1
+            row = ~child  # a leaf: its triangles now (tofcore.bvh._watertight written out: a call costs)
+            for k in range(leaves_i.shape[1]):
+                prim = leaves_i[row + PRIM_ROW, k]
+                if prim < 0 or prim == ignore:
+                    continue
+                ax, ay, az = leaves_f[row, k] - o[0], leaves_f[row + 1, k] - o[1], leaves_f[row + 2, k] - o[2]
+                px, py, pz = leaves_f[row + 3, k] - o[0], leaves_f[row + 4, k] - o[1], leaves_f[row + 5, k] - o[2]
+                cx, cy, cz = leaves_f[row + 6, k] - o[0], leaves_f[row + 7, k] - o[1], leaves_f[row + 8, k] - o[2]
+                a1, a2 = ax * b1[0] + ay * b1[1] + az * b1[2], ax * b2[0] + ay * b2[1] + az * b2[2]
+                p1, p2 = px * b1[0] + py * b1[1] + pz * b1[2], px * b2[0] + py * b2[1] + pz * b2[2]
+                c1, c2 = cx * b1[0] + cy * b1[1] + cz * b1[2], cx * b2[0] + cy * b2[1] + cz * b2[2]
+                w_u, w_v, w_w = c1 * p2 - c2 * p1, a1 * c2 - a2 * c1, p1 * a2 - p2 * a1
+                # The edge functions share a sign (zero counts as both): only then the divisions.
+                if not ((w_u >= F32_ZERO and w_v >= F32_ZERO and w_w >= F32_ZERO)
+                        or (w_u <= F32_ZERO and w_v <= F32_ZERO and w_w <= F32_ZERO)):
+                    continue
+                det = w_u + w_v + w_w
+                t = (w_u * (ax * d[0] + ay * d[1] + az * d[2]) + w_v * (px * d[0] + py * d[1] + pz * d[2])
+                     + w_w * (cx * d[0] + cy * d[1] + cz * d[2])) / det
+                if not (t > F32_ZERO and t < best_t):
+                    continue
+                if any_hit:
+                    return t, prim, w_v / det, w_w / det
+                best_t, best_prim, best_u, best_v = t, prim, w_v / det, w_w / det
     return best_t, best_prim, best_u, best_v
 
 
@@ -1045,11 +1045,13 @@ def trace_path(scene, settings, pixel, sample, sums, work):
     total = sums[4]
     for c in range(total.shape[0]):
         total[c] = 0.0
-    # Strategy B's light vertex of this sample (light_paths.trace_light_vertices).
-    y = surface_at(geo, 0, F32_ZERO, F32_ZERO, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
-    light = (False, y, (0.0, 0.0, 1.0), 0.0, 0.0, 0.0, 0.0)
+    # Strategy B's light vertex of this sample (light_paths.trace_light_vertices); without light paths a
+    # placeholder of the same type that is never used.
     if light_paths:
         light = light_vertex(geo, scene[3], scene[4], rng, work)
+    else:
+        y = surface_at(geo, 0, F32_ZERO, F32_ZERO, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+        light = (False, y, (0.0, 0.0, 1.0), 0.0, 0.0, 0.0, 0.0)
     origin, direction = camera_start(scene, rng)
     prev_point = origin
     throughput = 1.0      # β
