@@ -119,3 +119,19 @@ def test_kinect_v2_white_depth_noise_within_25_percent_of_the_camera():
     sensor = tofcore.load_preset("kinect_v2")
     ratios = {z: _plane_depth_sigma_mm(sensor, z, seeds=24) / mm for z, mm in KINECT_WHITE_MM.items()}
     assert all(0.75 <= r <= 1.25 for r in ratios.values()), ratios
+
+
+def test_frequency_weights_average_but_do_not_judge_the_unwrapping():
+    """The Kinect's fixed weights give the low frequency, whose multipath error is the largest, 6× the weight
+    it has in the agreement test: the wrap is chosen and judged with the inverse-variance weights, and only the
+    output averages with the camera's. A 0.3 m multipath bias on 16 MHz alone (80 and 120 MHz agree) passes
+    the d_min/16 = 78 mm tolerance — its inverse-variance residual is ≈ 33 mm, its frequency-weighted one would
+    be ≈ 79 mm — and the distance is the frequency-weighted mean of the three unwrapped distances."""
+    true, bias = np.array([2.0, 3.1]), np.array([0.0, 0.3, 0.0])[:, None]
+    d_amb = np.asarray(KINECT.ambiguity_distances_m())[:, None]
+    amplitude = np.full((3, 2), 1000.0)
+    cw = decode.CwDecoding(phase=np.zeros((3, 2)), amplitude=amplitude, offset=amplitude,
+                           wrapped_distance=np.mod(true[None] + bias, d_amb))
+    got = decode.unwrap(cw, KINECT, weights="frequency")
+    assert not got.failed.any() and (got.residual < 0.04).all()
+    np.testing.assert_allclose(got.distance, true + 0.3 * 16 / 216, atol=1e-9)
