@@ -70,10 +70,14 @@ def share(setup: TraceSetup, transport: Transport) -> tuple[SharedTrace | None, 
         return None, f"the trace context does not pickle for worker processes ({exc})"
     except OSError as exc:  # no room in /dev/shm
         return None, f"no shared memory for worker processes ({exc})"
-    for name in _ACCUMULATORS:
-        if getattr(transport, name) is not None:
-            setattr(transport, name, shared.view(getattr(transport, name)))
-    return SharedTrace(shared, uuid.uuid4().hex, shared.view(first), shared.view(counts)), ""
+    try:
+        for name in _ACCUMULATORS:
+            if getattr(transport, name) is not None:
+                setattr(transport, name, shared.view(getattr(transport, name)))
+        return SharedTrace(shared, uuid.uuid4().hex, shared.view(first), shared.view(counts)), ""
+    except BaseException:  # Ctrl-C here: unlink the blocks, or the resource tracker reports them leaked
+        shared.close()
+        raise
 
 
 def unshare(run: SharedTrace, transport: Transport) -> None:

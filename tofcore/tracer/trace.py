@@ -120,14 +120,15 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
     spawn = n_workers > 1 and not dev.is_gpu and tracer.packed is None
     why_not = parallel.start_workers(n_workers) if spawn else "one"
     transport = _empty_transport(setup, first_hit(setup, stats), stats)
-    shared, why_not = (None, why_not) if why_not else parallel.share(setup, transport)
-    stats.parallel = "processes" if shared is not None else "one" if why_not == "one" else f"threads: {why_not}"
-    if tracer.packed is not None:
-        stats.parallel = importlib.import_module(parallel.COMPILED_TRACER).parallel_label(tracer, n_workers)
-    stats.setup_seconds = time.perf_counter() - start
-    n_pix = camera.width * camera.height
-    done = np.zeros(n_pix, np.int64)  # host copy of transport.sample_count
-    try:
+    shared = None
+    try:  # from the shared memory on, the finally releases it, whatever stops the trace (Ctrl-C included)
+        shared, why_not = (None, why_not) if why_not else parallel.share(setup, transport)
+        stats.parallel = "processes" if shared is not None else "one" if why_not == "one" else f"threads: {why_not}"
+        if tracer.packed is not None:
+            stats.parallel = importlib.import_module(parallel.COMPILED_TRACER).parallel_label(tracer, n_workers)
+        stats.setup_seconds = time.perf_counter() - start
+        n_pix = camera.width * camera.height
+        done = np.zeros(n_pix, np.int64)  # host copy of transport.sample_count
         with ThreadPoolExecutor(max_workers=n_workers) as threads:
             runner = parallel.PassRunner(setup, transport, shared, threads, n_workers, chunk_size, settings.cancel,
                                          compiled=tracer if tracer.packed is not None else None)

@@ -127,16 +127,16 @@ class Shared:
 
     def __init__(self, obj, always=()):
         self.blocks: list = []
-        buffer = io.BytesIO()
-        try:
+        try:  # whatever stops it (an error, Ctrl-C) unlinks the blocks made so far: none outlives the process
+            buffer = io.BytesIO()
             _SharingPickler(buffer, self.blocks, {id(a) for a in always}).dump(obj)
+            payload = buffer.getvalue()
+            block = shared_memory.SharedMemory(create=True, size=len(payload))
+            self.blocks.append((block, None, None))
+            block.buf[:len(payload)] = payload
         except BaseException:
             self.close()
             raise
-        payload = buffer.getvalue()
-        block = shared_memory.SharedMemory(create=True, size=len(payload))
-        block.buf[:len(payload)] = payload
-        self.blocks.append((block, None, None))
         self.ref = (block.name, len(payload))
 
     def view(self, array: np.ndarray) -> np.ndarray:
@@ -147,12 +147,19 @@ class Shared:
         raise KeyError("array was not shared")
 
     def close(self) -> None:
-        """Release and unlink the blocks (the workers' views close when they load the next render)."""
+        """Release and unlink the blocks (the workers' views close when they load the next render).
+
+        A block is unlinked even where it cannot be closed: an array still viewing it (after Ctrl-C, in
+        the frames of the traceback) keeps its mapping until the process ends, but its name must go now,
+        or the resource tracker reports it leaked at exit."""
         for block, _, _ in self.blocks:
             try:
                 block.close()
+            except BufferError:
+                pass
+            try:
                 block.unlink()
-            except (FileNotFoundError, BufferError):
+            except FileNotFoundError:
                 pass
         self.blocks = []
 
