@@ -95,7 +95,7 @@ $(VENV_BENCH)/.installed: pyproject.toml
 	@[ -n "$(LIBLLVM19)" ] || { echo "libLLVM 19 not found: apt-get update && apt-get install -y libllvm19"; exit 1; }
 	$(PYTHON) -m venv $(VENV_BENCH)
 	$(VENV_BENCH)/bin/python -m pip install --quiet --upgrade pip
-	$(VENV_BENCH)/bin/python -m pip install --quiet -e ".[bench]"
+	$(VENV_BENCH)/bin/python -m pip install --quiet -e ".[bench,compiled]"
 	touch $@
 
 bench-peers: venv $(VENV_BENCH)/.installed

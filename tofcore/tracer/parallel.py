@@ -81,11 +81,14 @@ def share(setup: TraceSetup, transport: Transport) -> tuple[SharedTrace | None, 
 
 
 def unshare(run: SharedTrace, transport: Transport) -> None:
-    """Give the transport private copies of its sums and release the shared memory."""
-    for name in _ACCUMULATORS:
-        if getattr(transport, name) is not None:
-            setattr(transport, name, np.array(getattr(transport, name)))
-    run.shared.close()
+    """Give the transport private copies of its sums and release the shared memory (also when the
+    copying is interrupted)."""
+    try:
+        for name in _ACCUMULATORS:
+            if getattr(transport, name) is not None:
+                setattr(transport, name, np.array(getattr(transport, name)))
+    finally:
+        run.shared.close()
 
 
 def run_in_processes(run: SharedTrace, n: int, done: np.ndarray, counts: np.ndarray, chunks, cancel):

@@ -22,7 +22,7 @@ from ..scene.ambient import Ambient
 from ..scene.camera import Camera
 from ..scene.led import LED
 from ..scene.scene import Scene
-from . import parallel, qmc
+from . import parallel, qmc, workers
 from .setup import Correlation, TraceSettings, TraceSetup, make_setup
 from .stages import first_hit
 from .transport import FirstHit, TraceStats, Transport
@@ -122,7 +122,8 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
     transport = _empty_transport(setup, first_hit(setup, stats), stats)
     shared = None
     try:  # from the shared memory on, the finally releases it, whatever stops the trace (Ctrl-C included)
-        shared, why_not = (None, why_not) if why_not else parallel.share(setup, transport)
+        with workers.sigint_blocked():  # a Ctrl-C meanwhile is raised once `shared` holds what to release
+            shared, why_not = (None, why_not) if why_not else parallel.share(setup, transport)
         stats.parallel = "processes" if shared is not None else "one" if why_not == "one" else f"threads: {why_not}"
         if tracer.packed is not None:
             stats.parallel = importlib.import_module(parallel.COMPILED_TRACER).parallel_label(tracer, n_workers)

@@ -84,9 +84,9 @@ def process_support() -> tuple[bool, str]:
 
 # ----------------------------------------------------------------------------------- sharing
 class _SharingPickler(pickle.Pickler):
-    def __init__(self, file, blocks: list, always: set[int]):
+    def __init__(self, file, shared: "Shared", always: set[int]):
         super().__init__(file, protocol=pickle.HIGHEST_PROTOCOL)
-        self.blocks = blocks
+        self.shared = shared
         self.always = always
         self.seen: dict[int, tuple] = {}
 
@@ -97,13 +97,12 @@ class _SharingPickler(pickle.Pickler):
             return None
         if id(obj) in self.seen:
             return self.seen[id(obj)][1]
-        _check_room(obj.nbytes)
-        block = shared_memory.SharedMemory(create=True, size=max(1, obj.nbytes))
+        block = self.shared.new_block(obj.nbytes)
         view = np.ndarray(obj.shape, obj.dtype, buffer=block.buf)
         view[...] = obj
         ref = ("shm", block.name, obj.shape, obj.dtype.str)
         self.seen[id(obj)] = (obj, ref)  # keep obj alive so its id is not reused while pickling
-        self.blocks.append((block, view, obj))
+        self.shared.views.append((view, obj))
         return ref
 
 
@@ -122,26 +121,34 @@ class Shared:
 
     ``always`` lists arrays to share whatever their size: those the workers write into (the parent
     reads the results through :meth:`view`). The pickle itself goes into a block too, so a task
-    carries only names.
+    carries only names. A block is listed in ``blocks`` as soon as it exists, so whatever stops the
+    construction (an error, Ctrl-C during a copy) unlinks every block made so far.
     """
 
     def __init__(self, obj, always=()):
-        self.blocks: list = []
-        try:  # whatever stops it (an error, Ctrl-C) unlinks the blocks made so far: none outlives the process
+        self.blocks: list[shared_memory.SharedMemory] = []
+        self.views: list[tuple[np.ndarray, np.ndarray]] = []  # (shared view, original array)
+        try:
             buffer = io.BytesIO()
-            _SharingPickler(buffer, self.blocks, {id(a) for a in always}).dump(obj)
+            _SharingPickler(buffer, self, {id(a) for a in always}).dump(obj)
             payload = buffer.getvalue()
-            block = shared_memory.SharedMemory(create=True, size=len(payload))
-            self.blocks.append((block, None, None))
+            block = self.new_block(len(payload))
             block.buf[:len(payload)] = payload
         except BaseException:
             self.close()
             raise
         self.ref = (block.name, len(payload))
 
+    def new_block(self, nbytes: int) -> shared_memory.SharedMemory:
+        """A new block of ``nbytes`` (at least 1), listed for :meth:`close` at once."""
+        _check_room(nbytes)
+        block = shared_memory.SharedMemory(create=True, size=max(1, nbytes))
+        self.blocks.append(block)
+        return block
+
     def view(self, array: np.ndarray) -> np.ndarray:
         """The shared copy of ``array`` (one of the arrays that was shared), writable by the workers."""
-        for _, view, original in self.blocks:
+        for view, original in self.views:
             if original is array:
                 return view
         raise KeyError("array was not shared")
@@ -152,7 +159,8 @@ class Shared:
         A block is unlinked even where it cannot be closed: an array still viewing it (after Ctrl-C, in
         the frames of the traceback) keeps its mapping until the process ends, but its name must go now,
         or the resource tracker reports it leaked at exit."""
-        for block, _, _ in self.blocks:
+        self.views = []
+        for block in self.blocks:
             try:
                 block.close()
             except BufferError:
