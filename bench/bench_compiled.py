@@ -17,6 +17,7 @@ Usage::
 
     .venv/bin/python bench/bench_compiled.py --kernels
     .venv/bin/python bench/bench_compiled.py --cpu-threads 1,2 --numpy --spp 16 [--json out.json]
+    python3 bench/bench_compiled.py --cpu-threads 16,8,2 --pixels-per-task 0,16,64   # the threads' task size
     python3 bench/bench_compiled.py --gpu --check --repeat 5 --cpu-threads 16 --json $OUT/compiled.json
 """
 
@@ -54,7 +55,7 @@ def cpu_trace(tracer: str, threads: int, args, kwargs) -> dict:
     t = tofcore.trace(*args, **kwargs, workers=threads)
     return {"tracer": t.stats.tracer, "threads": threads, "seconds": time.perf_counter() - start,
             "cpu_seconds_this_process": time.process_time() - cpu, "trace_seconds": t.stats.seconds,
-            "rays": t.stats.rays, "transport": t}
+            "setup_seconds": t.stats.setup_seconds, "rays": t.stats.rays, "transport": t}
 
 
 def packed_for(args, kwargs):
@@ -155,6 +156,9 @@ def kernel_costs(n: int = 200_000) -> dict:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cpu-threads", default="", help="comma list of numba thread counts for the CPU tracer")
+    p.add_argument("--pixels-per-task", default="",
+                   help="comma list of tofcore.compiled.cpu.PIXELS_PER_TASK values, each run with every --cpu-threads "
+                        "entry (0: numba's static split, one range per thread)")
     p.add_argument("--numpy", action="store_true", help="also time the NumPy tracer")
     p.add_argument("--numpy-workers", type=int, default=2, help="its worker processes (1: all in this process)")
     p.add_argument("--kernels", action="store_true", help="CPU-seconds per call of the compiled kernels")
@@ -168,11 +172,17 @@ def main() -> int:
     width, height = (int(x) for x in a.resolution.split("x"))
     args, kwargs = frame_args(width, height, a.spp)
     results: dict = {"frame": f"room 9.8k, {width}x{height}, {a.spp} spp, 5 vertices"}
-    for threads in [int(x) for x in a.cpu_threads.split(",") if x]:
-        r = cpu_trace("compiled", threads, args, kwargs)
-        r.pop("transport")
-        results[f"compiled_cpu_{threads}"] = r
-        print(json.dumps(r), flush=True)
+    for per_task in [int(x) for x in a.pixels_per_task.split(",") if x] or [None]:
+        if per_task is not None:
+            from tofcore.compiled import cpu
+
+            cpu.PIXELS_PER_TASK = per_task
+        for threads in [int(x) for x in a.cpu_threads.split(",") if x]:
+            r = cpu_trace("compiled", threads, args, kwargs)
+            r.pop("transport")
+            r["pixels_per_task"] = per_task
+            results[f"compiled_cpu_{threads}" + ("" if per_task is None else f"_per_task_{per_task}")] = r
+            print(json.dumps(r), flush=True)
     if a.kernels:
         results["kernels"] = kernel_costs()
         print(json.dumps(results["kernels"]), flush=True)
