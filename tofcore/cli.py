@@ -282,6 +282,12 @@ def _say_setup(args: argparse.Namespace, scene, sensor, ambient, device) -> None
             f"{'on after 16 spp' if args.adaptive else 'off'}")
     elif device.fallback_reason and not args.quiet:
         print(device_line, file=sys.stderr)  # --device auto fell back to the CPU: say which device ran and why
+    if not device.is_gpu and not args.quiet:
+        from . import compiled
+
+        if compiled.cpu_kernels_cached() is False:  # the first pass would otherwise seem to hang for ~40 s
+            print("compiled tracer: compiling its kernels once for this install (about 40 s on 2 cores; later "
+                  "renders load them in about a second; `tofcore warmup` compiles them ahead)", file=sys.stderr)
 
 
 def cmd_render(args: argparse.Namespace) -> int:

@@ -55,6 +55,7 @@ from .sensor import processing
 from .sensor.raw import raw_images
 from .tracer.estimator import allocate_samples
 from .tracer.budget import TimeBudget
+from .tracer.qmc import REPLICATES
 from .tracer.trace import next_pass_size, trace_progressive
 from .tracer.transport import Transport
 
@@ -315,10 +316,13 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
         for transport in passes:
             nominal += next_n
             elapsed = _clock() - start
-            sigma = backend.to_host(depth_standard_error(transport, sensor, n_raw))
+            counts = backend.to_host(transport.sample_count)
+            if counts.max() < REPLICATES:  # every pixel lacks a replicate: no estimate yet (1 and 2 spp; ~1.5 s saved)
+                sigma = np.full((sensor.camera.height, sensor.camera.width), np.nan)
+            else:
+                sigma = backend.to_host(depth_standard_error(transport, sensor, n_raw))
             if budget is not None:
                 budget.estimate_s = _clock() - start - elapsed
-            counts = backend.to_host(transport.sample_count)
             row = _convergence_row(transport, sensor, n_raw, sigma, counts, reference, elapsed, setup)
             log.append(row)
             if s.progress is not None:

@@ -79,3 +79,26 @@ def test_a_changed_constant_is_compiled_anew_not_loaded_stale(tmp_path):
     assert changed["value"] == changed["numpy"] != first["value"]
     assert changed["folder"] != first["folder"] == back["folder"]
     assert first["folder"].startswith(first["location"] + os.sep), "tofcore render --verbose names another folder"
+
+
+COLD_PROBE = "from tofcore import compiled; print(compiled.cpu_kernels_cached(), compiled.cache_location())"
+
+
+@needs_numba
+def test_a_cold_cache_is_recognised_before_the_render_so_the_command_can_say_it_compiles(tmp_path):
+    """An empty cache folder: False (tofcore render then says it compiles for ~40 s); TOFCORE_TRACER=numpy: None."""
+    def probe(**extra) -> tuple[str, str]:
+        env = dict(os.environ, PYTHONPATH=str(ROOT), NUMBA_CACHE_DIR=str(tmp_path))
+        env.pop("TOFCORE_TRACER", None)
+        env.update(extra)
+        out = subprocess.run([sys.executable, "-c", COLD_PROBE], env=env, capture_output=True, text=True,
+                             timeout=120, check=True).stdout.split()
+        return out[0], out[1]
+
+    cached, folder = probe()
+    assert cached == "False"
+    assert probe(TOFCORE_TRACER="numpy")[0] == "None"
+    index = Path(folder) / "compiled_1" / "kernels.trace_pixels-1093.py311.nbi"  # numba's index of the driver
+    index.parent.mkdir(parents=True)
+    index.write_bytes(b"")
+    assert probe()[0] == "True"

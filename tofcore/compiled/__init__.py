@@ -151,6 +151,20 @@ def _gpu_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, cancel)
                       skipped_shadow_rays=int(n[4]), chunk_seconds=time.perf_counter() - start)
 
 
+def cpu_kernels_cached() -> bool | None:
+    """Whether the CPU build of the kernels is in numba's cache (a render then loads it in about a second);
+    None where the compiled tracer will not run on the CPU (no numba, ``TOFCORE_TRACER=numpy``).
+
+    It looks for the index file numba writes for the driver, ``kernels.trace_pixels-*.nbi``, in the cache
+    folder of these kernels' constants; a driver cached for other argument types still compiles."""
+    if os.environ.get(TRACER_ENV, "").strip().lower() == "numpy" or numba_version() is None:
+        return None
+    from . import kernels  # decorating the kernels picks their cache folder; it compiles nothing
+
+    folder = cache_location()
+    return folder is not None and any(Path(folder).glob("**/kernels.trace_pixels-*.nbi"))
+
+
 def cache_location() -> str:
     """Where numba keeps the compiled kernels: the CPU build's folder once the kernels are imported
     (:func:`tofcore.compiled._target.cache_folder`); else, as for the CUDA build, ``NUMBA_CACHE_DIR``, else
