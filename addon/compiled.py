@@ -80,6 +80,20 @@ def last_tracer() -> dict:
     return dict(_last)
 
 
+def first_status(camera: str, device: str) -> str:
+    """The status bar's text while a render's first pass runs: a CPU render whose compiled kernels are not
+    cached yet compiles them first (minutes, and Esc only takes effect after them), which it says."""
+    first = f"ToF render of {camera!r}: first pass… (Esc to cancel)"
+    if device != "cpu":
+        return first
+    from tofcore import compiled
+
+    if compiled.cpu_kernels_cached() is not False:
+        return first
+    return (f"ToF render of {camera!r}: compiling the compiled tracer once (30 s to 3 min; later renders load "
+            f"it in a second), then the first pass… (Esc takes effect after the compile)")
+
+
 def status_line(last_tracer: dict | None = None) -> tuple[str, str]:
     """(text, icon) of the compiled-tracer box: installed or not, and which tracer the last render used.
 

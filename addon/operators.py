@@ -502,7 +502,7 @@ the final frame is written to the output folder. Esc cancels"""
         self._timer = wm.event_timer_add(POLL_INTERVAL_S, window=context.window)
         wm.modal_handler_add(self)
         wm.progress_begin(0, 100)
-        _set_status(context, f"ToF render of {job.camera!r}: first pass… (Esc to cancel)")
+        _set_status(context, compiled.first_status(job.camera, job.device))
         job.start()
         return {'RUNNING_MODAL'}
 

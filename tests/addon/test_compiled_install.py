@@ -95,3 +95,17 @@ def test_status_line(monkeypatch):
                                                               "compiled yet (a constant ambient radiance is)"})
     assert compiled.status_line(compiled.last_tracer())[0].startswith(
         "numba 0.68.1 installed, but the last render used NumPy: the World's Environment Texture is ambient")
+
+
+def test_first_status_says_a_cold_cpu_render_compiles_first(monkeypatch):
+    """The status bar before the first pass: the compile (Esc waits for it) only for a CPU render whose
+    kernels are not cached; a cached, GPU or NumPy-only render shows the plain first-pass line."""
+    from tofcore import compiled as tof_compiled
+
+    plain = "ToF render of 'Cam': first pass… (Esc to cancel)"
+    for cached, device, expected_compile in ((False, "cpu", True), (True, "cpu", False), (None, "cpu", False),
+                                             (False, "gpu", False), (False, "auto", False)):
+        monkeypatch.setattr(tof_compiled, "cpu_kernels_cached", lambda cached=cached: cached)
+        text = compiled.first_status("Cam", device)
+        assert ("compiling the compiled tracer once" in text and "Esc takes effect after" in text) == expected_compile
+        assert (text == plain) == (not expected_compile)

@@ -15,12 +15,16 @@ one fresh HOME for all its Blender processes, in this order:
 4. ``render cold``: Render ToF of the default cube and World (constant ambient light) in a new Blender
    process (compiles the kernels, caches them);
 5. ``render warm``: the same in another new process (loads the cache);
-6. ``render numpy``: the same with ``TOFCORE_TRACER=numpy``.
+6. ``render numpy``: the same with ``TOFCORE_TRACER=numpy``;
+7. ``gui``: the GUI scenario of ``make test-blender`` (:file:`scenario.py`: Render ToF, live preview, Esc,
+   animation, presets, an error report) in Blender's GUI on a virtual display, numba installed and its
+   cache warm — a user's second session — judged as :file:`run.py` judges it.
 
 Then checks that numba was installed into the add-on's folder, that the cold and warm renders used the
 compiled tracer and the add-on says so, that the warm one compiled nothing new (the cache's files are the
-same), and that the compiled depth equals the NumPy depth as tests/tofcore/test_compiled.py requires
-(``isclose(rtol=1e-9, atol=1e-9)`` or both NaN on ≥ 99.5 % of the pixels). Prints one line per check and
+same), that the compiled depth equals the NumPy depth as tests/tofcore/test_compiled.py requires
+(``isclose(rtol=1e-9, atol=1e-9)`` or both NaN on ≥ 99.5 % of the pixels), and that the GUI scenario
+passed with every frame it wrote traced by the compiled tracer. Prints one line per check and
 the timings; exit code 0 pass, 1 fail, 2 bad arguments. Needs root (chroot); one Blender at a time.
 """
 
@@ -36,6 +40,8 @@ import sys
 from pathlib import Path
 
 import numpy as np
+
+import run  # tests/blender_gui/run.py: how the GUI scenario is judged
 
 HERE = Path(__file__).resolve().parent
 ROOT = Path(os.environ.get("ROOT", "/opt/blender-trixie"))
@@ -63,6 +69,21 @@ def run_script(work: str) -> str:
     ]
     for label, env in RENDERS:
         lines.append(f"{env}t render-{label} {blender} render {label} >{work}/out/render-{label}.log 2>&1 || exit 5")
+    gui, display = f"{work}/out/gui", 500 + os.getpid() % 400
+    screenshot = (f"n=$(ls {gui}/screen-*.png 2>/dev/null | wc -l); xwd -root -display :{display} -silent | "
+                  f"convert xwd:- {gui}/screen-$n.png")
+    lines += [
+        "blender -b --python-expr 'import bpy; bpy.context.preferences.view.show_splash = False; "
+        f"bpy.ops.wm.save_userpref()' >>{work}/out/install-extension.log 2>&1",  # no splash over the screenshots
+        f"mkdir -p {gui}",
+        f"Xvfb :{display} -screen 0 1600x1000x24 -nolisten tcp >{gui}/xvfb.log 2>&1 & xpid=$!",
+        "sleep 2",
+        f"DISPLAY=:{display} TOF_GUI_OUT={gui} SCREENSHOT_CMD='{screenshot}' t gui timeout 900 blender "
+        f"--enable-event-simulate --python {work}/scenario.py >{gui}/blender.log 2>&1; echo $? >{gui}/rc",
+        "kill $xpid 2>/dev/null",
+        f"[ /tmp/blender.crash.txt -nt {work}/scenario.py ] && cp /tmp/blender.crash.txt {gui}/",
+        "exit 0",
+    ]
     return "\n".join(lines) + "\n"
 
 
@@ -97,6 +118,14 @@ def judge(out: Path) -> list[tuple[bool, str]]:
                        f"{'bit for bit' if np.array_equal(a, b, equal_nan=True) else 'not bit for bit'}"))
     else:
         checks.append((False, "depth arrays missing"))
+    gui = out / "gui"
+    rc = int((gui / "rc").read_text()) if (gui / "rc").is_file() else -1
+    problems = run.judge(gui, rc)
+    checks.append((not problems, f"GUI scenario ({', '.join(run.STEPS)}): " + ("; ".join(problems) or "passed")))
+    tracers = [json.loads(f.read_text()).get("stats", {}).get("transport", {}).get("tracer")
+               for f in sorted(gui.glob("**/frame.json"))]
+    checks.append((bool(tracers) and set(tracers) == {"compiled"},
+                   f"GUI frames: {len(tracers)} frame.json, tracers {sorted(set(map(str, tracers)))}"))
     return checks
 
 
@@ -124,6 +153,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         shutil.copy(args.zip, host / "ext.zip")
         shutil.copy(HERE / "numba_scenario.py", host)
+        shutil.copy(HERE / "scenario.py", host)
         for found in wheels:
             shutil.copy(found[-1], host / "wheels")
         (host / "run.sh").write_text(run_script(work))
