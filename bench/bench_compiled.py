@@ -17,7 +17,6 @@ Usage::
 
     .venv/bin/python bench/bench_compiled.py --kernels
     .venv/bin/python bench/bench_compiled.py --cpu-threads 1,2 --numpy --spp 16 [--json out.json]
-    python3 bench/bench_compiled.py --cpu-threads 16,8,2 --pixels-per-task 0,16,64   # the threads' task size
     python3 bench/bench_compiled.py --gpu --check --repeat 5 --cpu-threads 16 --json $OUT/compiled.json
 """
 
@@ -156,9 +155,6 @@ def kernel_costs(n: int = 200_000) -> dict:
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cpu-threads", default="", help="comma list of numba thread counts for the CPU tracer")
-    p.add_argument("--pixels-per-task", default="",
-                   help="comma list of tofcore.compiled.cpu.PIXELS_PER_TASK values, each run with every --cpu-threads "
-                        "entry (0: numba's static split, one range per thread)")
     p.add_argument("--numpy", action="store_true", help="also time the NumPy tracer")
     p.add_argument("--numpy-workers", type=int, default=2, help="its worker processes (1: all in this process)")
     p.add_argument("--kernels", action="store_true", help="CPU-seconds per call of the compiled kernels")
@@ -172,17 +168,11 @@ def main() -> int:
     width, height = (int(x) for x in a.resolution.split("x"))
     args, kwargs = frame_args(width, height, a.spp)
     results: dict = {"frame": f"room 9.8k, {width}x{height}, {a.spp} spp, 5 vertices"}
-    for per_task in [int(x) for x in a.pixels_per_task.split(",") if x] or [None]:
-        if per_task is not None:
-            from tofcore.compiled import cpu
-
-            cpu.PIXELS_PER_TASK = per_task
-        for threads in [int(x) for x in a.cpu_threads.split(",") if x]:
-            r = cpu_trace("compiled", threads, args, kwargs)
-            r.pop("transport")
-            r["pixels_per_task"] = per_task
-            results[f"compiled_cpu_{threads}" + ("" if per_task is None else f"_per_task_{per_task}")] = r
-            print(json.dumps(r), flush=True)
+    for threads in [int(x) for x in a.cpu_threads.split(",") if x]:
+        r = cpu_trace("compiled", threads, args, kwargs)
+        r.pop("transport")
+        results[f"compiled_cpu_{threads}"] = r
+        print(json.dumps(r), flush=True)
     if a.kernels:
         results["kernels"] = kernel_costs()
         print(json.dumps(results["kernels"]), flush=True)

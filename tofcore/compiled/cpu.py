@@ -19,7 +19,6 @@ from __future__ import annotations
 
 import threading
 
-import numba
 import numpy as np
 
 from . import kernels
@@ -27,12 +26,6 @@ from .layout import N_COUNTERS
 
 PARALLEL_LOCK = threading.Lock()
 """Held while a chunk runs on numba's threads (see the module docstring)."""
-
-PIXELS_PER_TASK = 16
-"""Pixels a numba thread takes at a time from a chunk (``numba.parallel_chunksize``): threads that finish
-early take the next task instead of waiting at the chunk's end. A static split (numba's default, one
-contiguous range per thread) leaves the threads whose rows see the sky or the floor idle while those on
-the furniture still trace; how many pixels a thread takes does not change any sum."""
 
 
 def trace_chunk(packed, out, p0: int, p1: int, first: np.ndarray, counts: np.ndarray) -> np.ndarray:
@@ -43,10 +36,6 @@ def trace_chunk(packed, out, p0: int, p1: int, first: np.ndarray, counts: np.nda
     settings = (packed.key, packed.max_depth, packed.independent, packed.light_paths, packed.ambient)
     pixels = (p0, p1, np.ascontiguousarray(first, dtype=np.int64), np.ascontiguousarray(counts, dtype=np.int64))
     with PARALLEL_LOCK:
-        previous = numba.set_parallel_chunksize(PIXELS_PER_TASK)
-        try:
-            kernels.trace_pixels(scene, settings, pixels, (out.signal_sum, out.correlation_sum, out.replicate_sum,
-                                                           out.ambient_sum, counters))
-        finally:
-            numba.set_parallel_chunksize(previous)
+        kernels.trace_pixels(scene, settings, pixels, (out.signal_sum, out.correlation_sum, out.replicate_sum,
+                                                       out.ambient_sum, counters))
     return counters.sum(axis=0)
