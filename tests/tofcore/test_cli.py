@@ -91,14 +91,14 @@ def test_help_has_no_raw_markup_and_no_repository_paths():
     assert "a bare number is in mm, as in the Blender add-on" in re.sub(r"\s+", " ", tofcore_help)
 
 
-def test_make_demo_installs_the_runtime_only():
+def test_make_demo_installs_the_runtime_and_the_compiled_tracer_only():
     env = {k: v for k, v in os.environ.items() if k not in ("MAKEFLAGS", "MAKELEVEL", "MFLAGS")}  # `make test` runs us
     proc = subprocess.run(["make", "--no-print-directory", "-n", "demo", "VENV=/nonexistent/venv"], cwd=REPO,
                           capture_output=True, text=True, timeout=60, env=env)
     assert proc.returncode == 0, proc.stderr
     steps = proc.stdout
     assert "requirements-dev.txt" not in steps and "bpy" not in steps and "pytest" not in steps
-    assert '-m pip install --quiet -e ".[exr]"' in steps
+    assert '-m pip install --quiet -e ".[compiled]"' in steps   # NumPy, tqdm and numba: no development stack
     render = steps.strip().splitlines()[-1]
     assert "tofcore render --scene room --preset kinect_v2 --spp 32 --no-noise" in render   # as the README shows
 
