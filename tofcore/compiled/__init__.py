@@ -162,7 +162,7 @@ def cpu_kernels_cached() -> bool | None:
     from . import kernels  # decorating the kernels picks their cache folder; it compiles nothing
 
     folder = cache_location()
-    return folder is not None and any(Path(folder).glob("**/kernels.trace_pixels-*.nbi"))
+    return any(Path(folder).glob("**/kernels.trace_pixels-*.nbi"))
 
 
 def cache_location() -> str:
