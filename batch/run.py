@@ -35,7 +35,7 @@ twice cannot replace its published folders (:func:`batch.dataset.publish`).
 Signals: on Ctrl-C or SIGTERM the parent stops the workers (they cancel their
 render between ray chunks and remove their half-written folder), rewrites the
 index, updates the card and exits with 130 / 143. Workers are started with
-SIGINT blocked (:func:`sigint_blocked`) and then ignore it: the terminal sends
+SIGINT blocked (:func:`sigint_held`) and then ignore it: the terminal sends
 Ctrl-C to every process of the group, and only the parent acts on it. Starting
 an executor is not cut in half: a signal meanwhile is acted on once it has
 started (:func:`signals_deferred`).
@@ -60,7 +60,7 @@ from typing import TextIO
 
 from tofcore.progress import tqdm_class, use_bar
 from tofcore.limits import usable_cpus
-from tofcore.tracer.workers import sigint_blocked
+from tofcore.tracer.workers import sigint_held
 
 from .card import dataset_card
 from .dataset import FRAMES, RECORD, Dataset, differing_keys
@@ -178,7 +178,7 @@ class LocalExecutor:
                                                  initargs=(os.getpid(), gpu, time.time())))
 
     def _submit(self, slot: _Slot, task: ViewTask) -> None:
-        with sigint_blocked():  # the first submit starts the slot's worker process
+        with sigint_held():  # the first submit starts the slot's worker process
             try:
                 slot.future = slot.pool.submit(run_view, task)
             except BrokenProcessPool:  # the worker died between two views: a new one takes this view
@@ -289,7 +289,7 @@ class DaskExecutor:
             raise RuntimeError("the Dask executor needs the distributed package: "
                                "pip install 'dask[distributed]'") from None
         self.cluster = None
-        with sigint_blocked():  # the cluster's IO thread starts the worker processes: they inherit it
+        with sigint_held():  # the cluster's IO thread starts the worker processes: they inherit it
             self._start(address, workers, gpus)
         self.futures: dict = {}
 

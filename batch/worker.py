@@ -140,7 +140,7 @@ def init_worker(parent_pid: int | None = None, gpu: str | None = None, launched:
     if gpu is not None:
         os.environ[VISIBLE_ENV] = gpu
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    # The parent starts workers with SIGINT blocked (batch.run.sigint_blocked), so that a Ctrl-C during
+    # The parent starts workers with SIGINT blocked (batch.run.sigint_held), so that a Ctrl-C during
     # their start-up stays pending instead of printing a KeyboardInterrupt; ignored now, it is dropped.
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     signal.signal(signal.SIGTERM, _on_sigterm)

@@ -200,3 +200,42 @@ def test_no_room_in_dev_shm_means_threads(monkeypatch):
     scene, cam, kw = corner()
     t = tofcore.trace(scene, cam, [LED()], spp=4, workers=2, chunk_size=2_000, **kw)
     assert t.stats.parallel.startswith("threads: no shared memory for worker processes (/dev/shm has 0 MiB free")
+
+
+def test_sigint_held_defers_a_ctrl_c_delivered_to_another_thread():
+    """The terminal's SIGINT may reach any thread that does not block it (NumPy's BLAS threads); the main
+    thread must not raise inside the block (a worker would be spawned but never sent its start-up data),
+    but right after it, once."""
+    import signal
+    import threading
+    import time
+
+    go = threading.Event()
+
+    def other_thread_gets_sigint():  # started before the block, as NumPy's BLAS threads are: SIGINT unblocked
+        go.wait()
+        signal.pthread_kill(threading.get_ident(), signal.SIGINT)
+
+    thread = threading.Thread(target=other_thread_gets_sigint)
+    thread.start()
+    finished_body = False
+    with pytest.raises(KeyboardInterrupt):
+        with workers.sigint_held():
+            assert signal.SIGINT in signal.pthread_sigmask(signal.SIG_BLOCK, [])  # children inherit the mask
+            go.set()
+            thread.join()
+            for _ in range(50):  # Python runs a tripped handler at the next bytecodes: give it many
+                time.sleep(0.001)
+            finished_body = True
+    assert finished_body
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+
+
+def test_sigint_held_without_a_signal_changes_nothing():
+    import signal
+
+    with workers.sigint_held():
+        pass
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])

@@ -122,7 +122,7 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
     transport = _empty_transport(setup, first_hit(setup, stats), stats)
     shared = None
     try:  # from the shared memory on, the finally releases it, whatever stops the trace (Ctrl-C included)
-        with workers.sigint_blocked():  # a Ctrl-C meanwhile is raised once `shared` holds what to release
+        with workers.sigint_held():  # a Ctrl-C meanwhile is raised once `shared` holds what to release
             shared, why_not = (None, why_not) if why_not else parallel.share(setup, transport)
         stats.parallel = "processes" if shared is not None else "one" if why_not == "one" else f"threads: {why_not}"
         if tracer.packed is not None:

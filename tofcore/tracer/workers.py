@@ -198,7 +198,7 @@ def _init_worker(warm_up: str) -> None:
 
     resource_tracker.register = no_register  # type: ignore[assignment]
     # Ctrl-C reaches the whole process group: the parent stops the workers (terminate), a worker never
-    # prints a KeyboardInterrupt traceback. SIGINT was blocked since the worker started (sigint_blocked).
+    # prints a KeyboardInterrupt traceback. SIGINT was blocked since the worker started (sigint_held).
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     signal.pthread_sigmask(signal.SIG_UNBLOCK, {signal.SIGINT})
     # Import the caller's module (the tracer) now, while the parent traces the first hits, not on the first
@@ -235,13 +235,24 @@ def _run(task):
 
 
 @contextmanager
-def sigint_blocked():
-    """Block SIGINT in this thread while worker processes start (they inherit the mask through exec).
+def sigint_held():
+    """Hold Ctrl-C (SIGINT) back for the duration, then raise it: around starting worker processes and sharing.
 
-    A Ctrl-C during a worker's start-up (its imports) would otherwise print a KeyboardInterrupt
-    traceback from the child; this process gets the signal when it is unblocked. Also used by
-    ``batch.run`` around starting its worker processes and Dask workers. The pool's own
-    threads, started meanwhile, keep it blocked, so workers it starts later are covered too.
+    The terminal sends SIGINT to the whole process, and the kernel hands such a signal to any thread that
+    does not block it (NumPy's BLAS threads, for one). So two holds, both needed:
+
+    * this thread blocks it, and the worker processes it starts inherit that mask through exec: a Ctrl-C
+      during a worker's start-up stays pending there (:func:`_init_worker` then ignores it) instead of
+      printing a KeyboardInterrupt traceback from the child;
+    * Python's handler only records it, whichever thread received it. A mask alone is not enough: with the
+      signal delivered to another thread, this one raised KeyboardInterrupt between spawning a worker and
+      sending it its start-up data, and the worker printed ``EOFError: Ran out of input``.
+
+    On leaving, the previous handler is back and a recorded signal is raised again, so the caller's
+    KeyboardInterrupt comes right after the block. Threads other than the main one only run the body; where
+    the SIGINT handler was not installed from Python (inside Blender), only the mask applies. Also used by
+    ``batch.run`` around starting its worker processes and Dask workers. The pool's own threads, started
+    meanwhile, keep the mask, so workers they start later are covered too.
     """
     if threading.current_thread() is not threading.main_thread():
         yield
@@ -249,11 +260,19 @@ def sigint_blocked():
     from multiprocessing import resource_tracker
 
     resource_tracker.ensure_running()  # starting its process unblocks SIGINT here: start it first
-    previous = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    caught: list[int] = []
+    handler = signal.getsignal(signal.SIGINT)
+    if handler is not None:
+        signal.signal(signal.SIGINT, lambda signum, _frame: caught.append(signum))
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
     try:
         yield
     finally:
-        signal.pthread_sigmask(signal.SIG_SETMASK, previous)
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)  # first: a pending SIGINT is recorded, not raised here
+        if handler is not None:
+            signal.signal(signal.SIGINT, handler)
+    if caught:
+        signal.raise_signal(signal.SIGINT)  # now with the caller's handler: KeyboardInterrupt for the CLI
 
 
 class _Pool:
@@ -267,7 +286,7 @@ class _Pool:
             os.environ.update({k: "1" for k in _BLAS_ENV})
             if main_file is not None:  # children must not re-run the parent's script
                 del main.__file__
-            with sigint_blocked():  # the workers start with it blocked and ignore it (_init_worker)
+            with sigint_held():  # the workers start with it blocked and ignore it (_init_worker)
                 self.pool = ctx.Pool(n, initializer=_init_worker, initargs=(warm_up,))
         finally:
             if main_file is not None:
