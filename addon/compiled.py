@@ -82,7 +82,8 @@ def last_tracer() -> dict:
 
 def first_status(camera: str, device: str) -> str:
     """The status bar's text while a render's first pass runs: a CPU render whose compiled kernels are not
-    cached yet compiles them first (minutes, and Esc only takes effect after them), which it says."""
+    cached yet has them compiled first (minutes, by a child process that Esc leaves running for the next
+    render: ``tofcore.compiled.child_compile``), which it says."""
     first = f"ToF render of {camera!r}: first pass… (Esc to cancel)"
     if device != "cpu":
         return first
@@ -91,7 +92,23 @@ def first_status(camera: str, device: str) -> str:
     if compiled.cpu_kernels_cached() is not False:
         return first
     return (f"ToF render of {camera!r}: compiling the compiled tracer once (30 s to 3 min; later renders load "
-            f"it in a second), then the first pass… (Esc takes effect after the compile)")
+            f"it in a second), then the first pass… (Esc to cancel; the compile goes on in the background)")
+
+
+def start_compiling() -> bool:
+    """Compile the tracer's CPU kernels in a background process now (after numba was installed), unless
+    they are cached; whether it compiles (``tofcore.compiled.child_compile.start``)."""
+    from tofcore.compiled import child_compile
+
+    return not child_compile.start() and child_compile.running()
+
+
+def compiling() -> bool:
+    """Whether the background compile of :func:`start_compiling` (or a render's) runs now; imports no numba."""
+    import sys
+
+    child_compile = sys.modules.get("tofcore.compiled.child_compile")
+    return child_compile is not None and child_compile.running()
 
 
 def status_line(last_tracer: dict | None = None) -> tuple[str, str]:
@@ -103,6 +120,9 @@ def status_line(last_tracer: dict | None = None) -> tuple[str, str]:
     if version is None:
         return ("numba is not installed: renders use the NumPy tracer (Install numba for a compiled tracer, "
                 "about 2× faster per core)", 'INFO')
+    if compiling():
+        return (f"numba {version} installed: compiling the tracer in the background (30 s to 3 min, once; "
+                f"renders wait for it)", 'SORTTIME')
     if last_tracer and last_tracer.get("tracer") == "numpy":
         reason = blender_reason(last_tracer.get("tracer_reason") or "")
         return f"numba {version} installed, but the last render used NumPy: {reason}", 'INFO'

@@ -246,7 +246,8 @@ def prepare_numba_install(report) -> gpu.Installer | None:
 
 
 def finish_numba_install(installer: gpu.Installer, report) -> set[str]:
-    """Report how the installation ended; after success, put the folder on ``sys.path``."""
+    """Report how the installation ended; after success, put the folder on ``sys.path`` and start compiling
+    the tracer in a background process (:func:`.compiled.start_compiling`), so the first render need not."""
     if installer.state == "cancelled":
         report({'WARNING'}, installer.message)
         return {'CANCELLED'}
@@ -256,6 +257,8 @@ def finish_numba_install(installer: gpu.Installer, report) -> set[str]:
     gpu.add_to_sys_path(installer.target)
     if "numba" in sys.modules:  # this Blender session already runs the numba it had before
         report({'WARNING'}, f"{installer.message}; restart Blender to use it")
+    elif compiled.start_compiling():
+        report({'INFO'}, f"{installer.message}; compiling the tracer in the background now (30 s to 3 min, once)")
     else:
         report({'INFO'}, f"{installer.message}; the next render compiles the tracer once (30 s to 3 min)")
     return {'FINISHED'}

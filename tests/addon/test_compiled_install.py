@@ -98,8 +98,9 @@ def test_status_line(monkeypatch):
 
 
 def test_first_status_says_a_cold_cpu_render_compiles_first(monkeypatch):
-    """The status bar before the first pass: the compile (Esc waits for it) only for a CPU render whose
-    kernels are not cached; a cached, GPU or NumPy-only render shows the plain first-pass line."""
+    """The status bar before the first pass: the compile (in a child process that Esc leaves running) only
+    for a CPU render whose kernels are not cached; a cached, GPU or NumPy-only render shows the plain
+    first-pass line."""
     from tofcore import compiled as tof_compiled
 
     plain = "ToF render of 'Cam': first pass… (Esc to cancel)"
@@ -107,5 +108,17 @@ def test_first_status_says_a_cold_cpu_render_compiles_first(monkeypatch):
                                              (False, "gpu", False), (False, "auto", False)):
         monkeypatch.setattr(tof_compiled, "cpu_kernels_cached", lambda cached=cached: cached)
         text = compiled.first_status("Cam", device)
-        assert ("compiling the compiled tracer once" in text and "Esc takes effect after" in text) == expected_compile
+        assert ("compiling the compiled tracer once" in text and "the compile goes on in the background" in text) == expected_compile
         assert (text == plain) == (not expected_compile)
+
+
+def test_the_status_says_the_background_compile_runs(monkeypatch):
+    """After Install numba the tracer compiles in a child process; the box says so while it runs."""
+    from tofcore.compiled import child_compile
+
+    monkeypatch.setattr(compiled, "installed_numba", lambda: "0.68.1")
+    monkeypatch.setattr(child_compile, "running", lambda: True)
+    text, icon = compiled.status_line({})
+    assert text.startswith("numba 0.68.1 installed: compiling the tracer in the background") and icon == 'SORTTIME'
+    monkeypatch.setattr(child_compile, "running", lambda: False)
+    assert "background" not in compiled.status_line({})[0]

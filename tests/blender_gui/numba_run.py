@@ -16,6 +16,9 @@ one fresh HOME for all its Blender processes, in this order:
    process (compiles the kernels, caches them);
 5. ``render warm``: the same in another new process (loads the cache);
 6. ``render numpy``: the same with ``TOFCORE_TRACER=numpy``;
+   then ``cancel-cold``: on an empty kernel cache (its own ``NUMBA_CACHE_DIR``), the Render ToF job cancelled
+   3 s into the compile (what Esc does), and a second job that waits for the compile going on in its child
+   process;
 7. ``gui``: the GUI scenario of ``make test-blender`` (:file:`scenario.py`: Render ToF, live preview, Esc,
    animation, presets, an error report) in Blender's GUI on a virtual display, numba installed and its
    cache warm — a user's second session — judged as :file:`run.py` judges it.
@@ -69,6 +72,8 @@ def run_script(work: str) -> str:
     ]
     for label, env in RENDERS:
         lines.append(f"{env}t render-{label} {blender} render {label} >{work}/out/render-{label}.log 2>&1 || exit 5")
+    lines.append(f"NUMBA_CACHE_DIR={work}/cold-cache t cancel-cold {blender} cancel-cold >{work}/out/cancel-cold.log "
+                 "2>&1 || exit 5")
     gui, display = f"{work}/out/gui", 500 + os.getpid() % 400
     screenshot = (f"n=$(ls {gui}/screen-*.png 2>/dev/null | wc -l); xwd -root -display :{display} -silent | "
                   f"convert xwd:- {gui}/screen-$n.png")
@@ -108,6 +113,16 @@ def judge(out: Path) -> list[tuple[bool, str]]:
     checks.append((bool(cold.get("cache_files")) and cold.get("cache_files") == warm.get("cache_files"),
                    f"cache {cold.get('cache_folder')}: {len(cold.get('cache_files') or {})} files after the cold "
                    f"render, unchanged by the warm one: {cold.get('cache_files') == warm.get('cache_files')}"))
+    cancel = load("cancel-cold")
+    compile_text = cancel.get("transport", {}).get("compile") or ""
+    checks.append((cancel.get("cached_before") is False and cancel.get("first_end") == ["cancelled", "None"]
+                   and cancel.get("cancel_seconds", 99) < 2 and cancel.get("compiling_after_cancel") is True
+                   and cancel.get("second_end") == "done" and compile_text.startswith("compiled by a child process")
+                   and cancel.get("cached_after") is True,
+                   f"cancel during the cold compile: cancelled in {cancel.get('cancel_seconds')} s "
+                   f"({cancel.get('first_end')}), compile still running {cancel.get('compiling_after_cancel')}; "
+                   f"next render {cancel.get('second_end')} in {cancel.get('second_seconds')} s: {compile_text!r}; "
+                   f"cached {cancel.get('cached_before')} -> {cancel.get('cached_after')}"))
     checks.append((numpy_.get("transport", {}).get("tracer") == "numpy",
                    f"render numpy: tracer {numpy_.get('transport', {}).get('tracer')!r}, {numpy_.get('seconds')} s"))
     if (out / "depth-warm.npy").is_file() and (out / "depth-numpy.npy").is_file():

@@ -8,6 +8,9 @@ Runs in Blender's own Python with the extension zip installed (``bl_ext.user_def
 * ``install``: the add-on's own "Install numba for the compiled tracer" operator (``tof.install_numba``,
   ``execute`` in background mode: pip in this thread), then what the numba folder holds and the box's status.
 * ``install-nopip``: the same operator where Blender's Python has no pip (Debian's Blender): its error.
+* ``cancel-cold``: on an empty kernel cache, the Render ToF job cancelled 3 s into the compile, then a second
+  job: how fast the cancel took effect, whether the compile went on in its child process, and the second
+  job's frame (``stats["transport"]["compile"]``).
 * ``render LABEL``: the default cube and World (constant ambient light) seen by a ToF camera (as
   scenario.py's step 1), the add-on's Render ToF operator; records the operator's wall time,
   ``frame.stats["transport"]``, the add-on's tracer text and status line, numba's threading layer and where
@@ -68,6 +71,17 @@ def install() -> dict:
             "python": sys.executable, "online_access": bpy.app.online_access}
 
 
+def add_tof_camera(label: str) -> None:
+    """A ToF camera looking at the default cube, 128 × 106, 8 spp, 3 vertices, writing into OUT/tof-LABEL."""
+    bpy.ops.tof.add_camera()
+    camera = bpy.context.active_object
+    camera.location = (2.6, -2.6, 2.0)
+    camera.rotation_euler = (mathutils.Vector((0, 0, 0)) - camera.location).to_track_quat('-Z', 'Y').to_euler()
+    tof = camera.data.tof
+    tof.use_resolution, tof.width, tof.height, tof.spp, tof.max_depth = True, 128, 106, 8, 3
+    tof.output_dir = os.path.join(OUT, f"tof-{label}", "")
+
+
 def render(label: str) -> dict:
     ops, compiled, prefs = addon("operators"), addon("compiled"), addon("preferences")
     context = bpy.context
@@ -80,13 +94,7 @@ def render(label: str) -> dict:
         return frame, written
 
     ops.RenderJob.run = keep_frame
-    bpy.ops.tof.add_camera()
-    camera = context.active_object
-    camera.location = (2.6, -2.6, 2.0)
-    camera.rotation_euler = (mathutils.Vector((0, 0, 0)) - camera.location).to_track_quat('-Z', 'Y').to_euler()
-    tof = camera.data.tof
-    tof.use_resolution, tof.width, tof.height, tof.spp, tof.max_depth = True, 128, 106, 8, 3
-    tof.output_dir = os.path.join(OUT, f"tof-{label}", "")
+    add_tof_camera(label)
     status_before = list(prefs.compiled_status_line())
     started = time.perf_counter()
     result = bpy.ops.tof.render()
@@ -95,7 +103,7 @@ def render(label: str) -> dict:
     np.save(os.path.join(OUT, f"depth-{label}.npy"), np.asarray(frame.depth, dtype=np.float64))
     transport = frame.stats.get("transport") or {}
     record = {"operator": sorted(result), "seconds": round(seconds, 2), "state": ops.last_result.get("state"),
-              "transport": {k: transport.get(k) for k in ("tracer", "tracer_reason", "parallel")},
+              "transport": {k: transport.get(k) for k in ("tracer", "tracer_reason", "parallel", "compile")},
               "tracer_text": compiled.tracer_text(transport), "status_before": status_before,
               "status_after": list(prefs.compiled_status_line()), "numba_folder": prefs.numba_folder(),
               "sys_path_has_numba_folder": prefs.numba_folder() in sys.path}
@@ -113,12 +121,46 @@ def render(label: str) -> dict:
     return record
 
 
+def cancel_cold() -> dict:
+    """The Render ToF job (the modal operator's worker thread) on an empty kernel cache, cancelled 3 s in
+    (what Esc does: ``job.cancel()``), then a second job that waits for the same background compile."""
+    import tofcore.compiled
+    from tofcore.compiled import child_compile
+
+    ops = addon("operators")
+    reports = []
+    add_tof_camera("cancel")
+    record = {"cached_before": tofcore.compiled.cpu_kernels_cached(), "cache_folder": tofcore.compiled.cache_location()}
+    first = ops.prepare_render(bpy.context, lambda level, text: reports.append(text))
+    first.start()
+    time.sleep(3.0)
+    first.cancel()
+    asked = time.perf_counter()
+    first.join(60)
+    record.update(cancel_seconds=round(time.perf_counter() - asked, 2), first_end=list(map(str, first.poll()[1] or [])),
+                  compiling_after_cancel=child_compile.running())
+    second = ops.prepare_render(bpy.context, lambda level, text: reports.append(text))
+    started = time.perf_counter()
+    second.start()
+    second.join(900)
+    _, end = second.poll()
+    kind, payload = end if end else ("none", None)
+    transport = payload[0].stats.get("transport", {}) if kind == "done" else {}
+    record.update(second_end=kind, second_seconds=round(time.perf_counter() - started, 1),
+                  transport={k: transport.get(k) for k in ("tracer", "tracer_reason", "compile")},
+                  cached_after=tofcore.compiled.cpu_kernels_cached(), reports=reports,
+                  python=sys.executable)
+    return record
+
+
 def main() -> None:
     args = sys.argv[sys.argv.index("--") + 1:] if "--" in sys.argv else []
     step = args[0]
     bpy.ops.preferences.addon_enable(module=ADDON)
     if step == "render":
         record, name = render(args[1]), f"render-{args[1]}"
+    elif step == "cancel-cold":
+        record, name = cancel_cold(), step
     else:
         record, name = {"install": install, "install-nopip": install_nopip}[step](), step
     with open(os.path.join(OUT, f"{name}.json"), "w") as fh:

@@ -52,6 +52,7 @@ class TraceStats:
     parallel: str = ""            # how chunks ran: "processes", "threads: <why>" or "one"
     tracer: str = "numpy"         # "compiled" (tofcore.compiled) or "numpy" (this module)
     tracer_reason: str = ""       # why the NumPy tracer ran where numba is installed, or is not
+    compile: str = ""             # how a cancellable trace got uncached CPU kernels (tofcore.compiled.child_compile)
 
     @property
     def rays(self) -> int:
@@ -71,7 +72,7 @@ class TraceStats:
                 "camera_seconds": self.camera_seconds, "bounce_seconds": self.bounce_seconds,
                 "shadow_seconds": self.shadow_seconds, "chunk_seconds": self.chunk_seconds,
                 "setup_seconds": self.setup_seconds, "parallel": self.parallel,
-                "tracer": self.tracer, "tracer_reason": self.tracer_reason,
+                "tracer": self.tracer, "tracer_reason": self.tracer_reason, "compile": self.compile,
                 "rays_per_second": self.rays / self.seconds if self.seconds > 0 else None}
 
 
