@@ -42,6 +42,8 @@ def draw_result(layout, camera_name: str | None = None) -> None:
         box.progress(factor=operators.progress_fraction(running), type='BAR', text=text)
     else:
         box.label(text=text)
+    if state == "running" and not result.get("spp") and compiled.compiling():
+        box.label(text="Compiling the tracer once, in the background (30 s to 3 min)…", icon='SORTTIME')
     if state == "running":
         box.operator(TOF_OT_cancel_render.bl_idname, icon='CANCEL')
     if result.get("device"):

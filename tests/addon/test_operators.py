@@ -723,6 +723,28 @@ def test_render_reports_the_tracer(prefs, tmp_path, monkeypatch, wanted):
     assert ("label", text, 'SETTINGS') in log
 
 
+def test_the_result_box_says_the_tracer_compiles_before_the_first_pass(monkeypatch):
+    """A render or live preview waiting for the background compile (tofcore.compiled.child_compile) says so."""
+    from addon import panels
+    from tofcore.compiled import child_compile
+
+    class Layout(RecordingLayout):
+        def label(self, text="", icon='NONE', **kwargs):
+            self.log.append(("label", text, icon))
+            return self
+
+    def labels(compiling: bool, spp: int) -> list:
+        monkeypatch.setattr(child_compile, "running", lambda: compiling)
+        monkeypatch.setattr(operators, "last_result", {"camera": "Cam", "kind": "preview", "state": "running",
+                                                      "spp": spp, "spp_max": 8})
+        log: list = []
+        panels.draw_result(Layout(log))
+        return [entry for entry in log if entry[0] == "label" and entry[2] == 'SORTTIME']
+
+    assert labels(True, 0) == [("label", "Compiling the tracer once, in the background (30 s to 3 min)…", 'SORTTIME')]
+    assert labels(False, 0) == [] and labels(True, 4) == []
+
+
 def compiled_importable() -> bool:
     from tofcore.compiled import numba_version
 
