@@ -125,13 +125,16 @@ class RenderJob:
     def run(self, on_pass) -> tuple:
         """Render in the calling thread, ``on_pass(frame)`` after every pass; write the final frame.
 
+        The frames before the final one are preview frames (``preview_frames=True``): the images show no
+        per-path-length distances, and skipping their K decodes saves ≈ 10 % of the render.
+
         Returns (final frame, ``{kind: path}`` written). Raises :class:`tofcore.Cancelled` when cancelled,
         also after the last pass: then nothing is written.
         """
         frame = None
         for frame in tofcore.render_progressive(self.scene, self.sensor, self.pose, ambient=self.ambient,
                                                 cancel=self._cancel.is_set, workers=self.workers,
-                                                device=self.device, **self.settings):
+                                                device=self.device, preview_frames=True, **self.settings):
             on_pass(frame)
         if self.cancelled:
             raise tofcore.Cancelled("render cancelled after its last pass; nothing written")

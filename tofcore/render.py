@@ -183,7 +183,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                        every_pass: bool = True, device: str | backend.Device = "cpu",
                        adaptive: bool = True, sampler: str = "sobol", light_paths: bool = True,
                        transient_bin_m: float | None = None, transient_max_m: float | None = None,
-                       preview_denoise: bool = False) -> Iterator[Frame]:
+                       preview_denoise: bool = False, preview_frames: bool = False) -> Iterator[Frame]:
     """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
 
     The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
@@ -220,6 +220,10 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
         filter guided by the amplitude (:mod:`tofcore.sensor.denoise`), which removes render noise at the
         price of a bias at depth edges (``studies/preview_denoise.py`` measures it). Never for datasets
         unless wanted; ``frame.stats["preview_denoise"]`` records the filter's parameters (None: off).
+    preview_frames : the frames before the final one are for display: without ``direct_distance`` and
+        ``distance_per_k`` (None), which take K extra decodes, ≈ 10 % of a progressive render's time with
+        a frame per pass (docs/benchmarks.md). The final frame is always complete; a preview frame is
+        otherwise the same frame, bit for bit. :func:`tofcore.write_frame` refuses a preview frame.
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy: tracing, sensor, scattering, noise and decoding on the
         GPU; the noise is counter-based, :class:`~tofcore.sensor.noise.NoiseStream`, so both devices give
         the same frame) or
@@ -231,15 +235,16 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     """
     _check_settings(spp, time_budget_s, target_error_m, max_depth=max_depth, seed=seed, sensor=sensor,
                     transient_bins=transient_bins(transient_bin_m, transient_max_m))
-    if not isinstance(preview_denoise, bool):
-        raise ConfigError(f"render: preview_denoise must be True or False, got {preview_denoise!r}")
+    for name, value in (("preview_denoise", preview_denoise), ("preview_frames", preview_frames)):
+        if not isinstance(value, bool):
+            raise ConfigError(f"render: {name} must be True or False, got {value!r}")
     dev = backend.select_device(device)
     settings = RenderSettings(spp=spp, max_depth=max_depth, seed=seed, time_budget_s=time_budget_s,
                               target_error_m=target_error_m, ambient=ambient, reference_distance=reference_distance,
                               progress=progress, cancel=cancel, workers=workers, chunk_size=chunk_size,
                               every_pass=every_pass, adaptive=adaptive, sampler=sampler, light_paths=light_paths,
                               transient_bin_m=transient_bin_m, transient_max_m=transient_max_m,
-                              preview_denoise=preview_denoise)
+                              preview_denoise=preview_denoise, preview_frames=preview_frames)
     if not dev.is_gpu:
         yield from _render_passes(scene, sensor, pose, settings, dev)
         return
@@ -278,6 +283,7 @@ class RenderSettings:
     transient_bin_m: float | None
     transient_max_m: float | None
     preview_denoise: bool = False
+    preview_frames: bool = False
 
 
 def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device: backend.Device) -> Iterator[Frame]:
@@ -337,7 +343,7 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
             if not (done or s.every_pass):
                 continue
             frame_start = _clock()
-            frame = _frame(transport, sensor, pose, plan, s.seed, n_raw, setup)
+            frame = _frame(transport, sensor, pose, plan, s.seed, n_raw, setup, per_k=done or not s.preview_frames)
             frame.metadata["objects"] = object_table(scene)
             if transport.transient_sum is not None:
                 frame.transient = backend.to_host(transport.transient()).astype(np.float32)
@@ -540,8 +546,9 @@ def _read_back(images: dict) -> dict:
 
 
 def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int, n_raw: int,
-           setup: FrameSetup) -> Frame:
-    """The frame of the transport so far, computed on the transport's device and read back once."""
+           setup: FrameSetup, per_k: bool = True) -> Frame:
+    """The frame of the transport so far, computed on the transport's device and read back once; without
+    ``direct_distance`` and ``distance_per_k`` (a preview frame) unless ``per_k``."""
     mod = sensor.modulation
     cam = sensor.camera
     raw = raw_images(transport.correlation()[:n_raw], transport.ambient(), sensor)
@@ -568,13 +575,15 @@ def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int
     directions = cam.pixel_center_directions()
     depth = decoding.radial_to_z(distance, backend.device_copy(xp, directions)) if sensor.depth_output == "z" \
         else distance.astype(np.float32)
-    images = _read_back({
+    images = {
         "depth": depth, "distance": distance.astype(np.float32), "amplitude": decoded.amplitude,
         "offset": decoded.offset, "intensity": decoded.intensity, "confidence": decoded.confidence,
-        "reason": decoded.reason, "raw": raw.astype(np.float32),
-        "per_k": _decode_clean_per_k(transport, sensor, n_raw, setup).astype(np.float32)})
+        "reason": decoded.reason, "raw": raw.astype(np.float32)}
+    if per_k:
+        images["per_k"] = _decode_clean_per_k(transport, sensor, n_raw, setup).astype(np.float32)
+    images = _read_back(images)
     reason = images["reason"].astype(np.uint8)
-    per_k = images["per_k"]
+    per_k = images.get("per_k")
     gt = transport.first_hit.distance_m
     as_depth = (lambda d: decoding.radial_to_z(d, directions)) if sensor.depth_output == "z" else (lambda d: d)
     return Frame(
@@ -583,7 +592,8 @@ def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int
         intensity=images["intensity"], valid=reason == int(decoding.Reason.VALID), reason=reason,
         confidence=images["confidence"], raw=images["raw"],
         raw_labels=tuple(mod.raw_labels()), gt_distance=gt.astype(np.float32),
-        gt_depth=np.asarray(as_depth(gt), np.float32), direct_distance=per_k[0], distance_per_k=per_k,
+        gt_depth=np.asarray(as_depth(gt), np.float32), distance_per_k=per_k,
+        direct_distance=None if per_k is None else per_k[0],
         ray_directions=directions, object_id=transport.first_hit.object_id, depth_output=sensor.depth_output,
         world_from_sensor=np.asarray(pose, dtype=np.float64),
         metadata={"sensor": sensor.to_dict(), "world_from_sensor": np.asarray(pose).tolist(),

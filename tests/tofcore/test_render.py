@@ -193,6 +193,28 @@ def test_progressive_frames_and_cancel():
         render(scene, sensor, spp=64, max_depth=2, cancel=lambda: calls.append(1) or len(calls) > 3)
 
 
+def test_preview_frames_skip_only_the_per_k_decodes(tmp_path):
+    """preview_frames=True: the frames before the final one lack direct_distance and distance_per_k and are
+    otherwise the same frames bit for bit; the final frame is complete; a preview frame is not written."""
+    sensor = small(load_preset("kinect_v2"))
+    scene = tofcore.demo_scene("corner")
+    full = list(tofcore.render_progressive(scene, sensor, spp=4, max_depth=3, seed=2))
+    preview = list(tofcore.render_progressive(scene, sensor, spp=4, max_depth=3, seed=2, preview_frames=True))
+    assert len(full) == len(preview) == 3
+    for a, b in zip(full, preview):
+        final = b.stats["final"]
+        assert (b.distance_per_k is None and b.direct_distance is None) == (not final)
+        for name in ("depth", "distance", "amplitude", "offset", "intensity", "reason", "confidence", "raw",
+                     "gt_depth", "render_error", "samples") + (("distance_per_k", "direct_distance") if final else ()):
+            np.testing.assert_array_equal(getattr(a, name), getattr(b, name), err_msg=name)
+    assert preview[-1].distance_per_k.shape == (3, sensor.camera.height, sensor.camera.width)
+    with pytest.raises(ValueError, match="preview frame .* write the final frame"):
+        tofcore.write_frame(preview[0], tmp_path / "out", "json")
+    assert not (tmp_path / "out").exists()
+    with pytest.raises(ConfigError, match="preview_frames must be True or False"):
+        next(tofcore.render_progressive(scene, sensor, spp=1, preview_frames="yes"))
+
+
 def test_estimated_error_includes_ambient_noise_for_pulsed_sensors():
     """Ambient light does not cancel in the 2-bucket ratio: its Monte Carlo noise must enter the estimate."""
     sensor = small(clean(load_preset("xtion2")), hfov=40.0)

@@ -23,9 +23,11 @@ field                  unit            meaning
 ``gt_distance``        m               noise-free first-hit radial distance (NaN where no surface)
 ``gt_depth``           m               the same in the sensor's depth output
 ``direct_distance``    m               decoded distance from the k = 1 bucket only (no multipath,
-                                       no noise, no scattering)
+                                       no noise, no scattering); None in a preview frame
 ``distance_per_k``     m               (K, H, W) decoded distance using bounces ≤ k, k = 1..K
-                                       (noise-free): the §6.3.1 study from one render
+                                       (noise-free): the §6.3.1 study from one render; None in a
+                                       preview frame (``render_progressive(preview_frames=True)``
+                                       before its final pass: K decodes a display does not show)
 ``ray_directions``     1               (H, W, 3) unit pixel-centre ray directions, sensor frame
 ``object_id``          –               (H, W) int32 first-hit object, −1 where none
 ``render_error``       m               (H, W) estimated Monte Carlo standard error of ``depth`` (the
@@ -64,8 +66,8 @@ class Frame:
     raw_labels: tuple[str, ...]
     gt_distance: np.ndarray
     gt_depth: np.ndarray
-    direct_distance: np.ndarray
-    distance_per_k: np.ndarray
+    direct_distance: np.ndarray | None
+    distance_per_k: np.ndarray | None
     ray_directions: np.ndarray
     object_id: np.ndarray
     depth_output: str = "radial"

@@ -132,12 +132,16 @@ def write_frame(frame: Frame, out_dir: str | os.PathLike, formats: Iterable[str]
 
     Raises
     ------
-    ValueError : unknown format or bad prefix, before anything is written.
+    ValueError : unknown format, bad prefix or a preview frame, before anything is written.
     TypeError : ``metadata`` or ``stats`` holds something JSON cannot hold, before anything is written.
     """
     formats = _check_formats(formats)
     if Path(prefix).name != prefix:
         raise ValueError(f"write_frame: prefix must be a plain file-name prefix, got {prefix!r}")
+    if frame.distance_per_k is None or frame.direct_distance is None:
+        raise ValueError("write_frame: this is a preview frame without direct_distance and distance_per_k "
+                         "(render_progressive(preview_frames=True) yields them before the final pass); write the "
+                         "final frame")
     channels = _exr_channels(frame) if "exr" in formats else {}
     if exr_channels is not None:
         exr_channels = tuple(exr_channels)
