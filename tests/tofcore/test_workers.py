@@ -202,7 +202,18 @@ def test_no_room_in_dev_shm_means_threads(monkeypatch):
     assert t.stats.parallel.startswith("threads: no shared memory for worker processes (/dev/shm has 0 MiB free")
 
 
-def test_sigint_held_defers_a_ctrl_c_delivered_to_another_thread():
+@pytest.fixture
+def python_sigint_handler():
+    """SIGINT as an interactive Python has it (KeyboardInterrupt), whatever this test process inherited: a
+    background job of a non-interactive shell starts with SIGINT ignored, and Python then keeps it so."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    yield
+    signal.signal(signal.SIGINT, previous)
+
+
+def test_sigint_held_defers_a_ctrl_c_delivered_to_another_thread(python_sigint_handler):
     """The terminal's SIGINT may reach any thread that does not block it (NumPy's BLAS threads); the main
     thread must not raise inside the block (a worker would be spawned but never sent its start-up data),
     but right after it, once."""
@@ -232,10 +243,23 @@ def test_sigint_held_defers_a_ctrl_c_delivered_to_another_thread():
     assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
 
 
-def test_sigint_held_without_a_signal_changes_nothing():
+def test_sigint_held_without_a_signal_changes_nothing(python_sigint_handler):
     import signal
 
     with workers.sigint_held():
         pass
     assert signal.getsignal(signal.SIGINT) is signal.default_int_handler
     assert signal.SIGINT not in signal.pthread_sigmask(signal.SIG_BLOCK, [])
+
+
+def test_sigint_held_keeps_an_ignored_sigint_ignored():
+    """Where SIGINT is ignored (a background job), a Ctrl-C during the block stays ignored after it."""
+    import signal
+
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        with workers.sigint_held():
+            signal.raise_signal(signal.SIGINT)   # blocked in this thread: pending until the block ends
+        assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
+    finally:
+        signal.signal(signal.SIGINT, previous)
