@@ -108,7 +108,8 @@ def test_first_status_says_a_cold_cpu_render_compiles_first(monkeypatch):
                                              (False, "gpu", False), (False, "auto", False)):
         monkeypatch.setattr(tof_compiled, "cpu_kernels_cached", lambda cached=cached: cached)
         text = compiled.first_status("Cam", device)
-        assert ("compiling the compiled tracer once" in text and "the compile goes on in the background" in text) == expected_compile
+        says_compile = "compiling the compiled tracer once" in text and "the compile goes on in the background" in text
+        assert says_compile == expected_compile
         assert (text == plain) == (not expected_compile)
 
 
