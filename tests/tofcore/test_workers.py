@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import sys
 from pathlib import Path
@@ -263,3 +264,28 @@ def test_sigint_held_keeps_an_ignored_sigint_ignored():
         assert signal.getsignal(signal.SIGINT) == signal.SIG_IGN
     finally:
         signal.signal(signal.SIGINT, previous)
+
+
+def test_the_resource_tracker_is_never_entered_with_the_garbage_collector_on(monkeypatch):
+    """A stopped pool's semaphores unregister from the tracker when the collector frees them; a collection
+    inside another tracker call is a reentrant call (Python 3.13: a warning and a leaked semaphore). So the
+    pool's start, the shared blocks' creation and their unlinking hold the collector off."""
+    from multiprocessing import resource_tracker
+
+    calls = []
+
+    def recording(name, original):
+        def call(*args):
+            calls.append((name, args[-1], gc.isenabled()))
+            return original(*args)
+        return call
+
+    for name in ("register", "unregister"):
+        monkeypatch.setattr(resource_tracker, name, recording(name, getattr(resource_tracker, name)))
+    workers.shutdown()  # a new pool: its semaphores register
+    scene, cam, kw = corner(24, 18)
+    tofcore.trace(scene, cam, [LED()], spp=2, workers=2, chunk_size=100, **kw)
+    kinds = {(name, kind) for name, kind, _ in calls}
+    assert {("register", "semaphore"), ("register", "shared_memory"), ("unregister", "shared_memory")} <= kinds
+    assert not [call for call in calls if call[2]], "tracker calls with the collector on"
+    assert gc.isenabled()

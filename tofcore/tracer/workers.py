@@ -26,6 +26,7 @@ and the Python/NumPy runtime (≈ 60 MB).
 from __future__ import annotations
 
 import atexit
+import gc
 import importlib
 import io
 import multiprocessing as mp
@@ -116,6 +117,26 @@ def _check_room(nbytes: int) -> None:
                           f"(raise it, e.g. docker run --shm-size)")
 
 
+@contextmanager
+def collector_held():
+    """Hold the cyclic garbage collector off while this thread calls into multiprocessing's resource tracker.
+
+    A pool that was stopped (a cancel, Ctrl-C, another worker count) is garbage in a reference cycle, and its
+    six semaphores unregister themselves from the tracker when the collector frees them. A collection that
+    starts inside another tracker call (a shared-memory block created or unlinked, a pool's semaphores
+    registered) makes that a reentrant call, which Python 3.13 refuses: "ResourceTracker called
+    reentrantly …; the semaphore object might leak" (once in CI, six warnings: one pool). Held off, the
+    collection runs at a later allocation instead, outside the tracker.
+    """
+    enabled = gc.isenabled()
+    gc.disable()
+    try:
+        yield
+    finally:
+        if enabled:
+            gc.enable()
+
+
 class Shared:
     """A pickled object whose large arrays live in shared memory blocks owned by this (parent) process.
 
@@ -142,7 +163,8 @@ class Shared:
     def new_block(self, nbytes: int) -> shared_memory.SharedMemory:
         """A new block of ``nbytes`` (at least 1), listed for :meth:`close` at once."""
         _check_room(nbytes)
-        block = shared_memory.SharedMemory(create=True, size=max(1, nbytes))
+        with collector_held():
+            block = shared_memory.SharedMemory(create=True, size=max(1, nbytes))
         self.blocks.append(block)
         return block
 
@@ -166,7 +188,8 @@ class Shared:
             except BufferError:
                 pass
             try:
-                block.unlink()
+                with collector_held():
+                    block.unlink()
             except FileNotFoundError:
                 pass
         self.blocks = []
@@ -259,7 +282,8 @@ def sigint_held():
         return
     from multiprocessing import resource_tracker
 
-    resource_tracker.ensure_running()  # starting its process unblocks SIGINT here: start it first
+    with collector_held():
+        resource_tracker.ensure_running()  # starting its process unblocks SIGINT here: start it first
     caught: list[int] = []
     handler = signal.getsignal(signal.SIGINT)
     if handler is not None:
@@ -286,7 +310,7 @@ class _Pool:
             os.environ.update({k: "1" for k in _BLAS_ENV})
             if main_file is not None:  # children must not re-run the parent's script
                 del main.__file__
-            with sigint_held():  # the workers start with it blocked and ignore it (_init_worker)
+            with sigint_held(), collector_held():  # workers start with SIGINT blocked and ignore it (_init_worker)
                 self.pool = ctx.Pool(n, initializer=_init_worker, initargs=(warm_up,))
         finally:
             if main_file is not None:
