@@ -14,11 +14,13 @@ where it goes      :func:`site_packages_dir`: a folder of its own beside CuPy's 
 which packages     numba and llvmlite (its compiler back end), at the release line tofcore's ``compiled``
                    extra pins (pyproject.toml), ``--no-deps`` so Blender's NumPy stays the only one; numba
                    0.68 supports NumPy 1.22–2.5 (Blender 4.2–5.0 ship 1.26).
-first render       compiles the kernels (30 s on a fast machine; 128–183 s on a busy 2-core one in Debian's
-                   Blender 4.3, tests/blender_gui/numba_run.py) and caches the machine code beside tofcore's
-                   sources (the extension's ``.local/lib/python3.x/site-packages/tofcore/compiled/__pycache__``;
-                   ~/.cache/tofcore where that folder is read-only); later Blender sessions load it in about a
-                   second.
+compile            the kernels, once (30 s on a fast machine; 128–183 s on a busy 2-core one in Debian's
+                   Blender 4.3, tests/blender_gui/numba_run.py), by a child process (``tofcore.compiled.
+                   child_compile``) started right after the install (:func:`start_compiling`) or by the first
+                   render; a render waits for it and Esc still cancels at once, the compile going on. The
+                   machine code is cached beside tofcore's sources (the extension's ``.local/lib/python3.x/
+                   site-packages/tofcore/compiled/__pycache__``; ~/.cache/tofcore where that folder is
+                   read-only); later Blender sessions load it in about a second.
 which renders      all but those with an ambient environment map (a World with an Environment Texture),
                    transient histograms or textures (``tofcore.compiled.setup``); a plain World colour is
                    compiled. :func:`blender_reason` names the Blender setting in the UI.
