@@ -32,8 +32,6 @@ def fake_child(tmp_path, monkeypatch):
 
     yield use
     child_compile.stop()
-    if child_compile._child.get("log") is not None:
-        child_compile._child["log"].close()
 
 
 def test_cancel_ends_the_wait_and_the_next_wait_joins_the_same_child(fake_child):

@@ -108,14 +108,16 @@ def _outcome() -> str:
     process, log = _child.get("process"), _child.get("log")
     if process is None:
         return "no compile ran"
-    log.seek(0)
-    lines = [line.strip() for line in log.read().splitlines() if line.strip()]
+    lines = []
+    if log is not None:
+        log.seek(0)
+        lines = [line.strip() for line in log.read().splitlines() if line.strip()]
     return (f"`{' '.join(command('python'))}` ended with exit status {process.returncode}"
             + (f": {lines[-1]}" if lines else ""))
 
 
 def stop() -> None:
-    """Stop a running child (this process's exit does it too)."""
+    """Stop a running child and close its log (this process's exit does it too)."""
     process = _child.get("process")
     if process is not None and process.poll() is None:
         process.terminate()
@@ -124,6 +126,9 @@ def stop() -> None:
         except subprocess.TimeoutExpired:
             process.kill()
             process.wait()
+    log = _child.pop("log", None)
+    if log is not None:
+        log.close()
 
 
 atexit.register(stop)
