@@ -99,15 +99,27 @@ def wait(cancel) -> str:
     return _outcome()
 
 
+def compile_aside(cancel) -> str:
+    """For a trace with ``cancel``: uncached CPU kernels compiled by the child (:func:`wait`); what happened,
+    in words for ``stats["transport"]["compile"]`` ('' when they were cached)."""
+    from . import cpu_kernels_cached
+
+    if cpu_kernels_cached() is not False:
+        return ""
+    start_s = time.perf_counter()
+    why_not = wait(cancel)
+    if why_not:
+        return f"compiled in this process: {why_not}"
+    return f"compiled by a child process in {time.perf_counter() - start_s:.1f} s"
+
+
 def _outcome() -> str:
     """'' when the kernels are cached now, else the finished child's exit status and last line of stderr."""
     from . import cpu_kernels_cached
 
     if cpu_kernels_cached() is not False:
         return ""
-    process, log = _child.get("process"), _child.get("log")
-    if process is None:
-        return "no compile ran"
+    process, log = _child["process"], _child.get("log")  # wait() started it, or found the kernels cached
     lines = []
     if log is not None:
         log.seek(0)

@@ -116,7 +116,9 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
     tracer = importlib.import_module(parallel.COMPILED_TRACER).choose(setup)  # compiled where numba allows
     stats = TraceStats(tracer=tracer.tracer, tracer_reason=tracer.reason)
     if tracer.packed is not None and not dev.is_gpu and settings.cancel is not None:
-        stats.compile = _compile_aside(settings.cancel)  # numba's compile cannot be cancelled; its child can
+        # numba's compile cannot be cancelled, a child process compiling for us can
+        stats.compile = importlib.import_module(parallel.COMPILED_TRACER + ".child_compile").compile_aside(
+            settings.cancel)
     # Start the worker processes first: they boot and import tofcore while this one traces the first hits.
     # The compiled tracer runs on numba's threads instead (they release the GIL).
     spawn = n_workers > 1 and not dev.is_gpu and tracer.packed is None
@@ -156,18 +158,6 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
             parallel.unshare(shared, transport)
         if tracer.packed is not None:
             importlib.import_module(parallel.COMPILED_TRACER).release(tracer)
-
-
-def _compile_aside(cancel) -> str:
-    """Uncached CPU kernels compiled by a child process while ``cancel`` is polled; what happened, in words."""
-    compiled = importlib.import_module(parallel.COMPILED_TRACER)
-    if compiled.cpu_kernels_cached() is not False:
-        return ""
-    start = time.perf_counter()
-    why_not = importlib.import_module(parallel.COMPILED_TRACER + ".child_compile").wait(cancel)
-    if why_not:
-        return f"compiled in this process: {why_not}"
-    return f"compiled by a child process in {time.perf_counter() - start:.1f} s"
 
 
 def _parallel_settings(settings: TraceSettings, setup: TraceSetup) -> tuple[int, int]:
