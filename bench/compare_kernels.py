@@ -77,13 +77,12 @@ def main() -> int:
     os.environ["TOFCORE_TRACER"] = "numpy"
     ref = tofcore.trace(*args, **kwargs, workers=1)
     n = width * height
-    scene = (packed.geo, packed.cam, packed.cam_table, packed.frame, packed.leds, packed.corr_kinds, packed.corr_table)
-    settings = (packed.key, packed.max_depth, packed.independent, packed.light_paths, packed.ambient)
+    scene, settings = packed.scene(), packed.settings()
     pixels = (0, n, np.zeros(n, np.int64), np.full(n, spp, np.int64))
 
     def run(k):
         out = (np.zeros_like(ref.signal_sum), np.zeros_like(ref.correlation_sum), np.zeros_like(ref.replicate_sum),
-               np.zeros_like(ref.ambient_sum), np.zeros((n, 5), np.int64))
+               np.zeros_like(ref.ambient_sum), np.zeros((0, 0)), np.zeros((n, 5), np.int64))
         start = time.process_time()
         k.trace_pixels(scene, settings, pixels, out)
         return time.process_time() - start, out

@@ -37,7 +37,7 @@ from .output.writers import read_exr, write_frame
 from .render import render, render_progressive
 from .scene.ambient import Ambient
 from .scene.camera import Camera
-from .scene.demo import demo_scene, suggested_pose
+from .scene.demo import demo_ambient, demo_scene, suggested_pose
 from .scene.led import LED
 from .scene.material import Material, Texture
 from .scene.mesh_files import load_mesh
@@ -51,7 +51,7 @@ from .tracer.transport import FirstHit, Transport
 
 __all__ = [
     "Ambient", "Camera", "Cancelled", "ConfigError", "FirstHit", "Frame", "LED", "LimitError", "Material", "Modulation",
-    "Reason", "SPEED_OF_LIGHT_M_S", "Scene", "SceneError", "Sensor", "Texture", "TofError", "Transport", "demo_scene",
+    "Reason", "SPEED_OF_LIGHT_M_S", "Scene", "SceneError", "Sensor", "Texture", "TofError", "Transport", "demo_ambient", "demo_scene",
     "from_blender_matrix_world", "list_presets", "load_mesh", "load_preset", "look_at", "read_exr", "render",
     "render_progressive",
     "suggested_pose", "trace", "trace_progressive", "write_frame",

@@ -146,12 +146,12 @@ def check_output_folder(path: Path, flag: str = "--out") -> None:
 
 def _scene(name: str):
     """(scene, pose or None, ambient or None) of ``--scene``: a demo scene, .npz, mesh file or .blend."""
-    from .scene.demo import NAMES, demo_scene
+    from .scene.demo import NAMES, demo_ambient, demo_scene
     from .scene.mesh_files import MESH_SUFFIXES, load_mesh
     from .scene.scene import Scene
 
     if name in NAMES:
-        return demo_scene(name), None, None
+        return demo_scene(name), None, demo_ambient(name)
     path = Path(name)
     suffix = path.suffix.lower()
     if suffix not in (".npz", ".blend", *MESH_SUFFIXES):

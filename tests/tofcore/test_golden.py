@@ -15,6 +15,9 @@ to change frames (physics, presets) regenerates them::
 
 and says in its commit message which frames changed and why. ``--show`` prints the differing arrays.
 
+The same cases also run on the compiled tracer (the one users get with numba installed), compared with
+the NumPy frame of the same machine at test_compiled.py's tolerance: that guard holds on any machine.
+
 Bit-level hashes hold on one kind of machine: NumPy's SIMD loops for sin, cos, exp and log differ in the
 last bits between CPUs, and float64 sums show it (on the H100 host, an Intel CPU with NumPy 2.5, the three
 ``trace`` cases differed while every ``render`` case, rounded to float32, hashed the same). The file
@@ -152,6 +155,41 @@ def test_frame_hashes_are_unchanged(name):
     changed = sorted(k for k in expected.keys() | got.keys() if expected.get(k) != got.get(k))
     assert not changed, (f"golden case {name!r}: arrays changed bit for bit: {changed} (an intentional physics "
                          f"change regenerates them: see this file's docstring)")
+
+
+def _numba_installed() -> bool:
+    from tofcore import compiled
+
+    return compiled.numba_version() is not None
+
+
+COMPILED_AGREEMENT = 0.995
+"""Share of each array's entries the compiled tracer must give to 1e-9 relative (tests/tofcore/test_compiled.py
+states why: the compiler's libm may round a transcendental function's last bit differently, which, rarely,
+moves a path across a triangle edge or a lobe threshold); the arrays' totals agree to 1e-6."""
+
+
+@pytest.mark.skipif(not _numba_installed(), reason="numba is not installed")
+@pytest.mark.parametrize("name", sorted(CASES))
+def test_the_compiled_tracer_gives_each_golden_frame(name, monkeypatch):
+    """The same cases on the tracer users get by default (compiled with numba): the NumPy frame of this
+    machine — whose hashes the test above guards on the machine they were recorded on — at the stated
+    tolerance, on any machine."""
+    monkeypatch.setenv("TOFCORE_TRACER", "numpy")
+    reference = run_case(name)
+    monkeypatch.setenv("TOFCORE_TRACER", "compiled")  # an error, not a fall-back, where it cannot run the case
+    fast = run_case(name)
+    assert reference.keys() == fast.keys()
+    for key, x in reference.items():
+        y = fast[key]
+        assert x.shape == y.shape and x.dtype == y.dtype, key
+        if x.dtype == bool or np.issubdtype(x.dtype, np.integer):
+            assert (x == y).mean() >= COMPILED_AGREEMENT, key
+            continue
+        scale = np.nanmax(np.abs(x), initial=0.0)
+        close = np.isclose(x, y, rtol=1e-9, atol=1e-12 * max(scale, 1e-300)) | (np.isnan(x) & np.isnan(y))
+        assert close.mean() >= COMPILED_AGREEMENT, f"{key}: {100 * (1 - close.mean()):.2f} % of the values differ"
+        np.testing.assert_allclose(np.nansum(y), np.nansum(x), rtol=1e-6, atol=1e-9 * max(scale, 1e-300), err_msg=key)
 
 
 def test_workers_and_chunks_do_not_change_the_frame():

@@ -339,6 +339,28 @@ def test_compiled_gpu_constant_ambient_light_equals_cpu(monkeypatch):
         assert close.mean() >= 1 - FRAME_TOLERANCE["max_disagreeing"], name
 
 
+@pytest.mark.gpu
+@numba_cuda_only
+def test_compiled_gpu_textures_sky_map_harmonic_channel_and_transient_equal_cpu(monkeypatch):
+    """The textured room open to its sky map, a harmonic correlation channel and a transient histogram on
+    the wavefront: the CPU reference's sums and bins within the device tolerance."""
+    from tofcore.sensor.modulation import harmonic
+
+    scene = tofcore.demo_scene("textured_room", detail=2)
+    kwargs = dict(world_from_sensor=tofcore.suggested_pose(scene), spp=4, max_depth=4, seed=4, progressive=False,
+                  correlations=phasor_correlations([80e6]) + [harmonic(16e6, (0.5, 0.3, 0.05), (0.1, 0.02))],
+                  ambient=tofcore.demo_ambient("textured_room"), transient_bin_m=0.05, transient_max_m=12.0)
+    args = (scene, Camera.from_fov(64, 48, 70.0), [tofcore.LED(position_m=(0.025, 0.0, 0.0))])
+    ref = tofcore.trace(*args, device="cpu", **kwargs)
+    monkeypatch.setenv("TOFCORE_TRACER", "compiled")
+    got = tofcore.trace(*args, device="gpu", **kwargs)
+    assert got.stats.tracer == "compiled" and (ref.ambient_sum > 0).mean() > 0.5
+    for name in ("signal_sum", "correlation_sum", "replicate_sum", "ambient_sum", "transient_sum"):
+        x, y = getattr(ref, name), backend.to_host(getattr(got, name))
+        close = np.isclose(y, x, rtol=1e-9, atol=1e-12 * np.abs(x).max(initial=0.0))
+        assert close.mean() >= 1 - FRAME_TOLERANCE["max_disagreeing"], name
+
+
 # ------------------------------------------------------------------ device work after the trace
 POST_TRACE_BUDGET = {
     # Counted on the CuPy stand-in for a Kinect v2 frame (3 frequencies, bilateral filter, scattering, raw

@@ -31,11 +31,9 @@ PARALLEL_LOCK = threading.Lock()
 def trace_chunk(packed, out, p0: int, p1: int, first: np.ndarray, counts: np.ndarray) -> np.ndarray:
     """Trace pixels [p0, p1) of a pass into the transport ``out``; returns the (N_COUNTERS,) ray counts."""
     counters = np.zeros((p1 - p0, N_COUNTERS), np.int64)
-    scene = (packed.geo, packed.cam, packed.cam_table, packed.frame, packed.leds, packed.corr_kinds,
-             packed.corr_table)
-    settings = (packed.key, packed.max_depth, packed.independent, packed.light_paths, packed.ambient)
     pixels = (p0, p1, np.ascontiguousarray(first, dtype=np.int64), np.ascontiguousarray(counts, dtype=np.int64))
+    film = out.transient_sum if out.transient_sum is not None else np.zeros((0, 0))
     with PARALLEL_LOCK:
-        kernels.trace_pixels(scene, settings, pixels, (out.signal_sum, out.correlation_sum, out.replicate_sum,
-                                                       out.ambient_sum, counters))
+        kernels.trace_pixels(packed.scene(), packed.settings(), pixels,
+                             (out.signal_sum, out.correlation_sum, out.replicate_sum, out.ambient_sum, film, counters))
     return counters.sum(axis=0)

@@ -84,7 +84,7 @@ def load_kernels():
 class DeviceScene:
     """A render's packed arrays (:class:`tofcore.compiled.setup.Packed`) on the GPU (``arrays``, CuPy; NumPy
     under numba's CUDA simulator) and as the kernels take them (``scene``), its settings (key, max_depth,
-    independent, light_paths, ambient radiance), the scene's BVH (its records are uploaded by
+    independent, light_paths, ambient radiance, transient bin width), the scene's BVH (its records are uploaded by
     :mod:`tofcore.gpu.traversal` at the first ray), and the wavefront's :class:`Workspace` (made at the
     first pass). After its trace (:func:`release`) it serves the next trace of the same ``layout``: the
     arrays get the new contents, the workspace and its prepared kernels stay. ``host`` keeps the host arrays
@@ -116,11 +116,11 @@ def upload(packed, bvh) -> DeviceScene:
     if n_corr + 2 > module.GPU_MAX_CHANNELS:
         raise ValueError(f"the GPU tracer takes at most {module.GPU_MAX_CHANNELS - 2} correlation channels, "
                          f"got {n_corr}")
-    corr_table = packed.corr_table if n_corr else np.zeros((1, 6))  # numba types an empty table by a row
-    host = (tuple(np.ascontiguousarray(a) for a in packed.geo), packed.cam, packed.cam_table, packed.frame,
-            tuple(np.ascontiguousarray(a) for a in packed.leds), packed.corr_kinds, corr_table)
-    settings = (packed.key, int(packed.max_depth), bool(packed.independent), bool(packed.light_paths),
-                float(packed.ambient))
+    geo, cam, cam_table, frame, leds, corr_kinds, corr_table, corr_data, sky = packed.scene()
+    corr_table = corr_table if n_corr else np.zeros((1, 6))  # numba types an empty table by a row
+    host = (tuple(np.ascontiguousarray(a) for a in geo), cam, cam_table, frame,
+            tuple(np.ascontiguousarray(a) for a in leds), corr_kinds, corr_table, corr_data, sky)
+    settings = packed.settings()
     layout = (tuple((a.shape, a.dtype.str) for a in _leaves(host)), int(packed.max_depth))
     device_scene = _IDLE.pop(layout, None)
     if device_scene is None:
@@ -199,8 +199,9 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
     """Trace samples [first[p], first[p] + counts[p]) of every pixel into ``out``'s sums on the GPU.
 
     ``out`` holds CuPy arrays ``signal_sum`` (K, P), ``correlation_sum`` (K, J, P), ``replicate_sum``
-    (R, J + 2, P) and ``ambient_sum`` (P,) (a :class:`tofcore.tracer.transport.Transport` on the GPU); NumPy arrays under numba's
-    CUDA simulator (tests). Per group of sample indices (:func:`groups`): start every path, trace the
+    (R, J + 2, P), ``ambient_sum`` (P,) and ``transient_sum`` (P, B) or None (a
+    :class:`tofcore.tracer.transport.Transport` on the GPU); NumPy arrays under numba's CUDA simulator (tests).
+    Per group of sample indices (:func:`groups`): start every path, trace the
     camera and light rays, the light vertices; per depth shade the live paths, trace the shadow rays that
     need a test, resolve, gather the depth's addends, trace the next rays. No synchronisation until the pass's ray counts are
     read back at its end. Returns those counts (N_COUNTERS,) on the host.
@@ -212,7 +213,9 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
     order, active = launch_plan(counts)
     offsets = np.concatenate([[0], np.cumsum(active)]).astype(np.int64)
     plan = [(s0, s1, int(offsets[s1] - offsets[s0])) for s0, s1 in groups(active, group_limit(device_scene))]
-    ws = workspace(device_scene, xp, n_pix, len(offsets), max((n for *_, n in plan), default=0), threads_per_block)
+    n_bins = 0 if getattr(out, "transient_sum", None) is None else int(out.transient_sum.shape[1])
+    ws = workspace(device_scene, xp, n_pix, len(offsets), max((n for *_, n in plan), default=0), threads_per_block,
+                   n_bins)
     ws.begin_pass(device_scene.settings, order, first, offsets)
     for s0, s1, n in plan:
         ws.trace_group(device_scene.bvh, s0, s1, n, int(active[s0]))
@@ -223,23 +226,26 @@ def trace_pass(device_scene: DeviceScene, out, first: np.ndarray, counts: np.nda
     out.correlation_sum += nee_wg
     out.replicate_sum += replicate
     out.ambient_sum += ambient
+    if n_bins:
+        out.transient_sum += ws.film
     return ws.end_pass()
 
 
 def workspace(device_scene: DeviceScene, xp, n_pix: int, n_offsets: int, n_paths: int,
-              threads_per_block: int) -> Workspace:
-    """The scene's :class:`Workspace` for a pass of ``n_pix`` pixels, ``n_offsets`` − 1 sample indices and
-    groups of at most ``n_paths`` paths: the last pass's where it has the room, else a new one (with twice
-    the room it grows from, as far as :func:`group_limit` allows, so progressive passes make few)."""
+              threads_per_block: int, n_bins: int = 0) -> Workspace:
+    """The scene's :class:`Workspace` for a pass of ``n_pix`` pixels, ``n_offsets`` − 1 sample indices,
+    groups of at most ``n_paths`` paths and ``n_bins`` transient bins: the last pass's where it has the
+    room, else a new one (with twice the room it grows from, as far as :func:`group_limit` allows, so
+    progressive passes make few)."""
     ws = device_scene.work.get("wavefront")
     if (ws is not None and ws.n_pix == n_pix and ws.limit >= n_paths and len(ws.offsets) >= n_offsets
-            and ws.threads_per_block == threads_per_block):
+            and ws.threads_per_block == threads_per_block and ws.n_bins == n_bins):
         return ws
     grown = 2 * ws.limit if ws is not None and ws.n_pix == n_pix else 0
     paths = max(n_paths, min(grown, group_limit(device_scene)), 1)
     room = max(n_offsets, 2 * len(ws.offsets) if ws is not None else 0, 65)
     ws = device_scene.work["wavefront"] = None  # the old buffers go back to the pool before new ones are taken
-    ws = device_scene.work["wavefront"] = Workspace(device_scene, xp, n_pix, paths, room, threads_per_block)
+    ws = device_scene.work["wavefront"] = Workspace(device_scene, xp, n_pix, paths, room, threads_per_block, n_bins)
     return ws
 
 
@@ -247,14 +253,18 @@ class Workspace:
     """The wavefront's device buffers for one render's passes and its kernels prepared over them
     (:class:`tofcore.compiled.launch.PreparedKernel`): from group to group only the group's bounds (s0,
     s1, n) and the depth change, so each stage is one ``cuLaunchKernel`` and each ray set one traversal
-    launch — no allocation, no host synchronisation inside a pass."""
+    launch — no allocation, no host synchronisation inside a pass. A transient render's histogram of the
+    pass (``film``, P × B) is filled by ``wf_transient`` after each depth's resolve."""
 
-    def __init__(self, device_scene: DeviceScene, xp, n_pix: int, limit: int, room: int, threads_per_block: int):
+    def __init__(self, device_scene: DeviceScene, xp, n_pix: int, limit: int, room: int, threads_per_block: int,
+                 n_bins: int = 0):
         from ..tracer import qmc
 
         module = load_kernels()
         self.xp, self.n_pix, self.limit, self.max_depth = xp, n_pix, limit, device_scene.max_depth
         self.threads_per_block = threads_per_block
+        self.n_bins = n_bins
+        self.film = xp.zeros((n_pix, n_bins) if n_bins else (1, 1))
         k_max, n_corr = device_scene.max_depth, device_scene.n_correlations
         self.slots = int(device_scene.scene[4][0].shape[0]) + 1
         self.n_corr = n_corr
@@ -273,7 +283,8 @@ class Workspace:
         k = _kernel_arrays
         scene = device_scene.scene
         settings = (Slot("key", np.uint64), Slot("max_depth"), Slot("independent", np.bool_),
-                    Slot("light_paths", np.bool_), Slot("ambient", np.float64))  # set per pass (begin_pass)
+                    Slot("light_paths", np.bool_), Slot("ambient", np.float64),
+                    Slot("transient_bin_m", np.float64))  # set per pass (begin_pass)
         group = (*k(self.pixels), _kernel_array(self.offsets), Slot("s0"), Slot("s1"))
         path, counters = k(a["path"]), _kernel_array(a["counters"])
         buffers = (k(a["pstate"]), _kernel_array(a["light"]), k(a["pend"]), k(a["shadow"]), k(a["rays"]), counters,
@@ -286,17 +297,24 @@ class Workspace:
                            _kernel_array(a["total"]), k(a["contrib"])),
             "wf_gather": (group, Slot("depth"), _kernel_array(a["path"][1]), k(a["contrib"]),
                           _kernel_array(a["total"]), k(self.sums))}
+        if n_bins:
+            self.arguments["wf_transient"] = (group, Slot("transient_bin_m", np.float64), path, k(a["pend"]),
+                                              _kernel_array(self.occluded), _kernel_array(self.film))
         """Each stage kernel's arguments (:class:`tofcore.compiled.launch.Slot` where they change)."""
         self.kernels = {name: PreparedKernel(getattr(module, name), arguments, threads_per_block)
                         for name, arguments in self.arguments.items()}
 
     def begin_pass(self, settings: tuple, order: np.ndarray, first: np.ndarray, offsets: np.ndarray) -> None:
-        """Set the render's ``settings`` (key, max_depth, independent, light_paths, ambient); upload the pass's
-        pixel order, first sample indices and offsets; zero its sums and ray counts."""
+        """Set the render's ``settings`` (key, max_depth, independent, light_paths, ambient, transient bin
+        width); upload the pass's pixel order, first sample indices and offsets; zero its sums, histogram and
+        ray counts."""
         xp = self.xp
-        values = dict(zip(("key", "max_depth", "independent", "light_paths", "ambient"), settings))
+        values = dict(zip(("key", "max_depth", "independent", "light_paths", "ambient", "transient_bin_m"), settings))
         for name in ("wf_start", "wf_light", "wf_shade"):
             self.kernels[name].set(**values)
+        if self.n_bins:
+            self.kernels["wf_transient"].set(transient_bin_m=values["transient_bin_m"])
+            self.film.fill(0)
         self.light_paths = bool(values["light_paths"])
         self.pixels[0][:] = xp.asarray(order, dtype=np.int64)
         self.pixels[1][:] = xp.asarray(first, dtype=np.int64)
@@ -333,6 +351,9 @@ class Workspace:
             t = _stage_done("resolve", t)
             kernel["wf_gather"].launch(lead * self.gather_outputs(depth), depth=depth, s0=s0, s1=s1)
             t = _stage_done("gather", t)
+            if self.n_bins:
+                kernel["wf_transient"].launch(lead, s0=s0, s1=s1)
+                t = _stage_done("transient", t)
 
     def gather_outputs(self, depth: int) -> int:
         """Sums per pixel that wf_gather adds to after ``depth`` (kernels.gather_outputs)."""

@@ -37,7 +37,7 @@ from .. import rng as _rng
 from ..tracer import sampler as _sampler
 from ..tracer import surface as _surface
 from ._target import cpu_parallel_function, device_function, gpu_kernel_function, gpu_module
-from .layout import LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE
+from .layout import HARMONIC, LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE, TABLE
 
 # ------------------------------------------------------------------ constants, from the reference modules
 GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
@@ -478,7 +478,8 @@ def orthonormal_basis(n):
 
 @fn
 def surface_at(geo, prim, u, v, ray_origin, ray_direction):
-    """The surface tuple where a float64 ray hits triangle ``prim`` at float32 barycentrics (u, v)."""
+    """The surface tuple where a float64 ray hits triangle ``prim`` at float32 barycentrics (u, v), its
+    material's textures applied (tofcore.tracer.surface.surface_at)."""
     triangles, vertices, face_normals, normals, material_ids, materials = geo[4], geo[5], geo[6], geo[7], \
         geo[8], geo[9]
     i0, i1, i2 = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
@@ -507,12 +508,135 @@ def surface_at(geo, prim, u, v, ray_origin, ray_direction):
         ns = divide(ns, norm(ns))
     else:
         ns = ng
+    m = material_ids[prim]
+    reflectance, roughness, metallic = materials[m, 0], materials[m, 1], materials[m, 2]
+    slots = geo[11]
+    if slots[m, 0] >= 0 or slots[m, 1] >= 0 or slots[m, 2] >= 0 or slots[m, 3] >= 0:
+        uvs, textures = geo[10], (geo[12], geo[13])
+        tex_u = w0 * uvs[i0, 0] + u64 * uvs[i1, 0] + v64 * uvs[i2, 0]
+        tex_v = w0 * uvs[i0, 1] + u64 * uvs[i1, 1] + v64 * uvs[i2, 1]
+        if slots[m, 0] >= 0:
+            reflectance = np.float64(texture_sample(textures, slots[m, 0], tex_u, tex_v, 0))
+        if slots[m, 1] >= 0:
+            roughness = np.float64(texture_sample(textures, slots[m, 1], tex_u, tex_v, 0))
+        if slots[m, 2] >= 0:
+            metallic = np.float64(texture_sample(textures, slots[m, 2], tex_u, tex_v, 0))
+        if slots[m, 3] >= 0:
+            c = dot(ns, ng)
+            side = 1.0 if c > 0 else (-1.0 if c < 0 else 0.0)  # np.sign
+            rgb = (texture_sample(textures, slots[m, 3], tex_u, tex_v, 0),
+                   texture_sample(textures, slots[m, 3], tex_u, tex_v, 1),
+                   texture_sample(textures, slots[m, 3], tex_u, tex_v, 2))
+            ns = perturb_normal(geo, prim, scale(ns, side), rgb)
     ns = scale(ns, -1.0 if dot(ns, ng) < 0 else 1.0)
     tangent, bitangent = orthonormal_basis(ns)
-    m = material_ids[prim]
-    params = (min(max(materials[m, 0], 0.0), 1.0), max(materials[m, 1], 0.0), min(max(materials[m, 2], 0.0), 1.0),
+    params = (min(max(reflectance, 0.0), 1.0), max(roughness, 0.0), min(max(metallic, 0.0), 1.0),
               materials[m, 3], materials[m, 4])
     return position, ng, tangent, bitangent, ns, params
+
+
+# ------------------------------------------------------------------ textures (tofcore.scene.material, ambient)
+#   textures = (table (T, 4) int64: offset, height, width, channels of each image; data: every image's
+#               float32 texels, row-major (H, W, C), one after the other)    tofcore.compiled.setup.texture_store
+@fn
+def texture_sample(textures, t, u, v, c):
+    """Channel c of texture t at UV (u, v) (float64; (0, 0) the bottom-left corner), float32: bilinear
+    between the four texel centres around the point, repeat wrapping (Texture.sample)::
+
+        x = u W − ½,  y = (1 − v) H − ½,  f_x = x − ⌊x⌋,  f_y = y − ⌊y⌋
+        value = (d₀₀ (1 − f_x) + d₀₁ f_x)(1 − f_y) + (d₁₀ (1 − f_x) + d₁₁ f_x) f_y     (float32)
+    """
+    table, data = textures
+    offset, h, w, channels = table[t, 0], table[t, 1], table[t, 2], table[t, 3]
+    x = u * w - 0.5
+    y = (1.0 - v) * h - 0.5
+    x0 = math.floor(x)
+    y0 = math.floor(y)
+    fx = np.float32(x - x0)
+    fy = np.float32(y - y0)
+    col0 = np.int64(x0) % w
+    row0 = np.int64(y0) % h
+    col1 = (col0 + 1) % w
+    row1 = (row0 + 1) % h
+    d00 = data[offset + (row0 * w + col0) * channels + c]
+    d01 = data[offset + (row0 * w + col1) * channels + c]
+    d10 = data[offset + (row1 * w + col0) * channels + c]
+    d11 = data[offset + (row1 * w + col1) * channels + c]
+    top = d00 * (F32_ONE - fx) + d01 * fx
+    bottom = d10 * (F32_ONE - fx) + d11 * fx
+    return top * (F32_ONE - fy) + bottom * fy
+
+
+@fn
+def perturb_normal(geo, prim, n, rgb):
+    """The shading normal n bent by a tangent-space normal map's RGB (float32, [0, 1]) (surface._perturb).
+
+    The tangent follows increasing u on the triangle (dP/du from its UVs, Gram–Schmidt against n; the
+    basis of n where the UVs are degenerate); the bitangent is n × t; m = 2 rgb − 1 and the normal is
+    normalise(m_x t + m_y b + max(m_z, 10⁻³) n).
+    """
+    triangles, vertices, uvs = geo[4], geo[5], geo[10]
+    i0, i1, i2 = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
+    p0 = (np.float64(vertices[i0, 0]), np.float64(vertices[i0, 1]), np.float64(vertices[i0, 2]))
+    e1 = sub((np.float64(vertices[i1, 0]), np.float64(vertices[i1, 1]), np.float64(vertices[i1, 2])), p0)
+    e2 = sub((np.float64(vertices[i2, 0]), np.float64(vertices[i2, 1]), np.float64(vertices[i2, 2])), p0)
+    d1u = np.float64(uvs[i1, 0]) - np.float64(uvs[i0, 0])
+    d1v = np.float64(uvs[i1, 1]) - np.float64(uvs[i0, 1])
+    d2u = np.float64(uvs[i2, 0]) - np.float64(uvs[i0, 0])
+    d2v = np.float64(uvs[i2, 1]) - np.float64(uvs[i0, 1])
+    det = d1u * d2v - d2u * d1v
+    dpdu = ((e1[0] * d2v - e2[0] * d1v) / det, (e1[1] * d2v - e2[1] * d1v) / det,
+            (e1[2] * d2v - e2[2] * d1v) / det)
+    fallback = orthonormal_basis(n)[0]
+    if not (math.isfinite(dpdu[0]) and math.isfinite(dpdu[1]) and math.isfinite(dpdu[2])):
+        dpdu = fallback
+    along = dot(dpdu, n)
+    t = (dpdu[0] - along * n[0], dpdu[1] - along * n[1], dpdu[2] - along * n[2])
+    length = norm(t)
+    t = divide(t, max(length, 1e-300)) if length > 1e-12 else fallback
+    b = (n[1] * t[2] - n[2] * t[1], n[2] * t[0] - n[0] * t[2], n[0] * t[1] - n[1] * t[0])
+    mx, my, mz = 2.0 * np.float64(rgb[0]) - 1.0, 2.0 * np.float64(rgb[1]) - 1.0, 2.0 * np.float64(rgb[2]) - 1.0
+    mz = max(mz, 1e-3)
+    bent = (mx * t[0] + my * b[0] + mz * n[0], mx * t[1] + my * b[1] + mz * n[1], mx * t[2] + my * b[2] + mz * n[2])
+    return divide(bent, norm(bent))
+
+
+@fn
+def ambient_radiance(sky, textures, radiance, d):
+    """Ambient radiance (W m⁻² sr⁻¹) seen looking along unit world direction d (Ambient.radiance): the
+    constant ``radiance`` plus, where ``sky`` = (strength, texture index) names an environment map, strength
+    × the map at Blender's equirectangular coordinates (float32 product)::
+
+        u = atan2(d_y, −d_x) / 2π + ½,   v = clip(atan2(d_z, hypot(d_x, d_y)) / π + ½, ½/H, 1 − ½/H)
+    """
+    t = np.int64(sky[1])
+    if t < 0:
+        return radiance
+    u = math.atan2(d[1], -d[0]) / TWO_PI + 0.5
+    v = math.atan2(d[2], math.hypot(d[0], d[1])) / PI + 0.5
+    h = textures[0][t, 1]
+    v = min(max(v, 0.5 / h), 1.0 - 0.5 / h)
+    return radiance + np.float64(np.float32(sky[0]) * texture_sample(textures, t, u, v, 0))
+
+
+@fn
+def add_transient(film, pixel, w, length, bin_m):
+    """Weight w of path length L into row ``pixel`` of the path-length histogram ``film`` (P, B), split
+    between the two nearest bin centres (b + ½)·bin_m so that Σw and Σw·L are kept inside the range
+    (accumulate.Tally._add_transient): x = L / bin_m − ½, w(1 − frac x) to bin ⌊x⌋, w frac x to ⌊x⌋ + 1."""
+    n_bins = film.shape[1]
+    x = length / bin_m - 0.5
+    below = math.floor(x)
+    if not (below >= -1.0 and below < n_bins):
+        return
+    frac = x - below
+    b = np.int64(below)
+    lower = w * (1.0 - frac)
+    upper = w * frac
+    if b >= 0 and lower != 0:
+        film[pixel, b] += lower
+    if b + 1 < n_bins and upper != 0:
+        film[pixel, b + 1] += upper
 
 
 @fn
@@ -762,11 +886,14 @@ def sample_emission(kind, u1, u2):
 
 
 @fn
-def correlation(kind, par, tau):
-    """g_j(τ) of one channel; ``par`` is its row of tofcore.compiled.setup.correlation_table.
+def correlation(kind, par, data, tau):
+    """g_j(τ) of one channel; ``par`` is its row of tofcore.compiled.setup.correlation_table, ``data`` the
+    channels' shared coefficients (a harmonic series' or a table's values).
 
     PHASOR cos(2πf τ − qπ/2) (modulation.phasor_component); SINE ½ + cos(2π(fτ − k/N))/π; SQUARE the
-    clipped triangle/trapezoid of modulation.square_correlation; PULSED clip(1 − |τ/t0 − b|, 0, 1).
+    clipped triangle/trapezoid of modulation.square_correlation; PULSED clip(1 − |τ/t0 − b|, 0, 1);
+    HARMONIC a₀ + Σₙ aₙ cos(nφ) + bₙ sin(nφ), φ = 2πfτ (modulation.harmonic_correlation); TABLE the
+    periodic table linearly interpolated (modulation.tabulated_correlation).
     """
     if kind == PHASOR:  # par: 2πf, qπ/2
         return math.cos(par[0] * tau - par[1])
@@ -776,20 +903,39 @@ def correlation(kind, par, tau):
         shifted = par[0] * tau - par[1] + 0.5
         u = abs(shifted - math.floor(shifted) - 0.5)
         return min(max(par[5] - u, par[3]), par[4]) / par[2]
+    if kind == HARMONIC:  # par: 2πf, first coefficient, N; data: a₀, a₁ … a_N, b₁ … b_N
+        phase = par[0] * tau
+        first, n_harmonics = np.int64(par[1]), np.int64(par[2])
+        total = data[first]
+        for n in range(1, n_harmonics + 1):
+            a, b = data[first + n], data[first + n_harmonics + n]
+            total = total + (a * math.cos(n * phase) + b * math.sin(n * phase))
+        return total
+    if kind == TABLE:  # par: period T, first value, M; data: g(iT/M)
+        first, m = np.int64(par[1]), np.int64(par[2])
+        cycles = tau / par[0]
+        x = (cycles - math.floor(cycles)) * m
+        i = math.floor(x)
+        t = x - i
+        i0 = np.int64(i) % m
+        return data[first + i0] * (1.0 - t) + data[first + (i0 + 1) % m] * t
     return min(max(1.0 - abs(tau / par[0] - par[1]), 0.0), 1.0)  # PULSED, par: t0, bucket
 
 
 # ------------------------------------------------------------------ one path (tofcore.transport._trace_chunk)
 #
 # The path's arguments travel in tuples (numba compiles heterogeneous tuples of arrays and scalars):
-#   scene    = (geo, cam, cam_table, frame, leds, corr_kinds, corr_table)      the render's arrays
-#   settings = (key, max_depth, independent, light_paths, ambient)             the render's switches and its
-#                                                                              constant ambient radiance, W/(m² sr)
+#   scene    = (geo, cam, cam_table, frame, leds, corr_kinds, corr_table,     the render's arrays
+#               corr_data, sky)
+#   settings = (key, max_depth, independent, light_paths, ambient,            the render's switches, its constant
+#               transient_bin_m)                                               ambient radiance, W/(m² sr), and its
+#                                                                              transient bin width (0: none)
 #   rng      = (key, pixel, sample, independent)                               one sample's random numbers
 #   vertex   = (surface, spawn point, wo in the local frame, triangle index)  a camera vertex x
 #   state    = (throughput β, depth, bsdf_area_pdf, prev_delta, use_mis)      the path at x
 #   light    = (found, surface of y, y → LED, |y − LED|, emitted, p_B, margin) the light vertex (light_vertex)
-#   sums     = (nee_w, nee_wg, con_w, con_wg, total)                           a pixel's sums (trace_path)
+#   sums     = (nee_w, nee_wg, con_w, con_wg, total, film)                     a pixel's sums (trace_path); film:
+#                                                                              the frame's transient histogram
 #   work     = (counters, stack, stack_t, wg)                                  scratch (traverse, trace_path)
 @fn
 def led_estimate(frame, leds, vertex, state, i):
@@ -971,10 +1117,11 @@ def camera_vertex(geo, prim, surf, direction):
 
 
 @fn
-def add_next_events(scene, vertex, state, path_length, sums, work):
+def add_next_events(scene, vertex, state, path_length, film, sums, work):
     """Next-event estimation to every LED at the vertex, summed in LED order, added to bucket depth − 1
-    of ``nee_w``/``nee_wg`` and to the path's ``total`` (transport._trace_chunk)."""
-    geo, frame, leds, corr_kinds, corr_table = scene[0], scene[3], scene[4], scene[5], scene[6]
+    of ``nee_w``/``nee_wg``, to the path's ``total`` and, with ``film`` = (pixel, bin width > 0), to the
+    pixel's transient histogram (stages.next_event)."""
+    geo, frame, leds, corr_kinds, corr_table, corr_data = scene[0], scene[3], scene[4], scene[5], scene[6], scene[7]
     nee_w, nee_wg, total = sums[0], sums[1], sums[4]
     wg = work[3]
     n_corr = corr_kinds.shape[0]
@@ -983,10 +1130,13 @@ def add_next_events(scene, vertex, state, path_length, sums, work):
         wg[j] = 0.0
     for i in range(leds[0].shape[0]):
         w, led_distance = connect_led(geo, frame, leds, vertex, state, i, work)
-        tau = (path_length + led_distance) / SPEED_OF_LIGHT_M_S
+        length = path_length + led_distance
+        if film[1] > 0:
+            add_transient(sums[5], film[0], w, length, film[1])
+        tau = length / SPEED_OF_LIGHT_M_S
         w_sum += w
         for j in range(n_corr):
-            wg[j] += correlation(corr_kinds[j], corr_table[j], tau) * w
+            wg[j] += correlation(corr_kinds[j], corr_table[j], corr_data, tau) * w
     k = state[1] - 1
     nee_w[k] += w_sum
     total[0] += w_sum
@@ -996,21 +1146,25 @@ def add_next_events(scene, vertex, state, path_length, sums, work):
 
 
 @fn
-def add_connection(scene, vertex, state, path_length, light, sums, work):
+def add_connection(scene, vertex, state, path_length, light, film, sums, work):
     """The connection vertex → light vertex → its LED (depth + 1 surface vertices), added to bucket
-    ``depth`` of ``con_w``/``con_wg`` and to the path's ``total`` (light_paths.connect)."""
-    corr_kinds, corr_table = scene[5], scene[6]
+    ``depth`` of ``con_w``/``con_wg``, to the path's ``total`` and the pixel's transient histogram
+    (stages.light_vertex)."""
+    corr_kinds, corr_table, corr_data = scene[5], scene[6], scene[7]
     con_w, con_wg, total = sums[2], sums[3], sums[4]
     depth = state[1]
     w = 0.0
     extra = 0.0
     if light[0]:
         w, extra = connect_light(scene[0], vertex, state[0], light, work)
-    tau = (path_length + extra) / SPEED_OF_LIGHT_M_S
+    length = path_length + extra
+    if film[1] > 0:
+        add_transient(sums[5], film[0], w, length, film[1])
+    tau = length / SPEED_OF_LIGHT_M_S
     con_w[depth] += w
     total[0] += w
     for j in range(corr_kinds.shape[0]):
-        wg_j = correlation(corr_kinds[j], corr_table[j], tau) * w
+        wg_j = correlation(corr_kinds[j], corr_table[j], corr_data, tau) * w
         con_wg[depth, j] += wg_j
         total[1 + j] += wg_j
 
@@ -1028,20 +1182,24 @@ def next_direction(surf, wo, rng, depth):
 
 @fn
 def trace_path(scene, settings, pixel, sample, sums, work):
-    """Trace sample ``sample`` of pixel ``pixel`` and add its contributions (transport._trace_chunk for one path).
+    """Trace sample ``sample`` of pixel ``pixel`` and add its contributions (integrator.trace_chunk for one path).
 
-    ``scene`` = (geo, cam, cam_table, frame, leds, corr_kinds, corr_table); ``settings`` = (key, max_depth,
-    independent, light_paths, ambient radiance). Adds to the pixel's ``sums`` of next-event contributions ``nee_w`` (K,) and
-    ``nee_wg`` (K, J) and of light-vertex connections ``con_w``, ``con_wg`` per bounce bucket, in the order
-    the reference adds them, and writes the path's channel totals (signal, J correlations, ambient) to
-    ``total`` (J + 2,). ``work`` = (counters (layout.N_COUNTERS,) int64 ray counts, stack, stack_t, wg (J,)
+    ``scene`` = (geo, cam, cam_table, frame, leds, corr_kinds, corr_table, corr_data, sky); ``settings`` =
+    (key, max_depth, independent, light_paths, ambient radiance, transient bin width). Adds to the pixel's
+    ``sums`` of next-event contributions ``nee_w`` (K,) and ``nee_wg`` (K, J) and of light-vertex connections
+    ``con_w``, ``con_wg`` per bounce bucket, in the order the reference adds them, writes the path's channel
+    totals (signal, J correlations, ambient) to ``total`` (J + 2,) and, with a bin width > 0, adds its
+    weights over path length to row ``pixel`` of the histogram ``film`` (P, B) (in sample order, not in
+    the reference's order of its per-chunk histograms: the same addends, summed in another order).
+    ``work`` = (counters (layout.N_COUNTERS,) int64 ray counts, stack, stack_t, wg (J,)
     scratch). ``frame`` holds the world_from_sensor rotation (rows 0–2), the lens centre and the LED axis
     in the scene frame (rows 3, 4); ``leds`` = (positions (L, 3), table (L, 5): kind, intensity, power,
     emission probability, first-hit shadow skipped; cdf (L − 1,)).
     """
     geo = scene[0]
-    key, max_depth, independent, light_paths, ambient = settings
+    key, max_depth, independent, light_paths, ambient, transient_bin_m = settings
     rng = (key, pixel, sample, independent)
+    film = (pixel, transient_bin_m)
     total = sums[4]
     for c in range(total.shape[0]):
         total[c] = 0.0
@@ -1062,7 +1220,8 @@ def trace_path(scene, settings, pixel, sample, sums, work):
     for depth in range(1, max_depth + 1):
         prim, u, v = next_hit(geo, origin, direction, depth, prev_prim, work)
         if prim < 0:  # the ray left the scene: it sees the ambient radiance, β · L_amb (stages.intersect)
-            total[total.shape[0] - 1] += throughput * ambient
+            total[total.shape[0] - 1] += throughput * ambient_radiance(scene[8], (geo[12], geo[13]), ambient,
+                                                                       direction)
             break
         surf = surface_at(geo, prim, u, v, origin, direction)
         position, ng = surf[0], surf[1]
@@ -1072,11 +1231,11 @@ def trace_path(scene, settings, pixel, sample, sums, work):
         use_mis = light_paths and depth >= 2
         bsdf_area_pdf = prev_pdf * dot(neg(direction), ng) / (segment * segment) if use_mis else 0.0
         state = (throughput, depth, bsdf_area_pdf, prev_delta, use_mis)
-        add_next_events(scene, vertex, state, path_length, sums, work)
+        add_next_events(scene, vertex, state, path_length, film, sums, work)
         if depth == max_depth:
             break
         if light_paths:
-            add_connection(scene, vertex, state, path_length, light, sums, work)
+            add_connection(scene, vertex, state, path_length, light, film, sums, work)
         new_dir, weight, pdf, is_delta = next_direction(surf, vertex[2], rng, depth)
         # A direction below the geometric surface would leak through it (shading normals): end the path.
         if not (weight > 0 and dot(new_dir, ng) > 0):
@@ -1094,15 +1253,16 @@ def trace_pixels(scene, settings, pixels, out):
     """Trace samples [first[p], first[p] + counts[p]) of pixels p0 ≤ p < p1 into the frame's sums.
 
     ``scene`` and ``settings`` as in :func:`trace_path`; ``pixels`` = (p0, p1, first, counts); ``out`` =
-    (signal_sum (K, P), correlation_sum (K, J, P), replicate_sum (R, J + 2, P), ambient_sum (P,) as in
-    :class:`tofcore.transport.Transport`, counters (p1 − p0, N_COUNTERS) receiving each pixel's ray counts).
+    (signal_sum (K, P), correlation_sum (K, J, P), replicate_sum (R, J + 2, P), ambient_sum (P,), transient_sum
+    (P, B) (B = 0 without a histogram) as in :class:`tofcore.tracer.transport.Transport`, counters (p1 − p0,
+    N_COUNTERS) receiving each pixel's ray counts).
     """
     # numba's parallel loop takes arrays, scalars and flat tuples of arrays, not a tuple of tuples:
     # the scene is unpacked here and packed again inside the loop.
-    geo, cam, cam_table, frame, leds, corr_kinds, corr_table = scene
-    key, max_depth, independent, light_paths, ambient = settings
+    geo, cam, cam_table, frame, leds, corr_kinds, corr_table, corr_data, sky = scene
+    key, max_depth, independent, light_paths, ambient, transient_bin_m = settings
     p0, p1, first, counts = pixels
-    signal_sum, correlation_sum, replicate_sum, ambient_sum, counters = out
+    signal_sum, correlation_sum, replicate_sum, ambient_sum, transient_sum, counters = out
     n_depth = signal_sum.shape[0]
     n_corr = corr_kinds.shape[0]
     n_rep = replicate_sum.shape[0]
@@ -1117,11 +1277,11 @@ def trace_pixels(scene, settings, pixels, out):
         replicate = np.zeros((n_rep, n_ch))
         count = np.zeros(N_COUNTERS, np.int64)
         work = (count, np.empty(STACK_SIZE, np.int64), np.empty(STACK_SIZE, np.float32), np.zeros(n_corr))
-        sums = (nee_w, nee_wg, con_w, con_wg, total)
+        sums = (nee_w, nee_wg, con_w, con_wg, total, transient_sum)
         seen = 0.0  # the pixel's ambient radiance of this pass (accumulate.Tally.finish)
         for sample in range(first[p], first[p] + counts[p]):
-            trace_path((geo, cam, cam_table, frame, leds, corr_kinds, corr_table),
-                       (key, max_depth, independent, light_paths, ambient), p, sample, sums, work)
+            trace_path((geo, cam, cam_table, frame, leds, corr_kinds, corr_table, corr_data, sky),
+                       (key, max_depth, independent, light_paths, ambient, transient_bin_m), p, sample, sums, work)
             r = sample % n_rep
             for c in range(n_ch):
                 replicate[r, c] += total[c]
@@ -1163,8 +1323,9 @@ GPU_MAX_CHANNELS = 32
 #             closest-hit ray; t_max −1 for a path that has ended (the traversal leaves it at the root)
 #   hits    = (prim (n,) i32, u (n,) f32, v (n,) f32)
 #   light   = (28, n) float64: the light tuple of light_vertex_at, flattened (LIGHT_* rows)
-#   pend    = (w (L + 1, n), tau (L + 1, n))                  next-event estimates (LED i) and the
-#                                                             connection (row L) before their shadow test
+#   pend    = (w (L + 1, n), length (L + 1, n))               next-event estimates (LED i) and the
+#                                                             connection (row L) before their shadow test,
+#                                                             and their path lengths
 #   shadow  = (origin (n(L+1), 3), direction, t_max, ignore)  their shadow rays; t_max −1: no test
 #   contrib = (nee (J + 1, n), con (J + 1, n))   the path's addends of the current depth: weight and
 #             channels of its next-event estimates (bucket depth − 1) and of its connection (bucket depth);
@@ -1265,7 +1426,7 @@ def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
     samples[j] = sample
     shaded[j] = 0
     alive[j] = 1
-    key, max_depth, independent, light_paths, ambient = settings
+    key, max_depth, independent, light_paths, ambient, transient_bin_m = settings
     rng = (key, p, sample, independent)
     origin, direction = camera_start(scene, rng)
     f = pstate[0]
@@ -1294,7 +1455,7 @@ def wf_light(scene, settings, n, path, light_hits, light):
     pixel, samples = path[0], path[1]
     if j >= n:
         return
-    key, max_depth, independent, light_paths, ambient = settings
+    key, max_depth, independent, light_paths, ambient, transient_bin_m = settings
     ray = light_ray(scene[3], scene[4], (key, pixel[j], samples[j], independent))
     prim, u, v = light_hits
     store_light(light, j, light_vertex_at(scene[0], scene[4], ray, prim[j], u[j], v[j]))
@@ -1304,13 +1465,13 @@ def wf_light(scene, settings, n, path, light_hits, light):
 def queue_next_events(leds, frame, vertex, state, path_length, j, buffers):
     """The next-event estimates of path j's vertex to every LED (led_estimate) into ``pend`` and the shadow
     rays that need a test into ``shadow`` (slots j(L+1) + i), as connect_led decides them."""
-    pend_w, pend_tau = buffers[2]
+    pend_w, pend_length = buffers[2]
     shadow, counters = buffers[3], buffers[5]
     n_led = leds[0].shape[0]
     for i in range(n_led):
         w, dist, led = led_estimate(frame, leds, vertex, state, i)
         pend_w[i, j] = w
-        pend_tau[i, j] = (path_length + dist) / SPEED_OF_LIGHT_M_S
+        pend_length[i, j] = path_length + dist
         if w > 0:
             if state[1] == 1 and leds[1][i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
                 counters[4, j] += 1
@@ -1327,7 +1488,7 @@ def queue_connection(vertex, throughput, path_length, j, buffers):
     """Path j's connection to its light vertex (light_estimate) into column L of ``pend``, its shadow ray
     into slot j(L+1) + L, as connect_light decides it."""
     light, shadow, counters = buffers[1], buffers[3], buffers[5]
-    pend_w, pend_tau = buffers[2]
+    pend_w, pend_length = buffers[2]
     n_led = pend_w.shape[0] - 1
     y = load_light(light, j)
     w = 0.0
@@ -1335,7 +1496,7 @@ def queue_connection(vertex, throughput, path_length, j, buffers):
     if y[0]:
         w, extra = light_estimate(vertex, throughput, y)
     pend_w[n_led, j] = w
-    pend_tau[n_led, j] = (path_length + extra) / SPEED_OF_LIGHT_M_S
+    pend_length[n_led, j] = path_length + extra
     if w > 0:
         k = j * (n_led + 1) + n_led
         o, d, t_max = shadow_ray(vertex[1], y[1][0], y[6])
@@ -1384,12 +1545,14 @@ def wf_shade(scene, settings, depth, n, path, hits, buffers):
     for i in range(slots):
         shadow[2][j * slots + i] = NO_RAY
     prim = hits[0][j]
-    key, max_depth, independent, light_paths, ambient = settings
+    key, max_depth, independent, light_paths, ambient, transient_bin_m = settings
     f = buffers[0][0]
     if alive[j] == 0 or prim < 0:
         if alive[j] != 0:  # the ray left the scene: it sees the ambient radiance, β · L_amb (trace_path)
             total = buffers[6]
-            total[total.shape[0] - 1, j] += f[0, j] * ambient
+            geo = scene[0]
+            total[total.shape[0] - 1, j] += f[0, j] * ambient_radiance(scene[8], (geo[12], geo[13]), ambient,
+                                                                       load_vec(f, j, 10))
         alive[j] = 0
         rays[3][j] = NO_RAY
         return
@@ -1424,7 +1587,7 @@ def wf_resolve(scene, depth, n, path, pend, occluded, total, contrib):
     if j >= n:
         return
     shaded = path[3]
-    corr_kinds, corr_table = scene[5], scene[6]
+    corr_kinds, corr_table, corr_data = scene[5], scene[6], scene[7]
     nee, con = contrib
     n_corr = corr_kinds.shape[0]
     for c in range(n_corr + 1):
@@ -1432,23 +1595,23 @@ def wf_resolve(scene, depth, n, path, pend, occluded, total, contrib):
         con[c, j] = 0.0
     if shaded[j] == 0:
         return
-    pend_w, pend_tau = pend
+    pend_w, pend_length = pend
     n_led = pend_w.shape[0] - 1
     for i in range(n_led):
         w = 0.0 if occluded[j * (n_led + 1) + i] else pend_w[i, j]
-        tau = pend_tau[i, j]
+        tau = pend_length[i, j] / SPEED_OF_LIGHT_M_S
         nee[0, j] += w
         for c in range(n_corr):
-            nee[1 + c, j] += correlation(corr_kinds[c], corr_table[c], tau) * w
+            nee[1 + c, j] += correlation(corr_kinds[c], corr_table[c], corr_data, tau) * w
     for c in range(n_corr + 1):
         total[c, j] += nee[c, j]
     if shaded[j] == 2:
         w = 0.0 if occluded[j * (n_led + 1) + n_led] else pend_w[n_led, j]
-        tau = pend_tau[n_led, j]
+        tau = pend_length[n_led, j] / SPEED_OF_LIGHT_M_S
         con[0, j] = w
         total[0, j] += w
         for c in range(n_corr):
-            wg_c = correlation(corr_kinds[c], corr_table[c], tau) * w
+            wg_c = correlation(corr_kinds[c], corr_table[c], corr_data, tau) * w
             con[1 + c, j] = wg_c
             total[1 + c, j] += wg_c
 
@@ -1519,3 +1682,27 @@ def wf_gather(launch, depth, samples, contrib, total, sums):
             break
         j = offsets[lane] - offsets[s0] + i
         replicate[samples[j] % replicate.shape[0], c, p] += total[c, j]
+
+
+@gpu_kernel
+def wf_transient(launch, transient_bin_m, path, pend, occluded, film):
+    """Stage 5 of a transient render, after each depth's resolve: the group's unoccluded next-event and
+    connection weights of ``depth`` into the path-length histogram ``film`` (P, B) (:func:`add_transient`),
+    one thread per pixel (thread i serves pixel order[i]), its paths in sample order, each path's estimates
+    in LED order, then its connection (as wf_resolve reads them)."""
+    i = cuda.grid(1)
+    order, offsets, s0, s1 = launch[0], launch[2], launch[3], launch[4]
+    if i >= offsets[s0 + 1] - offsets[s0]:
+        return
+    p = order[i]
+    shaded = path[3]
+    pend_w, pend_length = pend
+    slots = pend_w.shape[0]
+    for lane in range(s0, s1):
+        if i >= offsets[lane + 1] - offsets[lane]:
+            break
+        j = offsets[lane] - offsets[s0] + i
+        n = 0 if shaded[j] == 0 else (slots if shaded[j] == 2 else slots - 1)
+        for k in range(n):
+            if not occluded[j * slots + k]:
+                add_transient(film, p, pend_w[k, j], pend_length[k, j], transient_bin_m)

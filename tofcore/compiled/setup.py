@@ -13,8 +13,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..backend import to_host
-from ..sensor.modulation import (CorrelationBank, phasor_component, pulsed_correlation, sine_correlation,
-                                square_correlation)
+from ..sensor.modulation import (CorrelationBank, harmonic_correlation, phasor_component, pulsed_correlation,
+                                sine_correlation, square_correlation, tabulated_correlation)
 from . import layout
 
 
@@ -22,28 +22,38 @@ from . import layout
 class Packed:
     """The compiled tracer's view of one render (arguments of :func:`tofcore.compiled.kernels.trace_path`)."""
 
-    geo: tuple            # BVH records and scene arrays, see scene_arrays
+    geo: tuple            # BVH records, scene arrays and textures, see scene_arrays
     cam: np.ndarray       # (13,) camera numbers, see camera_arrays
     cam_table: np.ndarray  # (5, P) undistortion table (1 column when there is no distortion)
     frame: np.ndarray     # (5, 3) rotation, lens centre, LED axis
     leds: tuple           # (positions (L, 3), table (L, 5), cdf (L − 1,))
     corr_kinds: np.ndarray  # (J,) int64 channel kinds
     corr_table: np.ndarray  # (J, 6) float64 channel parameters
+    corr_data: np.ndarray   # (≥ 1,) float64 coefficients of the HARMONIC and TABLE channels
+    sky: np.ndarray       # (2,): the environment map's strength (float32) and texture index (−1: none)
     key: np.uint64
     max_depth: int
     independent: bool
     light_paths: bool
     ambient: float        # constant ambient radiance, W/(m² sr) (0 without ambient light)
+    transient_bin_m: float  # bin width of the transient histogram, metres (0: none)
+
+    def scene(self) -> tuple:
+        """The kernels' ``scene`` tuple (kernels.trace_path)."""
+        return (self.geo, self.cam, self.cam_table, self.frame, self.leds, self.corr_kinds, self.corr_table,
+                self.corr_data, self.sky)
+
+    def settings(self) -> tuple:
+        """The kernels' ``settings`` tuple (kernels.trace_path)."""
+        return (self.key, int(self.max_depth), bool(self.independent), bool(self.light_paths), float(self.ambient),
+                float(self.transient_bin_m))
 
 
 def unsupported(ctx) -> str:
-    """Why the compiled tracer cannot render this trace context exactly as the NumPy one, or ""."""
-    if ctx.ambient is not None and ctx.ambient.environment is not None and ctx.ambient.environment_strength > 0:
-        return "ambient light from an environment map is not compiled yet (a constant ambient radiance is)"
-    if ctx.transient_bins:
-        return "transient histograms are not compiled yet"
-    if ctx.table.has_textures:
-        return "textured materials are not compiled yet"
+    """Why the compiled tracer cannot render this trace context exactly as the NumPy one, or "".
+
+    Every scene, material, texture, ambient light, histogram and sensor the add-on and the presets make
+    compiles; what remains is a correlation channel given as Python code rather than data."""
     try:
         correlation_table(ctx.correlations)
     except TypeError as exc:
@@ -53,17 +63,25 @@ def unsupported(ctx) -> str:
 
 def pack(ctx) -> Packed:
     """The arrays of a trace context that :func:`unsupported` accepts."""
-    kinds, table = correlation_table(ctx.correlations)
-    return Packed(geo=scene_arrays(ctx.scene, ctx.table), cam=camera_numbers(ctx.camera),
-                  cam_table=camera_table(ctx.camera), frame=frame_array(ctx), leds=led_arrays(ctx),
-                  corr_kinds=kinds, corr_table=table, key=np.uint64(ctx.sampler.key), max_depth=int(ctx.max_depth),
-                  independent=ctx.sampler.kind == "independent", light_paths=bool(ctx.light_paths),
-                  ambient=float(ctx.ambient.radiance_w_m2_sr) if ctx.ambient is not None else 0.0)
+    kinds, table, data = correlation_table(ctx.correlations)
+    environment = ctx.ambient.environment if ctx.ambient is not None and ctx.ambient.environment_strength > 0 \
+        else None
+    slots, textures, sky_index = texture_store(ctx.scene.materials, environment)
+    strength = float(np.float32(ctx.ambient.environment_strength)) if environment is not None else 0.0
+    return Packed(geo=scene_arrays(ctx.scene, ctx.table) + (uv_array(ctx.scene), slots) + textures,
+                  cam=camera_numbers(ctx.camera), cam_table=camera_table(ctx.camera), frame=frame_array(ctx),
+                  leds=led_arrays(ctx), corr_kinds=kinds, corr_table=table, corr_data=data,
+                  sky=np.array([strength, float(sky_index)]), key=np.uint64(ctx.sampler.key),
+                  max_depth=int(ctx.max_depth), independent=ctx.sampler.kind == "independent",
+                  light_paths=bool(ctx.light_paths),
+                  ambient=float(ctx.ambient.radiance_w_m2_sr) if ctx.ambient is not None else 0.0,
+                  transient_bin_m=float(ctx.transient_bin_m) if ctx.transient_bins else 0.0)
 
 
 def scene_arrays(scene, table) -> tuple:
     """(node planes f32, node children i32, leaf vertices f32, leaf triangles i32, triangles, vertices,
-    face normals, vertex normals ((0, 3) if none), material ids, material parameters (M, 5))."""
+    face normals, vertex normals ((0, 3) if none), material ids, material parameters (M, 5)); :func:`pack`
+    appends the UVs, the texture slots and the texture store (geo[10:14])."""
     bvh = scene.bvh
     nodes = np.ascontiguousarray(bvh._nodes)
     leaves = np.ascontiguousarray(bvh._leaves)
@@ -73,6 +91,43 @@ def scene_arrays(scene, table) -> tuple:
             np.ascontiguousarray(to_host(table.triangles)), np.ascontiguousarray(to_host(table.vertices)),
             np.ascontiguousarray(to_host(table.face_normals)), np.ascontiguousarray(normals),
             np.ascontiguousarray(to_host(table.material_ids)), np.ascontiguousarray(materials, dtype=np.float64))
+
+
+def uv_array(scene) -> np.ndarray:
+    """(V, 2) float32 texture coordinates ((1, 2) zeros where the scene has none: no texture reads them)."""
+    if scene.uvs is None:
+        return np.zeros((1, 2), np.float32)
+    return np.ascontiguousarray(scene.uvs, dtype=np.float32)
+
+
+def texture_store(materials, environment) -> tuple[np.ndarray, tuple, int]:
+    """(slots (M, 4) int64, (table (T, 4) int64, data float32), environment's index or −1).
+
+    Each image once, in one float32 array (kernels.texture_sample reads it): row t of the table is
+    image t's (offset into data, height, width, channels); row m of the slots names material m's
+    textures in :data:`layout.TEXTURE_SLOTS` order (−1: none). A texture shared by materials is stored once.
+    """
+    images: list[np.ndarray] = []
+    index: dict[int, int] = {}
+
+    def add(texture) -> int:
+        if texture is None:
+            return -1
+        if id(texture) not in index:
+            index[id(texture)] = len(images)
+            images.append(np.asarray(texture.data, dtype=np.float32))
+        return index[id(texture)]
+
+    slots = np.array([[add(getattr(m, name)) for name in layout.TEXTURE_SLOTS] for m in materials],
+                     dtype=np.int64).reshape(-1, len(layout.TEXTURE_SLOTS))
+    sky = add(environment)
+    table = np.zeros((max(len(images), 1), 4), np.int64)
+    offset = 0
+    for t, image in enumerate(images):
+        table[t] = (offset, image.shape[0], image.shape[1], 1 if image.ndim == 2 else image.shape[2])
+        offset += image.size
+    data = np.concatenate([image.ravel() for image in images]) if images else np.zeros(1, np.float32)
+    return slots, (table, np.ascontiguousarray(data, dtype=np.float32)), sky
 
 
 def camera_numbers(camera) -> np.ndarray:
@@ -109,20 +164,23 @@ def led_arrays(ctx) -> tuple:
             np.ascontiguousarray(np.cumsum(q)[:-1]))
 
 
-def correlation_table(correlations) -> tuple[np.ndarray, np.ndarray]:
-    """(kinds (J,), parameters (J, 6)) of a sensor's correlation bank or a list of known g_j.
+def correlation_table(correlations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """(kinds (J,), parameters (J, 6), coefficients (≥ 1,)) of a sensor's correlation bank or a list of g_j.
 
-    Raises TypeError naming a channel the kernels do not know (any callable other than the functions of
-    :mod:`tofcore.modulation`).
+    Raises TypeError naming a channel the kernels do not know: a callable other than the functions of
+    :mod:`tofcore.sensor.modulation` (custom waveforms compile as data: ``modulation.harmonic`` or
+    ``modulation.tabulate``).
     """
     if isinstance(correlations, CorrelationBank):
         functions = correlations.functions()
     else:
         functions = list(getattr(correlations, "functions", ()))
-    kinds, rows = [], []
+    kinds, rows, data = [], [], []
     for j, g in enumerate(functions):
         if not isinstance(g, functools.partial) or g.args:
-            raise TypeError(f"correlation channel {j} ({g!r}) is not one of tofcore.modulation's functions")
+            raise TypeError(f"correlation channel {j} ({getattr(g, '__name__', type(g).__name__)}) is Python code "
+                            f"the compiled tracer cannot run; give a custom waveform as data "
+                            f"(tofcore.sensor.modulation.harmonic or .tabulate) to trace it compiled")
         k = g.keywords
         if g.func is phasor_component:
             kinds.append(layout.PHASOR)
@@ -138,6 +196,17 @@ def correlation_table(correlations) -> tuple[np.ndarray, np.ndarray]:
         elif g.func is pulsed_correlation:
             kinds.append(layout.PULSED)
             rows.append([k["pulse_width_s"], k["bucket"], 0, 0, 0, 0])
+        elif g.func is harmonic_correlation:
+            kinds.append(layout.HARMONIC)
+            rows.append([2.0 * np.pi * k["f_hz"], len(data), len(k["sin_terms"]), 0, 0, 0])
+            data.extend([*k["cos_terms"], *k["sin_terms"]])
+        elif g.func is tabulated_correlation:
+            kinds.append(layout.TABLE)
+            rows.append([k["period_s"], len(data), len(k["values"]), 0, 0, 0])
+            data.extend(k["values"])
         else:
-            raise TypeError(f"correlation channel {j} ({g.func.__name__}) is not compiled")
-    return np.array(kinds, dtype=np.int64), np.array(rows, dtype=np.float64).reshape(-1, 6)
+            raise TypeError(f"correlation channel {j} ({g.func.__name__}) is Python code the compiled tracer "
+                            f"cannot run; give a custom waveform as data (tofcore.sensor.modulation.harmonic "
+                            f"or .tabulate) to trace it compiled")
+    return (np.array(kinds, dtype=np.int64), np.array(rows, dtype=np.float64).reshape(-1, 6),
+            np.array(data or [0.0], dtype=np.float64))

@@ -8,7 +8,13 @@ name                  what it is
                       σ = 0.5, η = 1.52 as in the thesis's corner experiment (§6.3)
 ``"box_on_wall"``     a 0.3 m box 0.5 m in front of a bright wall 2 m away (§6.1, §6.2, LED shadows)
 ``"room"``            a closed 5 × 4 × 2.7 m room with a table, a cabinet and a box
+``"textured_room"``   the room without its ceiling, every material textured (checkered walls, tiled
+                      floor, wood grain, a bumped table top, brushed metal) under a small sky map
+                      (:func:`demo_ambient`): what an artist's Blender scene with an HDRI world exports
 ====================  =================================================================================
+
+Textures and the sky are generated in code (no files); UVs are metres along each quad's edges, so
+every texture repeats once a metre.
 
 Each scene stores a suggested sensor pose in ``scene.metadata["world_from_sensor"]``
 (see :func:`suggested_pose`). ``detail`` subdivides every quad into
@@ -21,11 +27,12 @@ from __future__ import annotations
 import numpy as np
 
 from ..errors import ConfigError
-from .material import Material
+from .ambient import Ambient
+from .material import Material, Texture
 from .pose import look_at
 from .scene import Scene
 
-NAMES = ("plane", "corner", "box_on_wall", "room")
+NAMES = ("plane", "corner", "box_on_wall", "room", "textured_room")
 
 
 class _Builder:
@@ -37,6 +44,7 @@ class _Builder:
         self.triangles: list[np.ndarray] = []
         self.materials: list[np.ndarray] = []
         self.objects: list[np.ndarray] = []
+        self.uvs: list[np.ndarray] = []
         self.object_names: list[str] = []
         self.n = 0
 
@@ -51,13 +59,14 @@ class _Builder:
         i = i.reshape(-1)
         tris = np.concatenate([np.stack([i, i + 1, i + n + 2], 1), np.stack([i, i + n + 2, i + n + 1], 1)])
         self.vertices.append(pts)
+        self.uvs.append(np.stack([uu.reshape(-1) * np.linalg.norm(edge_u), vv.reshape(-1) * np.linalg.norm(edge_v)], 1))
         self.triangles.append(tris + self.n)
         self.materials.append(np.full(len(tris), material))
         self.objects.append(np.full(len(tris), obj))
         self.n += len(pts)
 
-    def box(self, lo, hi, material: int, name: str, inward: bool = False) -> None:
-        """An axis-aligned box; normals point outwards (inwards for a room's walls)."""
+    def box(self, lo, hi, material: int, name: str, inward: bool = False, open_top: bool = False) -> None:
+        """An axis-aligned box; normals point outwards (inwards for a room's walls); ``open_top``: no +z face."""
         obj = len(self.object_names)
         self.object_names.append(name)
         lo, hi = np.asarray(lo, float), np.asarray(hi, float)
@@ -68,7 +77,7 @@ class _Builder:
             (lo, ex, ez), (lo + ey, ez, ex),          # front (−y), back (+y)
             (lo, ez, ey), (lo + ex, ey, ez),          # left (−x), right (+x)
         ]
-        for corner, eu, ev in faces:
+        for corner, eu, ev in faces[:1] + faces[2:] if open_top else faces:
             if inward:
                 eu, ev = ev, eu
             self.quad(corner, eu, ev, material, obj)
@@ -79,10 +88,11 @@ class _Builder:
         self.quad(corner, edge_u, edge_v, material, obj)
 
     def scene(self, materials, name: str, pose: np.ndarray) -> Scene:
+        textured = any(m.textures for m in materials)
         return Scene.from_arrays(
             np.concatenate(self.vertices), np.concatenate(self.triangles), np.concatenate(self.materials),
             materials, object_ids=np.concatenate(self.objects), object_names=self.object_names, name=name,
-            metadata={"world_from_sensor": pose.tolist()})
+            uvs=np.concatenate(self.uvs) if textured else None, metadata={"world_from_sensor": pose.tolist()})
 
 
 def demo_scene(name: str, detail: int = 4) -> Scene:
@@ -108,12 +118,18 @@ def demo_scene(name: str, detail: int = 4) -> Scene:
         b.named_quad((-2.0, 0.0, 0.0), (4.0, 0.0, 0.0), (0.0, 0.0, 3.0), 0, "wall")     # y = 0, normal −y
         b.box((-0.15, -0.8, 1.35), (0.15, -0.5, 1.65), 1, "box")
         return b.scene([wall, box], name, look_at((0.0, -2.0, 1.5), (0.0, 0.0, 1.5)))
-    # room
+    if name == "textured_room":
+        return _room(b, name, _textured_materials(), open_top=True)
     walls = Material(name="walls", reflectance=0.7, roughness=0.6)
     floor = Material(name="floor", reflectance=0.3, roughness=0.3)
     wood = Material(name="wood", reflectance=0.5, roughness=0.2)
     metal = Material(name="metal", metallic=1.0, ior=1.35, extinction=9.6, roughness=0.15)
-    b.box((-2.5, -2.0, 0.0), (2.5, 2.0, 2.7), 0, "room", inward=True)
+    return _room(b, name, [walls, floor, wood, metal])
+
+
+def _room(b: _Builder, name: str, materials: list, open_top: bool = False) -> Scene:
+    """The room's geometry with ``materials`` (walls, floor, wood, metal)."""
+    b.box((-2.5, -2.0, 0.0), (2.5, 2.0, 2.7), 0, "room", inward=True, open_top=open_top)
     # The floor is a separate quad just above the room's bottom face so it can carry its own material.
     b.named_quad((-2.5, -2.0, 0.001), (5.0, 0.0, 0.0), (0.0, 4.0, 0.0), 1, "floor")
     b.box((-0.8, 0.2, 0.70), (0.8, 1.0, 0.75), 2, "table top")
@@ -122,7 +138,49 @@ def demo_scene(name: str, detail: int = 4) -> Scene:
             b.box((x, y, 0.0), (x + 0.05, y + 0.05, 0.70), 2, "table leg")
     b.box((1.6, 1.4, 0.0), (2.4, 1.95, 1.9), 2, "cabinet")
     b.box((-2.0, 1.2, 0.0), (-1.4, 1.8, 0.5), 3, "metal box")
-    return b.scene([walls, floor, wood, metal], name, look_at((0.0, -1.8, 1.6), (0.0, 1.0, 0.8)))
+    return b.scene(materials, name, look_at((0.0, -1.8, 1.6), (0.0, 1.0, 0.8)))
+
+
+def _textured_materials() -> list:
+    """The textured room's walls, floor, wood and metal: images made here, 64 texels a metre."""
+    n = 64
+    s = (np.arange(n) + 0.5) / n
+    u, v = np.meshgrid(s, s)
+    checker = np.where((np.floor(8 * u) + np.floor(8 * v)) % 2 == 0, 0.8, 0.35)  # 12.5 cm checks
+    grout = (np.minimum(4 * u % 1.0, 4 * v % 1.0) < 0.06)  # 25 cm tiles, 1.5 cm grout
+    grain = 0.5 + 0.5 * np.sin(2 * np.pi * (12 * v + 0.8 * np.sin(2 * np.pi * 2 * u)))
+    bumps = 2 * np.pi * 6 * np.stack([u, v])  # a normal map of gentle bumps, 6 a metre
+    slope = 0.25 * np.stack([np.cos(bumps[0]) * np.sin(bumps[1]), np.sin(bumps[0]) * np.cos(bumps[1])])
+    normal = np.stack([slope[0], slope[1], np.ones_like(u)], axis=-1)
+    normal = 0.5 + 0.5 * normal / np.linalg.norm(normal, axis=-1, keepdims=True)
+    brushed = 0.1 + 0.1 * np.abs(np.sin(2 * np.pi * 40 * v + 3 * u))
+    return [Material(name="walls", reflectance=0.7, roughness=0.6, reflectance_texture=Texture(checker, "checker")),
+            Material(name="floor", reflectance=0.3, roughness=0.3, reflectance_texture=Texture(
+                np.where(grout, 0.15, 0.45), "tiles"), roughness_texture=Texture(np.where(grout, 0.6, 0.25), "grout")),
+            Material(name="wood", reflectance=0.5, roughness=0.2, reflectance_texture=Texture(
+                0.35 + 0.25 * grain, "wood grain"), roughness_texture=Texture(0.15 + 0.2 * grain, "wood gloss"),
+                normal_texture=Texture(normal, "bumps")),
+            Material(name="metal", metallic=1.0, ior=1.35, extinction=9.6, roughness=0.15,
+                     roughness_texture=Texture(brushed, "brushed"), metallic_texture=Texture(
+                         np.where(grout, 0.0, 1.0), "painted seams"))]
+
+
+def demo_ambient(name: str) -> Ambient | None:
+    """The ambient light a demo scene is meant to be seen under: the textured room's small sky map (a
+    32 × 64 equirectangular radiance map, W m⁻² sr⁻¹: a horizon-to-zenith gradient of 0.01–0.04 and a
+    sun of 3 at 50° elevation), None for the others."""
+    if name not in NAMES:
+        raise ConfigError(f"demo_ambient: name must be one of {list(NAMES)}, got {name!r}")
+    if name != "textured_room":
+        return None
+    h, w = 32, 64
+    elevation = np.pi * (0.5 - (np.arange(h) + 0.5) / h)  # row 0 is the zenith
+    azimuth = 2 * np.pi * ((np.arange(w) + 0.5) / w - 0.5)
+    el, az = np.meshgrid(elevation, azimuth, indexing="ij")
+    sky = 0.01 + 0.03 * np.clip(np.sin(el), 0.0, 1.0)
+    sun = np.cos(el) * np.cos(np.radians(50.0)) * np.cos(az - 0.6) + np.sin(el) * np.sin(np.radians(50.0))
+    sky = np.where(sun > np.cos(np.radians(6.0)), 3.0, sky)
+    return Ambient(environment=Texture(sky, "demo sky"))
 
 
 def suggested_pose(scene: Scene) -> np.ndarray:

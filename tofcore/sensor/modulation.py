@@ -165,6 +165,98 @@ def pulsed_correlation(tau_s: np.ndarray, pulse_width_s: float, bucket: int) -> 
     return np.clip(1.0 - np.abs(asarray(tau_s, dtype=np.float64) / pulse_width_s - bucket), 0.0, 1.0)
 
 
+def harmonic_correlation(tau_s: np.ndarray, f_hz: float, cos_terms: tuple, sin_terms: tuple) -> np.ndarray:
+    """A custom periodic correlation given by its Fourier series (a measured waveform's harmonics).
+
+    Parameters
+    ----------
+    tau_s : delays τ in seconds (float64 array).
+    f_hz : fundamental frequency f in Hz.
+    cos_terms : (a₀, a₁, …, a_N): the mean a₀ and the cosine amplitude of each harmonic n = 1 … N.
+    sin_terms : (b₁, …, b_N): the sine amplitude of each harmonic (as many as ``cos_terms`` has harmonics).
+
+    Returns
+    -------
+    g(τ), same shape as ``tau_s``.
+
+    Notes
+    -----
+    .. math:: g(\\tau) = a_0 + \\sum_{n=1}^{N} a_n \\cos(n \\varphi) + b_n \\sin(n \\varphi),
+              \\qquad \\varphi = 2 \\pi f \\tau
+
+    summed in n order. Real ToF correlations are sums of a few harmonics (Keller 2015, Giancola et al. 2018:
+    the square wave's odd harmonics make the "wiggling" error); :func:`sine_correlation` is
+    a₀ = ½, a₁ = cos(2πk/N)/π, b₁ = sin(2πk/N)/π. Data, not code: the compiled tracer evaluates the same
+    series (:mod:`tofcore.compiled.setup`).
+    """
+    phase = 2.0 * np.pi * f_hz * asarray(tau_s, dtype=np.float64)
+    out = namespace(phase).full(phase.shape, float(cos_terms[0]))
+    for n, (a, b) in enumerate(zip(cos_terms[1:], sin_terms), start=1):
+        out = out + (a * np.cos(n * phase) + b * np.sin(n * phase))
+    return out
+
+
+def tabulated_correlation(tau_s: np.ndarray, period_s: float, values: tuple) -> np.ndarray:
+    """A custom periodic correlation given as M samples over one period, linearly interpolated.
+
+    Parameters
+    ----------
+    tau_s : delays τ in seconds (float64 array).
+    period_s : the period T in seconds (1/f of a CW camera).
+    values : (g(0), g(T/M), …, g((M − 1)T/M)): the samples, M ≥ 2.
+
+    Returns
+    -------
+    g(τ), same shape as ``tau_s``.
+
+    Notes
+    -----
+    With :math:`x = M \\,\\mathrm{frac}(\\tau / T)`, :math:`i = \\lfloor x \\rfloor`, :math:`t = x - i`:
+
+    .. math:: g(\\tau) = g_i (1 - t) + g_{(i + 1) \\bmod M} \\, t
+
+    The interpolation error is at most :math:`h^2 \\max|g''| / 8` with :math:`h = T / M`
+    (:func:`tabulate` makes such a table from any function). Data, not code: the compiled tracer evaluates
+    the same table (:mod:`tofcore.compiled.setup`).
+    """
+    m = len(values)
+    cycles = asarray(tau_s, dtype=np.float64) / period_s
+    x = (cycles - np.floor(cycles)) * m
+    i = np.floor(x)
+    t = x - i
+    i0 = i.astype(np.int64) % m
+    table = namespace(t).asarray(np.asarray(values, dtype=np.float64))
+    return table[i0] * (1.0 - t) + table[(i0 + 1) % m] * t
+
+
+def tabulate(g: Correlation, period_s: float, samples: int = 4096) -> Correlation:
+    """A periodic correlation function ``g`` as :func:`tabulated_correlation` data (``samples`` per period),
+    which the compiled tracer runs: the samples are ``g`` at τ = i T / M.
+
+    Interpolation error ≤ (T/M)² max|g''| / 8: for a sine of period T and M = 4096, 2.9e-7 of its amplitude.
+    """
+    if not (is_number(period_s) and period_s > 0) or not isinstance(samples, int) or samples < 2:
+        raise ConfigError(f"tabulate: period_s must be > 0 and samples an integer >= 2, got {period_s!r}, "
+                          f"{samples!r}")
+    values = np.asarray(g(np.arange(samples) * (period_s / samples)), dtype=np.float64)
+    if values.shape != (samples,) or not np.isfinite(values).all():
+        raise ConfigError(f"tabulate: g must return {samples} finite values for {samples} delays, "
+                          f"got shape {values.shape}")
+    return functools.partial(tabulated_correlation, period_s=float(period_s), values=tuple(values.tolist()))
+
+
+def harmonic(f_hz: float, cos_terms, sin_terms) -> Correlation:
+    """:func:`harmonic_correlation` with its coefficients checked, as a correlation function the compiled
+    tracer runs."""
+    a = tuple(float(x) for x in cos_terms)
+    b = tuple(float(x) for x in sin_terms)
+    if not (is_number(f_hz) and f_hz > 0) or len(a) < 1 or len(b) != len(a) - 1 \
+            or not np.isfinite(a + b).all():
+        raise ConfigError(f"harmonic: f_hz must be > 0, cos_terms (a0, a1 … aN) and sin_terms (b1 … bN) finite, "
+                          f"got f_hz={f_hz!r}, {len(a)} cos and {len(b)} sin terms")
+    return functools.partial(harmonic_correlation, f_hz=float(f_hz), cos_terms=a, sin_terms=b)
+
+
 @dataclass(frozen=True, kw_only=True)
 class CorrelationBank:
     """The correlation functions of all raw images, evaluated together: ``bank(tau_s)`` → (R, N).
