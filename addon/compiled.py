@@ -152,16 +152,15 @@ def tracer_text(transport_stats: dict | None) -> str:
 #: tofcore's reasons for the NumPy tracer (``tracer_reason``'s start) → what to do about it in Blender.
 BLENDER_REASONS = {
     "numba is not installed": "numba is not installed: Preferences > Add-ons > ToF Camera Simulator > Install numba",
-    "ambient light from an environment map": ("the World's Environment Texture is ambient light from an "
-                                              "environment map, not compiled yet (a plain World colour is)"),
 }
+"""Textures, an HDRI World and every preset's sensor trace compiled (tofcore.compiled.setup.unsupported):
+what a Blender scene exports never sends a render to NumPy once numba is installed."""
 
 
 def blender_reason(reason: str) -> str:
     """tofcore's ``tracer_reason`` with the Blender way around it, where there is one (:data:`BLENDER_REASONS`).
 
-    tofcore's words name no Blender setting: an environment map, for one, is the World's Environment Texture
-    (:mod:`.export`).
+    tofcore's words name no Blender setting; where the add-on knows the Blender one, it says that instead.
     """
     for start, text in BLENDER_REASONS.items():
         if reason.startswith(start):

@@ -63,19 +63,15 @@ def test_tracer_text():
     assert compiled.tracer_text(None) == "" and compiled.tracer_text({}) == ""
 
 
-def test_environment_map_reason_names_the_world():
-    """tofcore's reason for an ambient environment map names no Blender setting; the add-on's names the World's
-    Environment Texture."""
+def test_an_hdri_world_and_textures_render_compiled():
+    """The World's Environment Texture (ambient light from an environment map) and textured materials no longer
+    send a render to NumPy: tofcore's compiled tracer has no reason left for what the add-on exports."""
     import numpy as np
 
     from tofcore.compiled import setup
 
     ambient = SimpleNamespace(environment=np.ones((2, 4)), environment_strength=1.0)
-    reason = setup.unsupported(SimpleNamespace(ambient=ambient, transient_bins=0))   # tofcore's own words
-    assert reason.startswith("ambient light from an environment map is not compiled yet")
-    text = compiled.tracer_text({"tracer": "numpy", "tracer_reason": reason})
-    assert text == ("Tracer: NumPy (the World's Environment Texture is ambient light from an environment map, "
-                    "not compiled yet (a plain World colour is))")
+    assert setup.unsupported(SimpleNamespace(ambient=ambient, transient_bins=0, correlations=[])) == ""
     assert compiled.blender_reason("TOFCORE_TRACER=numpy") == "TOFCORE_TRACER=numpy"   # others unchanged
 
 
@@ -91,10 +87,10 @@ def test_status_line(monkeypatch):
         "Ready: numba 0.68.1, the last render used the compiled tracer", 'CHECKMARK')
     compiled.note_tracer({})                                     # a frame without tracer stats changes nothing
     assert compiled.last_tracer()["tracer"] == "compiled"
-    compiled.note_tracer({"tracer": "numpy", "tracer_reason": "ambient light from an environment map is not "
-                                                              "compiled yet (a constant ambient radiance is)"})
+    compiled.note_tracer({"tracer": "numpy", "tracer_reason": "correlation channel 0 (<lambda>) is Python code "
+                                                              "the compiled tracer cannot run"})
     assert compiled.status_line(compiled.last_tracer())[0].startswith(
-        "numba 0.68.1 installed, but the last render used NumPy: the World's Environment Texture is ambient")
+        "numba 0.68.1 installed, but the last render used NumPy: correlation channel 0 (<lambda>) is Python code")
 
 
 def test_first_status_says_a_cold_cpu_render_compiles_first(monkeypatch):
