@@ -122,8 +122,20 @@ def test_demo_scenes_build(name):
 
 
 def test_demo_scene_rejects_unknown_name():
-    with pytest.raises(ConfigError, match=r"name must be one of \['plane', 'corner', 'box_on_wall', 'room'\], got 'cube'"):
+    with pytest.raises(ConfigError, match=r"name must be one of \['plane', 'corner', 'box_on_wall', 'room', "
+                                          r"'textured_room'\], got 'cube'"):
         tofcore.demo_scene("cube")
+
+
+def test_textured_room_is_the_room_open_to_its_sky():
+    """The textured demo room: the room's geometry less its ceiling, every material textured, UVs in metres,
+    a sky map whose sun is the brightest texel."""
+    room, textured = tofcore.demo_scene("room", detail=2), tofcore.demo_scene("textured_room", detail=2)
+    assert textured.triangle_count == room.triangle_count - 2 * 2 * 2
+    assert all(m.textures for m in textured.materials) and textured.uvs.shape == (len(textured.vertices), 2)
+    sky = tofcore.demo_ambient("textured_room").environment.data
+    assert sky.shape == (32, 64) and sky.max() == 3.0 and np.isclose(sky.min(), 0.01)
+    assert tofcore.demo_ambient("room") is None
 
 
 def test_room_is_closed():
