@@ -419,6 +419,18 @@ def test_cuda_build_of_the_kernels_traces_the_numpy_frame_in_the_simulator(tmp_p
 
 
 @needs_numba
+def test_the_kernels_material_record_is_read_by_the_tables_names():
+    """kernels.surface_params builds the record in the material table's order, so params[layout.<NAME>] is
+    the parameter of that name (tofcore.scene.material.PARAMETERS)."""
+    from tofcore.compiled import kernels, layout
+
+    values = tuple(float(i + 1) for i in range(len(layout.MATERIAL_COLUMNS)))
+    record = kernels.surface_params(*values)
+    for name, value in zip(layout.MATERIAL_COLUMNS, values):
+        assert record[getattr(layout, name.upper())] == value, name
+
+
+@needs_numba
 def test_the_wavefronts_light_table_round_trips_a_light_vertex():
     """store_light / load_light (the GPU wavefront's light table) compiled for the CPU: the same tuple back,
     bit for bit (numba types the heterogeneous tuple as the CUDA build does)."""

@@ -157,3 +157,18 @@ def test_look_at_frame():
     # Blender camera looking along +Y: rotation X by 90°; world_from_sensor = matrix_world @ diag(1,-1,-1,1).
     mw = np.array([[1, 0, 0, 0], [0, 0, -1, -2], [0, 1, 0, 1], [0, 0, 0, 1.0]])
     np.testing.assert_allclose(tofcore.from_blender_matrix_world(mw), pose, atol=1e-12)
+
+
+def test_material_fields_follow_the_parameter_table():
+    """Material's scalar fields, defaults, ranges and texture slots are the rows of material.PARAMETERS."""
+    from dataclasses import fields
+
+    from tofcore.scene.material import PARAMETER_NAMES, PARAMETERS, TEXTURE_SLOTS, Material
+
+    scalars = [f for f in fields(Material) if f.name not in ("name",) and not f.name.endswith("_texture")]
+    assert tuple(f.name for f in scalars) == PARAMETER_NAMES
+    assert [f.default for f in scalars] == [p.default for p in PARAMETERS]
+    assert tuple(f.name for f in fields(Material) if f.name.endswith("_texture")) == TEXTURE_SLOTS
+    for p in PARAMETERS:
+        with pytest.raises(ConfigError, match=rf"{p.name} must be a number in \[{p.low:g}, {p.high:g}\]"):
+            Material(**{p.name: p.high + 1.0})

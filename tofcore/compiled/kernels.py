@@ -9,7 +9,8 @@ differ is the last bit of the transcendental functions (NumPy's vectorised ``exp
 tolerance that follows from it. Vectors are tuples (x, y, z); nothing allocates.
 
 A surface point is the tuple ``(position, geometric_normal, tangent, bitangent, shading_normal,
-params)`` with ``params = (reflectance, roughness, metallic, ior, extinction)``, as
+params)`` with ``params`` the material record of :func:`surface_params` (its fields named by
+:mod:`tofcore.compiled.layout` from the material table ``tofcore.scene.material.PARAMETERS``), as
 :class:`tofcore.tracer.surface.Surface` and :class:`tofcore.scene.bsdf.SurfaceParams` hold them for N points.
 
 Decorated by :func:`tofcore.compiled._target.device_function`: ``numba.njit`` when imported normally,
@@ -37,7 +38,9 @@ from .. import rng as _rng
 from ..tracer import sampler as _sampler
 from ..tracer import surface as _surface
 from ._target import cpu_parallel_function, device_function, gpu_kernel_function, gpu_module
-from .layout import HARMONIC, LAMBERTIAN, N_COUNTERS, PHASOR, POINT, PULSED, SINE, SQUARE, STACK_SIZE, TABLE
+from .layout import (EXTINCTION, HARMONIC, IOR, LAMBERTIAN, METALLIC, METALLIC_MAP, N_COUNTERS, NORMAL_MAP, PHASOR,
+                     POINT, PULSED, REFLECTANCE, REFLECTANCE_MAP, ROUGHNESS, ROUGHNESS_MAP, SINE, SQUARE,
+                     STACK_SIZE, TABLE)
 
 # ------------------------------------------------------------------ constants, from the reference modules
 GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
@@ -526,30 +529,39 @@ def surface_at(geo, prim, u, v, ray_origin, ray_direction):
     else:
         ns = ng
     m = material_ids[prim]
-    reflectance, roughness, metallic = materials[m, 0], materials[m, 1], materials[m, 2]
+    reflectance, roughness, metallic = materials[m, REFLECTANCE], materials[m, ROUGHNESS], materials[m, METALLIC]
     slots = geo[11]
-    if slots[m, 0] >= 0 or slots[m, 1] >= 0 or slots[m, 2] >= 0 or slots[m, 3] >= 0:
+    if slots[m, REFLECTANCE_MAP] >= 0 or slots[m, ROUGHNESS_MAP] >= 0 or slots[m, METALLIC_MAP] >= 0 \
+            or slots[m, NORMAL_MAP] >= 0:
         uvs, textures = geo[10], (geo[12], geo[13])
         tex_u = w0 * uvs[i0, 0] + u64 * uvs[i1, 0] + v64 * uvs[i2, 0]
         tex_v = w0 * uvs[i0, 1] + u64 * uvs[i1, 1] + v64 * uvs[i2, 1]
-        if slots[m, 0] >= 0:
-            reflectance = np.float64(texture_sample(textures, slots[m, 0], tex_u, tex_v, 0))
-        if slots[m, 1] >= 0:
-            roughness = np.float64(texture_sample(textures, slots[m, 1], tex_u, tex_v, 0))
-        if slots[m, 2] >= 0:
-            metallic = np.float64(texture_sample(textures, slots[m, 2], tex_u, tex_v, 0))
-        if slots[m, 3] >= 0:
+        if slots[m, REFLECTANCE_MAP] >= 0:
+            reflectance = np.float64(texture_sample(textures, slots[m, REFLECTANCE_MAP], tex_u, tex_v, 0))
+        if slots[m, ROUGHNESS_MAP] >= 0:
+            roughness = np.float64(texture_sample(textures, slots[m, ROUGHNESS_MAP], tex_u, tex_v, 0))
+        if slots[m, METALLIC_MAP] >= 0:
+            metallic = np.float64(texture_sample(textures, slots[m, METALLIC_MAP], tex_u, tex_v, 0))
+        normal_map = slots[m, NORMAL_MAP]
+        if normal_map >= 0:
             c = dot(ns, ng)
             side = 1.0 if c > 0 else (-1.0 if c < 0 else 0.0)  # np.sign
-            rgb = (texture_sample(textures, slots[m, 3], tex_u, tex_v, 0),
-                   texture_sample(textures, slots[m, 3], tex_u, tex_v, 1),
-                   texture_sample(textures, slots[m, 3], tex_u, tex_v, 2))
+            rgb = (texture_sample(textures, normal_map, tex_u, tex_v, 0),
+                   texture_sample(textures, normal_map, tex_u, tex_v, 1),
+                   texture_sample(textures, normal_map, tex_u, tex_v, 2))
             ns = perturb_normal(geo, prim, scale(ns, side), rgb)
     ns = scale(ns, -1.0 if dot(ns, ng) < 0 else 1.0)
     tangent, bitangent = orthonormal_basis(ns)
-    params = (min(max(reflectance, 0.0), 1.0), max(roughness, 0.0), min(max(metallic, 0.0), 1.0),
-              materials[m, 3], materials[m, 4])
+    params = surface_params(min(max(reflectance, 0.0), 1.0), max(roughness, 0.0), min(max(metallic, 0.0), 1.0),
+                            materials[m, IOR], materials[m, EXTINCTION])
     return position, ng, tangent, bitangent, ns, params
+
+
+@fn
+def surface_params(reflectance, roughness, metallic, ior, extinction):
+    """The ``params`` record of a surface point: its fields in the order of layout.MATERIAL_COLUMNS (the
+    material table, tofcore.scene.material.PARAMETERS), read by name (params[REFLECTANCE], …)."""
+    return (reflectance, roughness, metallic, ior, extinction)
 
 
 # ------------------------------------------------------------------ textures (tofcore.scene.material, ambient)
@@ -700,7 +712,7 @@ def fresnel_conductor(cos_theta_i, eta, k):
 @fn
 def specular_fresnel(params, cos_theta):
     """(1 − m) F_d + m F_c (bsdf.specular_fresnel); the pure cases are the reference's per-batch shortcuts."""
-    metallic, ior, extinction = params[2], params[3], params[4]
+    metallic, ior, extinction = params[METALLIC], params[IOR], params[EXTINCTION]
     if metallic == 0.0:
         return fresnel_dielectric(cos_theta, ior)
     if metallic == 1.0:
@@ -712,7 +724,7 @@ def specular_fresnel(params, cos_theta):
 @fn
 def outgoing(params, cos_o):
     """(F_d(cos θ_o), P_s): the terms of ω_o alone (bsdf._outgoing)."""
-    reflectance, metallic, ior = params[0], params[2], params[3]
+    reflectance, metallic, ior = params[REFLECTANCE], params[METALLIC], params[IOR]
     fresnel_o = fresnel_dielectric(cos_o, ior)
     specular = specular_fresnel(params, cos_o) if metallic != 0.0 else fresnel_o
     diffuse = (1.0 - metallic) * (1.0 - fresnel_o) * reflectance
@@ -729,7 +741,7 @@ def outgoing(params, cos_o):
 @fn
 def rough_alpha(params):
     """Beckmann α = √2 σ, or 0 for a mirror lobe (bsdf._rough_alpha)."""
-    return SQRT2 * params[1] if params[1] >= SMOOTH_ROUGHNESS_RAD else 0.0
+    return SQRT2 * params[ROUGHNESS] if params[ROUGHNESS] >= SMOOTH_ROUGHNESS_RAD else 0.0
 
 
 @fn
@@ -793,9 +805,9 @@ def eval_terms(params, wo, wi, fresnel_o):
     valid = cos_o > 0.0 and cos_i > 0.0
     if not valid:
         return 0.0, cos_i, valid, h, cos_oh, alpha, distribution
-    transmitted = (1.0 - fresnel_dielectric(cos_i, params[3])) * (1.0 - fresnel_o)
-    diffuse = (1.0 - params[2]) * transmitted * oren_nayar(params[0], params[1], cos_i, cos_o,
-                                                           cos_azimuth_difference(wo, wi))
+    transmitted = (1.0 - fresnel_dielectric(cos_i, params[IOR])) * (1.0 - fresnel_o)
+    diffuse = (1.0 - params[METALLIC]) * transmitted * oren_nayar(params[REFLECTANCE], params[ROUGHNESS], cos_i,
+                                                                  cos_o, cos_azimuth_difference(wo, wi))
     # V-cavity G (eq. 2.27) and Torrance–Sparrow (eq. 2.24)
     geometry = 0.0
     if cos_oh > 0.0:
@@ -826,7 +838,7 @@ def pdf_terms(wo, probability, cos_i, valid, h, cos_oh, alpha, distribution):
 @fn
 def eval_bsdf(params, wo, wi):
     """f_r (1/sr) without the cosine (bsdf.eval_bsdf)."""
-    return eval_terms(params, wo, wi, fresnel_dielectric(wo[2], params[3]))[0]
+    return eval_terms(params, wo, wi, fresnel_dielectric(wo[2], params[IOR]))[0]
 
 
 @fn
@@ -866,7 +878,7 @@ def sample_bsdf(params, wo, u_lobe, u1, u2):
     else:
         wi = cosine_hemisphere(u1, u2)
     if pick_specular and alpha == 0.0 and cos_o > 0.0:  # the mirror: a delta lobe
-        mirror_fresnel = specular_fresnel(params, cos_o) if params[2] != 0.0 else fresnel_o
+        mirror_fresnel = specular_fresnel(params, cos_o) if params[METALLIC] != 0.0 else fresnel_o
         return wi, mirror_fresnel / (probability if probability > 0.0 else 1.0), probability, True
     f, cos_i, valid, h, cos_oh, a, distribution = eval_terms(params, wo, wi, fresnel_o)
     pdf = pdf_terms(wo, probability, cos_i, valid, h, cos_oh, a, distribution)
@@ -1385,11 +1397,11 @@ def store_light(out, j, light):
     store_vec(out, j, LIGHT_SURF + 9, surf[3])
     store_vec(out, j, LIGHT_SURF + 12, surf[4])
     params = surf[5]
-    out[LIGHT_PARAMS, j] = params[0]
-    out[LIGHT_PARAMS + 1, j] = params[1]
-    out[LIGHT_PARAMS + 2, j] = params[2]
-    out[LIGHT_PARAMS + 3, j] = params[3]
-    out[LIGHT_PARAMS + 4, j] = params[4]
+    out[LIGHT_PARAMS + REFLECTANCE, j] = params[REFLECTANCE]
+    out[LIGHT_PARAMS + ROUGHNESS, j] = params[ROUGHNESS]
+    out[LIGHT_PARAMS + METALLIC, j] = params[METALLIC]
+    out[LIGHT_PARAMS + IOR, j] = params[IOR]
+    out[LIGHT_PARAMS + EXTINCTION, j] = params[EXTINCTION]
     store_vec(out, j, LIGHT_TO_LED, light[2])
     out[LIGHT_REST, j] = light[3]
     out[LIGHT_REST + 1, j] = light[4]
@@ -1402,8 +1414,9 @@ def load_light(table, j):
     """The light tuple of column j (store_light)."""
     surf = (load_vec(table, j, LIGHT_SURF), load_vec(table, j, LIGHT_SURF + 3), load_vec(table, j, LIGHT_SURF + 6),
             load_vec(table, j, LIGHT_SURF + 9), load_vec(table, j, LIGHT_SURF + 12),
-            (table[LIGHT_PARAMS, j], table[LIGHT_PARAMS + 1, j], table[LIGHT_PARAMS + 2, j],
-             table[LIGHT_PARAMS + 3, j], table[LIGHT_PARAMS + 4, j]))
+            surface_params(table[LIGHT_PARAMS + REFLECTANCE, j], table[LIGHT_PARAMS + ROUGHNESS, j],
+                           table[LIGHT_PARAMS + METALLIC, j], table[LIGHT_PARAMS + IOR, j],
+                           table[LIGHT_PARAMS + EXTINCTION, j]))
     return (table[LIGHT_FOUND, j] != 0.0, surf, load_vec(table, j, LIGHT_TO_LED), table[LIGHT_REST, j],
             table[LIGHT_REST + 1, j], table[LIGHT_REST + 2, j], table[LIGHT_REST + 3, j])
 

@@ -164,8 +164,46 @@ def led_arrays(ctx) -> tuple:
             np.ascontiguousarray(np.cumsum(q)[:-1]))
 
 
+@dataclass(frozen=True)
+class CorrelationKind:
+    """One row of :data:`CORRELATION_KINDS`: how a reference g_j of :mod:`tofcore.sensor.modulation` becomes a
+    row of the kernels' channel table (kernels.correlation reads ``par[i]`` as ``columns[i]``)."""
+
+    code: int           # layout.PHASOR …
+    columns: tuple      # the names of its row's values, in order (at most 6)
+    row: object         # keywords of the partial → (row values, coefficients for the shared data array)
+
+
+def _square_row(k: dict) -> tuple:
+    duty = k["duty"]
+    return [k["f_hz"], k["offset_fraction"], duty, max(0.0, duty - 0.5), min(duty, 0.5), 0.25 + 0.5 * duty], []
+
+
+CORRELATION_KINDS = {
+    phasor_component: CorrelationKind(layout.PHASOR, ("2πf", "qπ/2"),
+                                      lambda k: ([2.0 * np.pi * k["f_hz"], 0.5 * np.pi * k["quarter"]], [])),
+    sine_correlation: CorrelationKind(layout.SINE, ("f", "k/N"), lambda k: ([k["f_hz"], k["offset_fraction"]], [])),
+    square_correlation: CorrelationKind(layout.SQUARE, ("f", "k/N", "D", "lower clip", "upper clip", "¼ + D/2"),
+                                        _square_row),
+    pulsed_correlation: CorrelationKind(layout.PULSED, ("t0", "bucket"),
+                                        lambda k: ([k["pulse_width_s"], k["bucket"]], [])),
+    harmonic_correlation: CorrelationKind(layout.HARMONIC, ("2πf", "first coefficient", "N"), lambda k: (
+        [2.0 * np.pi * k["f_hz"], None, len(k["sin_terms"])], [*k["cos_terms"], *k["sin_terms"]])),
+    tabulated_correlation: CorrelationKind(layout.TABLE, ("T", "first value", "M"), lambda k: (
+        [k["period_s"], None, len(k["values"])], list(k["values"]))),
+}
+"""The correlation functions the kernels compute, by reference function: the one table from which
+:func:`correlation_table` (and so :func:`unsupported`) derives. ``None`` in a row is filled with the
+index of the row's first coefficient in the shared data array. A new kind is one row here, its code in
+:mod:`.layout` and its formula in kernels.correlation."""
+
+_CODE_ONLY = ("is Python code the compiled tracer cannot run; give a custom waveform as data "
+              "(tofcore.sensor.modulation.harmonic or .tabulate) to trace it compiled")
+
+
 def correlation_table(correlations) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(kinds (J,), parameters (J, 6), coefficients (≥ 1,)) of a sensor's correlation bank or a list of g_j.
+    """(kinds (J,), parameters (J, 6), coefficients (≥ 1,)) of a sensor's correlation bank or a list of g_j
+    (:data:`CORRELATION_KINDS`).
 
     Raises TypeError naming a channel the kernels do not know: a callable other than the functions of
     :mod:`tofcore.sensor.modulation` (custom waveforms compile as data: ``modulation.harmonic`` or
@@ -177,36 +215,14 @@ def correlation_table(correlations) -> tuple[np.ndarray, np.ndarray, np.ndarray]
         functions = list(getattr(correlations, "functions", ()))
     kinds, rows, data = [], [], []
     for j, g in enumerate(functions):
-        if not isinstance(g, functools.partial) or g.args:
-            raise TypeError(f"correlation channel {j} ({getattr(g, '__name__', type(g).__name__)}) is Python code "
-                            f"the compiled tracer cannot run; give a custom waveform as data "
-                            f"(tofcore.sensor.modulation.harmonic or .tabulate) to trace it compiled")
-        k = g.keywords
-        if g.func is phasor_component:
-            kinds.append(layout.PHASOR)
-            rows.append([2.0 * np.pi * k["f_hz"], 0.5 * np.pi * k["quarter"], 0, 0, 0, 0])
-        elif g.func is sine_correlation:
-            kinds.append(layout.SINE)
-            rows.append([k["f_hz"], k["offset_fraction"], 0, 0, 0, 0])
-        elif g.func is square_correlation:
-            duty = k["duty"]
-            kinds.append(layout.SQUARE)
-            rows.append([k["f_hz"], k["offset_fraction"], duty, max(0.0, duty - 0.5), min(duty, 0.5),
-                         0.25 + 0.5 * duty])
-        elif g.func is pulsed_correlation:
-            kinds.append(layout.PULSED)
-            rows.append([k["pulse_width_s"], k["bucket"], 0, 0, 0, 0])
-        elif g.func is harmonic_correlation:
-            kinds.append(layout.HARMONIC)
-            rows.append([2.0 * np.pi * k["f_hz"], len(data), len(k["sin_terms"]), 0, 0, 0])
-            data.extend([*k["cos_terms"], *k["sin_terms"]])
-        elif g.func is tabulated_correlation:
-            kinds.append(layout.TABLE)
-            rows.append([k["period_s"], len(data), len(k["values"]), 0, 0, 0])
-            data.extend(k["values"])
-        else:
-            raise TypeError(f"correlation channel {j} ({g.func.__name__}) is Python code the compiled tracer "
-                            f"cannot run; give a custom waveform as data (tofcore.sensor.modulation.harmonic "
-                            f"or .tabulate) to trace it compiled")
+        kind = CORRELATION_KINDS.get(g.func) if isinstance(g, functools.partial) and not g.args else None
+        if kind is None:
+            name = getattr(getattr(g, "func", g), "__name__", type(g).__name__)
+            raise TypeError(f"correlation channel {j} ({name}) {_CODE_ONLY}")
+        values, coefficients = kind.row(g.keywords)
+        row = [len(data) if v is None else v for v in values]
+        kinds.append(kind.code)
+        rows.append(row + [0.0] * (6 - len(row)))
+        data.extend(coefficients)
     return (np.array(kinds, dtype=np.int64), np.array(rows, dtype=np.float64).reshape(-1, 6),
             np.array(data or [0.0], dtype=np.float64))

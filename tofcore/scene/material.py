@@ -98,13 +98,35 @@ class Texture:
         return top * (1 - fy) + bottom * fy
 
 
-_RANGES = {
-    "reflectance": (0.0, 1.0),
-    "roughness": (0.0, np.pi / 2),
-    "metallic": (0.0, 1.0),
-    "ior": (0.05, 10.0),
-    "extinction": (0.0, 100.0),
-}
+@dataclass(frozen=True)
+class Parameter:
+    """One row of :data:`PARAMETERS`: a material parameter of the reflection model."""
+
+    name: str
+    unit: str
+    default: float
+    low: float
+    high: float
+    textured: bool  # whether a one-channel ``<name>_texture`` may replace it per point
+    meaning: str
+
+
+PARAMETERS = (
+    Parameter("reflectance", "1", 0.5, 0.0, 1.0, True, "near-IR diffuse albedo ρ of the Oren–Nayar lobe"),
+    Parameter("roughness", "rad", 0.5, 0.0, np.pi / 2, True,
+              "σ, slope deviation of the microfacets (Oren–Nayar σ, Beckmann α = √2 σ); 0 = mirror"),
+    Parameter("metallic", "1", 0.0, 0.0, 1.0, True, "blend between dielectric (0) and conductor (1)"),
+    Parameter("ior", "1", 1.52, 0.05, 10.0, False, "η: dielectric index (≥ 1), conductor real part"),
+    Parameter("extinction", "1", 0.0, 0.0, 100.0, False, "k: conductor absorption coefficient (metals only)"),
+)
+"""The material parameters, one row each: the one table the rest derives from — :class:`Material`'s
+fields and checks, :data:`PARAMETER_NAMES` (the order of the tracers' per-point records: the NumPy
+tracer's :class:`tofcore.scene.bsdf.SurfaceParams`, the compiled kernels' ``params`` tuple and material
+columns, :mod:`tofcore.compiled.layout`), the texture slots (:data:`TEXTURE_SLOTS`) and the docs table above.
+A new parameter is one row here, one field in :class:`Material` (a test checks they agree) and its use
+in each tracer's formula."""
+
+_RANGES = {p.name: (p.low, p.high) for p in PARAMETERS}
 
 
 @dataclass(frozen=True, kw_only=True, eq=False)
@@ -118,11 +140,11 @@ class Material:
     """
 
     name: str = "default"
-    reflectance: float = 0.5
-    roughness: float = 0.5
-    metallic: float = 0.0
-    ior: float = 1.52
-    extinction: float = 0.0
+    reflectance: float = PARAMETERS[0].default
+    roughness: float = PARAMETERS[1].default
+    metallic: float = PARAMETERS[2].default
+    ior: float = PARAMETERS[3].default
+    extinction: float = PARAMETERS[4].default
     reflectance_texture: Texture | None = field(default=None)
     roughness_texture: Texture | None = field(default=None)
     metallic_texture: Texture | None = field(default=None)
@@ -140,7 +162,7 @@ class Material:
             raise ConfigError(f"Material {self.name!r}: ior must be >= 1 unless metallic = 1 (a dielectric "
                               f"with η < 1 would reflect everything), got ior {self.ior!r} with metallic "
                               f"{self.metallic!r}")
-        for key in ("reflectance_texture", "roughness_texture", "metallic_texture"):
+        for key in TEXTURE_SLOTS[:-1]:
             tex = getattr(self, key)
             if tex is not None and (not isinstance(tex, Texture) or tex.channels != 1):
                 raise ConfigError(f"Material {self.name!r}: {key} must be a one-channel Texture, got {tex!r}")
@@ -168,4 +190,9 @@ class Material:
         return cls(**data, **(textures or {}))
 
 
-PARAMETER_NAMES = tuple(_RANGES)
+PARAMETER_NAMES = tuple(p.name for p in PARAMETERS)
+"""The parameters in the order of the tracers' per-point records (see :data:`PARAMETERS`)."""
+
+TEXTURE_SLOTS = tuple(f"{p.name}_texture" for p in PARAMETERS if p.textured) + ("normal_texture",)
+"""A material's texture fields: one per textured parameter, then the normal map (the compiled kernels'
+texture slots, in this order)."""

@@ -25,7 +25,7 @@ import numpy as np
 
 from ..backend import device_copy
 from ..scene.bsdf import SurfaceParams
-from ..scene.material import PARAMETER_NAMES
+from ..scene.material import PARAMETER_NAMES, TEXTURE_SLOTS
 from ..scene.scene import Scene
 
 
@@ -244,10 +244,10 @@ def surface_at(scene: Scene, table: MaterialTable, prim: np.ndarray, u: np.ndarr
             if len(sel) == 0:
                 continue
             m = scene.materials[i]
-            for key in ("reflectance", "roughness", "metallic"):
-                tex = getattr(m, f"{key}_texture")
+            for slot in TEXTURE_SLOTS[:-1]:
+                tex = getattr(m, slot)
                 if tex is not None:
-                    values[key][sel] = tex.sample(uv[sel])
+                    values[slot.removesuffix("_texture")][sel] = tex.sample(uv[sel])
             if m.normal_texture is not None:
                 ns[sel] = _perturb(table, prim[sel], ns[sel] * np.sign(dot(ns[sel], ng[sel]))[:, None],
                                    m.normal_texture.sample(uv[sel])[:, :3])
