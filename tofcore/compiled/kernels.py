@@ -107,7 +107,7 @@ else:
 # ------------------------------------------------------------------ vectors
 @fn
 def dot(a, b):
-    """Dot product summed x, y, z in that order (tofcore.surface.dot)."""
+    """Dot product summed x, y, z in that order (tofcore.tracer.surface.dot)."""
     return a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
 
 
@@ -144,7 +144,7 @@ def to_f32(a):
 
 @fn
 def rotate(v, rot):
-    """``v @ R.T`` as tofcore.surface.rotate sums it: v_x R[:, 0] + v_y R[:, 1] + v_z R[:, 2].
+    """``v @ R.T`` as tofcore.tracer.surface.rotate sums it: v_x R[:, 0] + v_y R[:, 1] + v_z R[:, 2].
 
     ``rot``: any array whose rows 0–2 hold R (the ``frame`` array of :func:`trace_path`).
     """
@@ -178,7 +178,7 @@ def uniform(key, pixel, sample, dim):
 
 @fn
 def reverse_bits(x):
-    """The 32 low bits of a uint64 reversed (tofcore.qmc.reverse_bits)."""
+    """The 32 low bits of a uint64 reversed (tofcore.tracer.qmc.reverse_bits)."""
     x = ((x >> U1) & C55) | ((x & C55) << U1)
     x = ((x >> U2) & C33) | ((x & C33) << U2)
     x = ((x >> U4) & C0F) | ((x & C0F) << U4)
@@ -188,7 +188,7 @@ def reverse_bits(x):
 
 @fn
 def owen_scramble(x, seed):
-    """Hash-based Owen scramble of a 32-bit value (tofcore.qmc.owen_scramble), uint32 arithmetic."""
+    """Hash-based Owen scramble of a 32-bit value (tofcore.tracer.qmc.owen_scramble), uint32 arithmetic."""
     x = (reverse_bits(x) + seed) & MASK32
     x = (x ^ (x * LK0)) & MASK32
     x = (x ^ (x * LK1)) & MASK32
@@ -199,7 +199,7 @@ def owen_scramble(x, seed):
 
 @fn
 def sobol_dim1_lookup(index):
-    """Sobol' dimension 2 of a 32-bit index by four byte lookups (tofcore.qmc.sobol_2d)."""
+    """Sobol' dimension 2 of a 32-bit index by four byte lookups (tofcore.tracer.qmc.sobol_2d)."""
     return (SOBOL[0, np.int64(index & BYTE)] ^ SOBOL[1, np.int64((index >> U8) & BYTE)]
             ^ SOBOL[2, np.int64((index >> U16) & BYTE)] ^ SOBOL[3, np.int64(index >> U24)])
 
@@ -208,7 +208,7 @@ def sobol_dim1_lookup(index):
 def sobol_dim1_bits(index):
     """Sobol' dimension 2 of a 32-bit index bit by bit, the same number as :func:`sobol_dim1_lookup`: bit b
     of the index toggles v_b = m_b · 2^(31 − b) with m_0 = 1, m_(b+1) = m_b ⊕ 2 m_b, so v_(b+1) = v_b ⊕
-    (v_b >> 1) (tofcore.qmc._sobol_dim1_tables). On the GPU a table would sit in constant memory, whose
+    (v_b >> 1) (tofcore.tracer.qmc._sobol_dim1_tables). On the GPU a table would sit in constant memory, whose
     loads a warp serialises when its threads read different entries (wf_start stalled 114 cycles per
     instruction on them); 32 shifts and XORs in registers do not."""
     out = U0
@@ -228,7 +228,7 @@ sobol_dim1 = sobol_dim1_bits if cuda is not None else sobol_dim1_lookup
 
 @fn
 def qmc_seeds(key, pixel, sample, dim):
-    """(index, x, y scramble seeds, point index j) of a sample (tofcore.qmc._seeds)."""
+    """(index, x, y scramble seeds, point index j) of a sample (tofcore.tracer.qmc._seeds)."""
     replicate = sample % REPLICATES
     bits = hash_bits(key, pixel, replicate, dim)
     more = hash_bits(key, pixel, replicate, dim + SEED_DIM_OFFSET)
@@ -237,7 +237,7 @@ def qmc_seeds(key, pixel, sample, dim):
 
 @fn
 def sample_2d(key, pixel, sample, dim, independent):
-    """Uniforms (u, v) of dimension pair ``dim`` (tofcore.qmc.sample_2d)."""
+    """Uniforms (u, v) of dimension pair ``dim`` (tofcore.tracer.qmc.sample_2d)."""
     if independent:
         return uniform(key, pixel, sample, 2 * dim), uniform(key, pixel, sample, 2 * dim + 1)
     s_index, s_x, s_y, j = qmc_seeds(key, pixel, sample, dim)
@@ -249,7 +249,7 @@ def sample_2d(key, pixel, sample, dim, independent):
 
 @fn
 def sample_1d(key, pixel, sample, dim, independent):
-    """A uniform of dimension ``dim`` (tofcore.qmc.sample_1d)."""
+    """A uniform of dimension ``dim`` (tofcore.tracer.qmc.sample_1d)."""
     if independent:
         return uniform(key, pixel, sample, 2 * dim)
     s_index, s_x, s_y, j = qmc_seeds(key, pixel, sample, dim)
@@ -349,7 +349,7 @@ def camera_ray(cam, table, pixel, u_jitter, v_jitter, u_lens, v_lens):
 # ------------------------------------------------------------------ BVH traversal (tofcore.bvh)
 @fn
 def ray_frame(d):
-    """float32 frame (b1, b2) perpendicular to the unit direction d (tofcore.bvh._ray_frame)."""
+    """float32 frame (b1, b2) perpendicular to the unit direction d (tofcore.scene.bvh._ray_frame)."""
     x, y, z = d
     sign = F32_ONE if z >= F32_ZERO else -F32_ONE
     a = -F32_ONE / (sign + z)
@@ -359,7 +359,8 @@ def ray_frame(d):
 
 @fn
 def inverse_direction(d):
-    """1/d per axis in float32, components below 1e-30 in magnitude replaced by ±1e-30 (tofcore.bvh)."""
+    """1/d per axis in float32, components below 1e-30 in magnitude replaced by ±1e-30
+    (tofcore.scene.bvh._ray_records)."""
     return (F32_ONE / (d[0] if abs(d[0]) >= TINY_DIR else (-TINY_DIR if d[0] < F32_ZERO else TINY_DIR)),
             F32_ONE / (d[1] if abs(d[1]) >= TINY_DIR else (-TINY_DIR if d[1] < F32_ZERO else TINY_DIR)),
             F32_ONE / (d[2] if abs(d[2]) >= TINY_DIR else (-TINY_DIR if d[2] < F32_ZERO else TINY_DIR)))
@@ -383,7 +384,7 @@ def push_child(stack, stack_t, top, first, child, t_in, any_hit):
 def traverse(bvh, o, d, t_max, ignore, any_hit, stack, stack_t):
     """Closest hit (or any hit) of one float32 ray over the 4-wide BVH records, with a per-ray stack.
 
-    Same slab test as tofcore.bvh.BVH._trace (entry plane chosen by the sign of the direction, tiny
+    Same slab test as tofcore.scene.bvh.BVH._trace (entry plane chosen by the sign of the direction, tiny
     direction components replaced by ±1e-30 (:func:`inverse_direction`), boxes clipped at the best t so
     far) and the same watertight triangle test in float32 (the same products and sums in the same order;
     the divisions only once the ray is inside the triangle). For a closest hit, children are
@@ -479,7 +480,7 @@ def spawn_offset(geo, prim, position, ng):
 @fn
 def shadow_ray(spawn, target, margin_m):
     """float32 origin, unit direction and t_max of a ray stopping ``margin_m`` short of ``target``
-    (tofcore.surface.shadow_ray)."""
+    (tofcore.tracer.surface.shadow_ray)."""
     to_target = sub(target, spawn)
     length = norm(to_target)
     direction = divide(to_target, length if length > 0.0 else 1.0)
@@ -559,8 +560,8 @@ def surface_at(geo, prim, u, v, ray_origin, ray_direction):
 
 @fn
 def surface_params(reflectance, roughness, metallic, ior, extinction):
-    """The ``params`` record of a surface point: its fields in the order of layout.MATERIAL_COLUMNS (the
-    material table, tofcore.scene.material.PARAMETERS), read by name (params[REFLECTANCE], …)."""
+    """The ``params`` record of a surface point (tofcore.scene.bsdf.SurfaceParams): its fields in the order of
+    layout.MATERIAL_COLUMNS (the material table), read by name (params[REFLECTANCE], …)."""
     return (reflectance, roughness, metallic, ior, extinction)
 
 
@@ -969,7 +970,7 @@ def correlation(kind, par, data, tau):
 @fn
 def led_estimate(frame, leds, vertex, state, i):
     """Next-event estimate to LED ``i`` before its shadow test: (w, distance to the LED, the LED's position)
-    (transport._connect_led)."""
+    (stages._to_led before its shadow test)."""
     surf, spawn, wo, prim = vertex
     throughput, depth, bsdf_area_pdf, prev_delta, use_mis = state
     led_positions, led_table = leds[0], leds[1]
@@ -995,7 +996,7 @@ def led_estimate(frame, leds, vertex, state, i):
 
 @fn
 def connect_led(geo, frame, leds, vertex, state, i, work):
-    """Next-event estimate to LED ``i``, shadow test included: (w, distance to the LED) (transport._connect_led)."""
+    """Next-event estimate to LED ``i``, shadow test included: (w, distance to the LED) (stages._to_led)."""
     w, dist, led = led_estimate(frame, leds, vertex, state, i)
     counters = work[0]
     if w > 0:
@@ -1105,7 +1106,7 @@ def connect_light(geo, vertex, throughput, light, work):
 
 @fn
 def camera_start(scene, rng):
-    """Scene-frame origin and unit direction of the sample's camera ray (Camera.generate_rays)."""
+    """Scene-frame origin and unit direction of the sample's camera ray (stages.camera_rays)."""
     cam, cam_table, frame = scene[1], scene[2], scene[3]
     key, pixel, sample, independent = rng
     pixel_u, pixel_v = sample_2d(key, pixel, sample, DIM_PIXEL, independent)
@@ -1201,7 +1202,7 @@ def add_connection(scene, vertex, state, path_length, light, film, sums, work):
 @fn
 def next_direction(surf, wo, rng, depth):
     """The BSDF-sampled world direction leaving the vertex at ``depth``, its weight, pdf and whether it
-    is a mirror lobe (tofcore.scene.bsdf.sample)."""
+    is a mirror lobe (stages.scatter)."""
     key, pixel, sample, independent = rng
     u1, u2 = sample_2d(key, pixel, sample, 2 * depth + 1, independent)
     u_lobe = sample_1d(key, pixel, sample, 2 * depth, independent)
@@ -1279,7 +1280,8 @@ def trace_path(scene, settings, pixel, sample, sums, work):
 
 @cpu_parallel
 def trace_pixels(scene, settings, pixels, out):
-    """Trace samples [first[p], first[p] + counts[p]) of pixels p0 ≤ p < p1 into the frame's sums.
+    """Trace samples [first[p], first[p] + counts[p]) of pixels p0 ≤ p < p1 into the frame's sums
+    (integrator.trace_chunk).
 
     ``scene`` and ``settings`` as in :func:`trace_path`; ``pixels`` = (p0, p1, first, counts); ``out`` =
     (signal_sum (K, P), correlation_sum (K, J, P), replicate_sum (R, J + 2, P), ambient_sum (P,), transient_sum
