@@ -346,7 +346,7 @@ POST_TRACE_BUDGET = {
     # decoding, ground truth per path length, the read-back. When set (2026-11-25): 744 device arrays and
     # 3 host syncs (main before: 2,057 arrays and 21 syncs, the noise drawn on the host; the unwrap loop
     # alone ~1,000 arrays). Now: error estimate ~400, decoding ~270 (camera and per-k ground truth), noise
-    # ~35 (the Poisson counts one fused kernel, tofcore.gpu.fused.poisson). The syncs: the error estimate
+    # ~35 (the Poisson counts one fused kernel, tofcore.fused.poisson). The syncs: the error estimate
     # and the sample counts per pass (the adaptive allocation runs on the host), the frame's one stacked
     # read-back. The budget leaves ~20 % for changes.
     "arrays": 900,
