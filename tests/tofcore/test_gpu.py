@@ -366,10 +366,17 @@ def test_post_trace_device_work_per_frame_is_bounded(monkeypatch):
     transport = tofcore.trace(scene, sensor.camera, sensor.leds, world_from_sensor=tofcore.suggested_pose(scene),
                               correlations=sensor.modulation.correlation_bank(), spp=4, max_depth=3, device="gpu")
 
-    def stored(*args, **kwargs):
-        yield transport
+    class Stored:  # the passes of tofcore.tracer.trace.trace_progressive: one, already traced
+        def __iter__(self):
+            yield transport
 
-    monkeypatch.setattr(render_module, "trace_progressive", stored)
+        def report(self, report):
+            return True
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(render_module, "trace_progressive", lambda *args, **kwargs: Stored())
     with fakecupy.counting() as counts:
         frame = render(scene, sensor, spp=4, max_depth=3, device="gpu")
     print(f"\npost-trace on the fake GPU: {counts['arrays']} device arrays ({counts['uploads']} uploads), "
