@@ -56,20 +56,29 @@ def post_trace_split(n: int = 5) -> None:
 
     original = render_module.trace_progressive
 
-    def traced(*args, **kwargs):  # the allocations while the tracer runs count as "trace"
-        passes = original(*args, **kwargs)
-        while True:
-            part[0] = "trace"
-            try:
-                transport = next(passes)
-            except StopIteration:
-                return
-            finally:
-                part[0] = "post"
-            sync()  # the trace's kernels finished before the render reads its clock
-            yield transport
+    class Traced:  # the render's passes; the allocations while the tracer runs count as "trace"
+        def __init__(self, passes):
+            self.passes = passes
 
-    render_module.trace_progressive = traced
+        def __iter__(self):
+            while True:
+                part[0] = "trace"
+                try:
+                    transport = next(self.passes)
+                except StopIteration:
+                    return
+                finally:
+                    part[0] = "post"
+                sync()  # the trace's kernels finished before the render reads its clock
+                yield transport
+
+        def report(self, report):
+            return self.passes.report(report)
+
+        def close(self):
+            self.passes.close()
+
+    render_module.trace_progressive = lambda *args, **kwargs: Traced(original(*args, **kwargs))
     cp.cuda.set_allocator(counting_malloc)
     for spp in (16, 1):
         render(scene, sensor, spp=spp, max_depth=5, device="gpu")  # warm

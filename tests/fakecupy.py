@@ -244,7 +244,8 @@ def install(monkeypatch) -> None:
     from tofcore.scene import bvh, fresnel
     from tofcore.sensor import modulation, noise
     from tofcore.tracer import qmc
-    from tofcore.gpu import fused, traversal
+    from tofcore import fused
+    from tofcore.gpu import traversal
 
     module = sys.modules[__name__]
     backend.register_array_module(ndarray, module)

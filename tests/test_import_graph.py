@@ -28,9 +28,11 @@ LAYERS: tuple[tuple[str, ...], ...] = (
     # rng, the counter-based hash, stands below the tracer and the sensor: the tracer's samplers and
     # the sensor's noise (tofcore.sensor.noise) draw from it, so one seed gives the same numbers on both devices
     ("tofcore.scene", "tofcore.rng"),
-    # gpu.traversal, the BVH's CUDA twin, needs only the scene: the compiled GPU tracer (above) drives it
-    ("tofcore.tracer", "tofcore.sensor", "tofcore.plan", "tofcore.gpu.traversal"),
-    ("tofcore.output", "tofcore.gpu", "tofcore.compiled"),
+    # gpu (traversal, the BVH's CUDA twin) needs only the scene: the compiled GPU tracer (above) drives it
+    ("tofcore.tracer", "tofcore.sensor", "tofcore.plan", "tofcore.gpu"),
+    # fused twins the tracer's and the sensor's functions; the compiled tracer reuses them and, in
+    # compiled.tracer, picks itself or the NumPy reference for a trace (render imports that choice)
+    ("tofcore.output", "tofcore.fused", "tofcore.compiled"),
     ("tofcore.render",),
     ("tofcore", "tofcore.cli"),   # "tofcore": the package face (tofcore/__init__.py)
     ("tofcore.__main__",),

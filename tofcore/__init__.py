@@ -9,7 +9,8 @@ The public API, re-exported from one module per concept. The packages follow the
 * :class:`Camera` — intrinsics, OpenCV distortion, thin lens (``camera``)
 * :class:`LED` — IR emitters in the sensor frame (``led``)
 * :class:`Ambient` — unmodulated background light (``ambient``)
-* :func:`trace`, :func:`trace_progressive`, :class:`Transport` — the path tracer (``tracer``)
+* :func:`trace`, :func:`trace_progressive`, :class:`Transport` — the path tracer (``tracer``; the compiled
+  tracer where it can run, ``compiled``)
 * :func:`look_at` — sensor poses (``pose``)
 * :class:`Sensor`, :func:`load_preset`, :func:`list_presets` — sensor models and presets (``sensor``, ``presets``)
 * :class:`Modulation` — pulsed / square / sine correlation functions (``modulation``)
@@ -34,7 +35,7 @@ from .output import exr
 from .errors import Cancelled, ConfigError, LimitError, SceneError, TofError
 from .output.frame import Frame, Reason
 from .output.writers import read_exr, write_frame
-from .render import render, render_progressive
+from .render import render, render_progressive, trace, trace_progressive
 from .scene.ambient import Ambient
 from .scene.camera import Camera
 from .scene.demo import demo_ambient, demo_scene, suggested_pose
@@ -46,7 +47,6 @@ from .scene.scene import Scene
 from .sensor.config import Sensor
 from .sensor.modulation import Modulation
 from .sensor.presets import list_presets, load_preset
-from .tracer.trace import trace, trace_progressive
 from .tracer.transport import FirstHit, Transport
 
 __all__ = [

@@ -262,13 +262,13 @@ def scatter_sum(index, weights, length: int):
 
 # ------------------------------------------------------------------ device twins
 KERNELS: dict[str, str] = {
-    "tofcore.rng.uniform": "tofcore.gpu.fused:uniform",
-    "tofcore.tracer.qmc.scrambled_2d": "tofcore.gpu.fused:scrambled_2d",
-    "tofcore.tracer.qmc.scrambled_1d": "tofcore.gpu.fused:scrambled_1d",
-    "tofcore.scene.fresnel.fresnel_dielectric": "tofcore.gpu.fused:fresnel_dielectric",
-    "tofcore.scene.fresnel.fresnel_conductor": "tofcore.gpu.fused:fresnel_conductor",
-    "tofcore.sensor.modulation.square_correlation": "tofcore.gpu.fused:square_correlation",
-    "tofcore.sensor.noise.poisson": "tofcore.gpu.fused:poisson",
+    "tofcore.rng.uniform": "tofcore.fused:uniform",
+    "tofcore.tracer.qmc.scrambled_2d": "tofcore.fused:scrambled_2d",
+    "tofcore.tracer.qmc.scrambled_1d": "tofcore.fused:scrambled_1d",
+    "tofcore.scene.fresnel.fresnel_dielectric": "tofcore.fused:fresnel_dielectric",
+    "tofcore.scene.fresnel.fresnel_conductor": "tofcore.fused:fresnel_conductor",
+    "tofcore.sensor.modulation.square_correlation": "tofcore.fused:square_correlation",
+    "tofcore.sensor.noise.poisson": "tofcore.fused:poisson",
     "tofcore.scene.bvh.BVH.intersect": "tofcore.gpu.traversal:intersect",
     "tofcore.scene.bvh.BVH.occluded": "tofcore.gpu.traversal:occluded",
 }

@@ -3,10 +3,13 @@
 The stages (DESIGN.md, "The flow"):
 
 1. **plan** what the scene and sensor need (:mod:`tofcore.plan`);
-2. **trace** progressive passes, each contribution correlated with the
-   sensor's g_j (:mod:`tofcore.sensor.modulation`), bucketed by bounce count;
+2. **trace** progressive passes (:func:`trace_progressive`, on the tracer that
+   :func:`tofcore.compiled.tracer.choose` picks), each contribution correlated with
+   the sensor's g_j (:mod:`tofcore.sensor.modulation`), bucketed by bounce count;
    after each pass estimate the depth standard error from the per-pixel
-   variances, and stop at ``target_error_m`` or ``time_budget_s``;
+   variances and report it: the passes' schedule (:mod:`tofcore.tracer.trace`,
+   given a :class:`~tofcore.tracer.trace.PassPolicy`) sizes and allocates the
+   next pass from it and stops at ``target_error_m``, ``time_budget_s`` or ``spp``;
 3. **raw images** per frequency and phase step: charge in electrons =
    responsivity × exposure × (LED signal correlation + ambient × gate duty),
    :func:`raw_images`;
@@ -53,11 +56,28 @@ from .sensor import noise as noise_models
 from .sensor import optics
 from .sensor import processing
 from .sensor.raw import raw_images
-from .tracer.estimator import allocate_samples
-from .tracer.budget import TimeBudget
+from .compiled.tracer import choose
+from .tracer import trace as tracing
+from .tracer.estimator import rms_error
 from .tracer.qmc import REPLICATES
-from .tracer.trace import next_pass_size, trace_progressive
+from .tracer.trace import Passes, PassPolicy, PassReport
 from .tracer.transport import Transport
+
+
+def trace(scene: Scene, camera, leds, **settings) -> Transport:
+    """The light transport of a whole frame, without the sensor model, on the tracer that
+    :func:`tofcore.compiled.tracer.choose` picks: the compiled one wherever it can run the trace, else the NumPy
+    reference (``transport.stats.tracer`` and ``tracer_reason`` say which, and why). The parameters are those of
+    :func:`tofcore.tracer.trace.trace_progressive`."""
+    settings.setdefault("tracer", choose)
+    return tracing.trace(scene, camera, leds, **settings)
+
+
+def trace_progressive(scene: Scene, camera, leds, **settings) -> Passes:
+    """:func:`trace` in progressive passes: the accumulated transport after each
+    (:func:`tofcore.tracer.trace.trace_progressive`, whose parameters these are)."""
+    settings.setdefault("tracer", choose)
+    return tracing.trace_progressive(scene, camera, leds, **settings)
 
 
 def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray:
@@ -245,6 +265,12 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                               every_pass=every_pass, adaptive=adaptive, sampler=sampler, light_paths=light_paths,
                               transient_bin_m=transient_bin_m, transient_max_m=transient_max_m,
                               preview_denoise=preview_denoise, preview_frames=preview_frames)
+    yield from _render_on(scene, sensor, pose, settings, dev)
+
+
+def _render_on(scene: Scene, sensor, pose, settings: RenderSettings, dev: backend.Device) -> Iterator[Frame]:
+    """:func:`render_progressive` on the resolved device; with ``"auto"``, a GPU failure before the first frame
+    renders on the CPU instead."""
     if not dev.is_gpu:
         yield from _render_passes(scene, sensor, pose, settings, dev)
         return
@@ -300,46 +326,26 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
     reference = _checked_reference(s.reference_distance, sensor)
     setup = frame_setup(sensor, plan, device.xp)
     log: list[dict] = []
-    sigma = None  # the latest per-pixel depth error estimate, which the next pass's allocation reads
-    counts = None  # host copy of the transport's samples per pixel after the latest pass
-
-    def allocate(transport: Transport, samples_per_pixel: int):
-        return None if sigma is None else allocate_samples(sigma, counts, samples_per_pixel)
-
-    progressive = s.every_pass or s.time_budget_s is not None or s.target_error_m is not None
-    budget = None if s.time_budget_s is None else TimeBudget(s.time_budget_s)
-    nominal, next_n = 0, next_pass_size(0, s.spp, progressive)  # samples per pixel asked for; the next pass's
+    policy = PassPolicy(spp=s.spp, progressive=s.every_pass, time_budget_s=s.time_budget_s,
+                        target_error_m=s.target_error_m, adaptive=s.adaptive)
+    frame_s = None  # the latest frame's build (s): the time budget keeps as much for the final one
     start = _clock()
-    cycle_start, traced = start, 0.0  # the current pass cycle's start, mean samples per pixel traced before it
     passes = trace_progressive(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
                                correlations=correlations, ambient=s.ambient if plan.ambient else None,
-                               spp=s.spp, max_depth=s.max_depth, seed=s.seed, workers=s.workers,
-                               chunk_size=s.chunk_size, cancel=s.cancel, device=device, progressive=progressive,
-                               sampler=s.sampler, light_paths=s.light_paths, allocate=allocate if s.adaptive else None,
-                               transient_bin_m=s.transient_bin_m, transient_max_m=s.transient_max_m,
-                               pass_size=lambda transport, scheduled: next_n)
+                               max_depth=s.max_depth, seed=s.seed, workers=s.workers, chunk_size=s.chunk_size,
+                               cancel=s.cancel, device=device, sampler=s.sampler, light_paths=s.light_paths,
+                               transient_bin_m=s.transient_bin_m, transient_max_m=s.transient_max_m, policy=policy)
     try:
         for transport in passes:
-            nominal += next_n
             elapsed = _clock() - start
             counts = backend.to_host(transport.sample_count)
-            if counts.max() < REPLICATES:  # every pixel lacks a replicate: no estimate yet (1 and 2 spp; ~1.5 s saved)
-                sigma = np.full((sensor.camera.height, sensor.camera.width), np.nan)
-            else:
-                sigma = backend.to_host(depth_standard_error(transport, sensor, n_raw))
-            if budget is not None:
-                budget.estimate_s = _clock() - start - elapsed
+            sigma = _depth_error(transport, sensor, n_raw, counts)
+            estimate_s = _clock() - start - elapsed
             row = _convergence_row(transport, sensor, n_raw, sigma, counts, reference, elapsed, setup)
             log.append(row)
             if s.progress is not None:
                 s.progress(dict(row, spp_max=s.spp))
-            next_n = next_pass_size(nominal, s.spp, progressive) if nominal < s.spp else 0
-            if budget is not None and next_n:
-                now, mean_spp = _clock(), float(counts.mean())
-                budget.record(mean_spp - traced, now - cycle_start)
-                cycle_start, traced = now, mean_spp
-                next_n = budget.next_pass(next_n, now - start)
-            done = next_n == 0 or _target_reached(row, s.target_error_m)
+            done = passes.report(PassReport(error_m=sigma, estimate_s=estimate_s, frame_s=frame_s))
             if not (done or s.every_pass):
                 continue
             frame_start = _clock()
@@ -353,13 +359,20 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
                                                             convergence=list(log), device=device.as_dict()))
             if s.preview_denoise:
                 _denoise(frame)
-            if budget is not None:
-                budget.frame_s = _clock() - frame_start
+            frame_s = _clock() - frame_start
             yield frame
             if done:
                 return
     finally:  # also on an exception or Ctrl-C between passes: the workers' shared memory is released now
         passes.close()
+
+
+def _depth_error(transport: Transport, sensor, n_raw: int, counts: np.ndarray) -> np.ndarray:
+    """(H, W) host :func:`depth_standard_error` of the transport so far; NaN while no pixel has a sample in
+    every replicate (the 1 and 2 spp passes: ~1.5 s saved)."""
+    if counts.max() < REPLICATES:
+        return np.full((sensor.camera.height, sensor.camera.width), np.nan)
+    return backend.to_host(depth_standard_error(transport, sensor, n_raw))
 
 
 _clock = time.perf_counter  # the render's clock (seconds); tests replace it to check the budgeted passes
@@ -391,20 +404,13 @@ def _checked_reference(reference_distance, sensor) -> np.ndarray | None:
 def _convergence_row(transport: Transport, sensor, n_raw: int, sigma: np.ndarray, counts: np.ndarray, reference,
                      elapsed: float, setup: FrameSetup) -> dict:
     """One row of the convergence log: pass, seconds, spp, RMS estimated depth error, rays (and RMS error)."""
-    seen = np.isfinite(transport.first_hit.distance_m) & np.isfinite(sigma)
     row = {"pass": transport.stats.passes, "seconds": elapsed, "spp": int(round(counts.mean())),
-           "est_depth_error_m": _rms(sigma[seen]), "rays": transport.stats.rays}
+           "est_depth_error_m": rms_error(sigma, transport.first_hit.distance_m), "rays": transport.stats.rays}
     if reference is not None:
         current = backend.to_host(_decode_clean(transport, sensor, n_raw, setup).distance)
         both = np.isfinite(current) & np.isfinite(reference)
         row["rms_error_m"] = _rms(current[both] - reference[both])
     return row
-
-
-def _target_reached(row: dict, target_error_m: float | None) -> bool:
-    """Whether the RMS estimated depth error of this pass is at most the target."""
-    return target_error_m is not None and row["est_depth_error_m"] is not None \
-        and row["est_depth_error_m"] <= target_error_m
 
 
 def _add_render_stats(frame: Frame, transport: Transport, sigma: np.ndarray, counts: np.ndarray, run: dict) -> None:

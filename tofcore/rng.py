@@ -75,7 +75,7 @@ def uniform(key: np.uint64, pixel: np.ndarray, sample: np.ndarray, dim: int) -> 
     Returns
     -------
     float64 array of the shape of ``pixel``, 53 random bits each; on the GPU (CuPy arrays) one fused
-    kernel (:func:`tofcore.gpu.fused.uniform`) computes the same bits.
+    kernel (:func:`tofcore.fused.uniform`) computes the same bits.
     """
     x = bits(key, pixel, sample, dim)
     x >>= _S11

@@ -1,4 +1,5 @@
-"""The time budget sizes the passes from their measured cost (tofcore/tracer/budget.py), tested on a fake clock.
+"""The pass schedule (tofcore/tracer/trace.py): its policy, the caller's reports, and the time budget that sizes
+the passes from their measured cost (tofcore/tracer/budget.py), tested on a fake clock.
 
 No timing is asserted: the clock is replaced by one that charges a fixed cost per pass and per sample,
 so the pass sizes the budget must choose follow by hand from t(n) = a + b·n.
@@ -13,10 +14,12 @@ import tofcore
 from tofcore import Camera, ConfigError, load_preset, render
 from tofcore.sensor.config import Noise, Scattering
 from tofcore.tracer.budget import TimeBudget, budgeted_pass, pass_cost_model
-from tofcore.tracer.trace import next_pass_size, pass_schedule, trace_progressive
+from tofcore.tracer.estimator import allocate_samples
+from tofcore.tracer.trace import PassPolicy, PassReport, next_pass_size, pass_schedule, trace_progressive
 from tofcore.scene.led import LED
 
 render_module = __import__("tofcore.render", fromlist=["_clock"])
+trace_module = __import__("tofcore.tracer.trace", fromlist=["_clock"])
 
 
 def test_cost_model_recovers_a_line_and_falls_back_to_the_mean_rate():
@@ -69,8 +72,8 @@ def _sensor():
 
 
 def _fake_clock(monkeypatch, setup_s: float, pass_s: float, sample_s: float):
-    """Replace the render's clock: set-up, then pass_s per pass and sample_s per mean sample per pixel,
-    counted from the progress rows (the clock is read after each row)."""
+    """Replace the render's clock and the pass schedule's: set-up, then pass_s per pass and sample_s per mean
+    sample per pixel, counted from the progress rows (the schedule reads the clock after each row)."""
     traced = {"spp": 0.0, "passes": 0}
 
     def progress(row):
@@ -80,6 +83,7 @@ def _fake_clock(monkeypatch, setup_s: float, pass_s: float, sample_s: float):
         return setup_s * (traced["passes"] > 0) + pass_s * traced["passes"] + sample_s * traced["spp"]
 
     monkeypatch.setattr(render_module, "_clock", clock)
+    monkeypatch.setattr(trace_module, "_clock", clock)
     return progress
 
 
@@ -132,3 +136,36 @@ def test_schedule_doubles_from_what_is_done():
     assert pass_schedule(40) == [1, 1, 2, 4, 8, 16, 8]
     assert pass_schedule(40, progressive=False) == [16, 16, 8]
     assert next_pass_size(24, 4096) == 16 and next_pass_size(3, 4096) == 3
+
+
+def test_the_policy_stops_at_the_reported_target_error_and_the_report_says_so():
+    scene, cam = tofcore.demo_scene("corner"), Camera.from_fov(8, 6, 60.0)
+    pose = tofcore.suggested_pose(scene)  # every pixel sees the corner: the target holds over all of them
+    passes = trace_progressive(scene, cam, [LED()], world_from_sensor=pose, max_depth=1,
+                               policy=PassPolicy(spp=64, target_error_m=0.01))
+    spp = []
+    for transport in passes:
+        spp.append(int(transport.sample_count[0]))
+        last = passes.report(PassReport(error_m=np.full((6, 8), 0.02 if len(spp) < 3 else 0.005)))
+        assert last == (len(spp) == 3)
+    assert spp == [1, 2, 4]
+    with pytest.raises(ConfigError, match="one pass report after each pass"):
+        passes.report(PassReport(error_m=np.zeros((6, 8))))
+    with pytest.raises(ConfigError, match="spp and progressive go into the policy when one is given"):
+        trace_progressive(scene, cam, [LED()], spp=4, policy=PassPolicy(spp=8))
+
+
+def test_the_adaptive_policy_allocates_by_the_reported_error():
+    """After the 16-sample pilot, the pass's 16 samples per pixel go where the caller reports the error
+    (estimator.allocate_samples of that error); without reports every pixel gets the same."""
+    scene, cam = tofcore.demo_scene("corner"), Camera.from_fov(8, 6, 60.0)
+    error = np.ones((6, 8))
+    error[0, 0] = 10.0
+    passes = trace_progressive(scene, cam, [LED()], max_depth=1, policy=PassPolicy(spp=32, adaptive=True))
+    for transport in passes:
+        passes.report(PassReport(error_m=error))
+    expected = 16 + allocate_samples(error, np.full(48, 16), 16)
+    np.testing.assert_array_equal(transport.sample_count, expected)
+    assert transport.sample_count[0] > 32 > transport.sample_count.min()
+    quiet = trace_progressive(scene, cam, [LED()], max_depth=1, policy=PassPolicy(spp=32, adaptive=True))
+    assert (list(quiet)[-1].sample_count == 32).all()

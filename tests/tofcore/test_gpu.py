@@ -368,7 +368,7 @@ POST_TRACE_BUDGET = {
     # decoding, ground truth per path length, the read-back. When set (2026-11-25): 744 device arrays and
     # 3 host syncs (main before: 2,057 arrays and 21 syncs, the noise drawn on the host; the unwrap loop
     # alone ~1,000 arrays). Now: error estimate ~400, decoding ~270 (camera and per-k ground truth), noise
-    # ~35 (the Poisson counts one fused kernel, tofcore.gpu.fused.poisson). The syncs: the error estimate
+    # ~35 (the Poisson counts one fused kernel, tofcore.fused.poisson). The syncs: the error estimate
     # and the sample counts per pass (the adaptive allocation runs on the host), the frame's one stacked
     # read-back. The budget leaves ~20 % for changes.
     "arrays": 900,
@@ -388,10 +388,17 @@ def test_post_trace_device_work_per_frame_is_bounded(monkeypatch):
     transport = tofcore.trace(scene, sensor.camera, sensor.leds, world_from_sensor=tofcore.suggested_pose(scene),
                               correlations=sensor.modulation.correlation_bank(), spp=4, max_depth=3, device="gpu")
 
-    def stored(*args, **kwargs):
-        yield transport
+    class Stored:  # the passes of tofcore.tracer.trace.trace_progressive: one, already traced
+        def __iter__(self):
+            yield transport
 
-    monkeypatch.setattr(render_module, "trace_progressive", stored)
+        def report(self, report):
+            return True
+
+        def close(self):
+            pass
+
+    monkeypatch.setattr(render_module, "trace_progressive", lambda *args, **kwargs: Stored())
     with fakecupy.counting() as counts:
         frame = render(scene, sensor, spp=4, max_depth=3, device="gpu")
     print(f"\npost-trace on the fake GPU: {counts['arrays']} device arrays ({counts['uploads']} uploads), "

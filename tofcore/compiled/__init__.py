@@ -7,6 +7,10 @@ fall back to the NumPy reference otherwise, saying why in ``stats["transport"]["
 the frame (frame.json) and in ``tofcore render --verbose``. The frame is the NumPy frame up to the last
 bits of transcendental functions (tests/tofcore/test_compiled.py states and tests the tolerance).
 
+That choice is made in one place, :func:`tofcore.compiled.tracer.choose`, whose
+:class:`~tofcore.compiled.tracer.CompiledTracer` then runs the passes; this module says what the machine
+offers (numba, its CUDA target, the cached kernels), for the tracer, the CLI and the Blender add-on.
+
 Environment: ``TOFCORE_TRACER=numpy`` forces the NumPy reference, ``compiled`` makes a render that
 cannot use the compiled tracer an error instead of a fall-back, ``auto`` (default) picks it when it
 can. The machine code is cached by numba beside the sources (``tofcore/compiled/__pycache__/numba-<hash>``;
@@ -19,32 +23,10 @@ stale code (:mod:`tofcore.compiled._target`): the first render of a fresh instal
 from __future__ import annotations
 
 import os
-import time
 from pathlib import Path
-from dataclasses import dataclass
-
-import numpy as np
-
-from ..errors import ConfigError
-from ..tracer.transport import TraceStats
-from . import setup
 
 TRACER_ENV = "TOFCORE_TRACER"
 TRACERS = ("auto", "numpy", "compiled")
-
-COMPILED_CHUNK_PATHS = 1 << 18
-"""Paths per call of the compiled kernel: memory does not grow with it (no per-path arrays); it only
-sets how often a render polls ``cancel`` (~0.1 s of tracing on two cores)."""
-
-
-@dataclass(frozen=True)
-class Choice:
-    """Which tracer a render uses, and why."""
-
-    tracer: str                 # "compiled" or "numpy"
-    reason: str                 # why the NumPy tracer runs ("" for the compiled one)
-    packed: setup.Packed | None  # the compiled tracer's arrays, None for NumPy
-    device_scene: object = None  # those arrays on the GPU (tofcore.compiled.cuda.DeviceScene) for a GPU render
 
 
 def numba_version() -> str | None:
@@ -54,36 +36,6 @@ def numba_version() -> str | None:
     except Exception:  # ImportError, or a numba that does not work with this NumPy
         return None
     return numba.__version__
-
-
-def choose(ctx) -> Choice:
-    """The tracer for a trace set-up (:class:`tofcore.tracer.setup.TraceSetup`): compiled wherever it can be, else NumPy."""
-    wanted = os.environ.get(TRACER_ENV, "auto").strip().lower() or "auto"
-    if wanted not in TRACERS:
-        raise ConfigError(f"{TRACER_ENV} must be one of {list(TRACERS)}, got {wanted!r}")
-    if wanted == "numpy":
-        return Choice("numpy", f"{TRACER_ENV}=numpy", None)
-    why = setup.unsupported(ctx)
-    if not why and numba_version() is None:
-        why = 'numba is not installed (pip install "tofcore[compiled]")'
-    if not why and ctx.device.is_gpu:
-        why = cuda_unavailable()
-    if why:
-        if wanted == "compiled":
-            raise ConfigError(f"{TRACER_ENV}=compiled, but the compiled tracer cannot render this: {why}")
-        return Choice("numpy", why, None)
-    packed = setup.pack(ctx)
-    if not ctx.device.is_gpu:
-        return Choice("compiled", "", packed)
-    from . import cuda
-    return Choice("compiled", "", packed, cuda.upload(packed, ctx.scene.bvh))
-
-
-def release(choice: Choice) -> None:
-    """The trace of ``choice`` has ended: its GPU arrays may serve the next trace (tofcore.compiled.cuda.release)."""
-    if choice.device_scene is not None:
-        from . import cuda
-        cuda.release(choice.device_scene)
 
 
 def cuda_unavailable() -> str:
@@ -96,59 +48,11 @@ def cuda_unavailable() -> str:
     return "" if available else "numba finds no CUDA GPU (install numba-cuda beside CuPy)"
 
 
-def parallel_label(choice: Choice, workers: int) -> str:
-    """How the compiled tracer runs, for TraceStats.parallel."""
-    if choice.device_scene is not None:
-        return "CUDA (numba), one path per thread"
-    return f"numba threads: {thread_count(workers)}"
-
-
-def pass_pieces(choice: Choice, counts: np.ndarray, chunk_size: int, chunks) -> list[tuple[int, int]]:
-    """The pixel ranges a pass is traced in: one launch sequence for the whole pass on the GPU, else
-    ranges of ``max(chunk_size, COMPILED_CHUNK_PATHS)`` paths (``chunks``: tofcore.tracer.parallel.chunks)."""
-    if choice.device_scene is not None:
-        return [(0, int(counts.size))]
-    return chunks(counts, max(chunk_size, COMPILED_CHUNK_PATHS))
-
-
 def thread_count(workers: int) -> int:
     """numba threads a render with ``workers`` uses: at most numba's pool (``NUMBA_NUM_THREADS``)."""
     import numba
 
     return max(1, min(int(workers), numba.config.NUMBA_NUM_THREADS))
-
-
-def trace_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, chunks, threads: int, cancel):
-    """Trace one pass's pixel ranges with the compiled kernel on ``threads`` threads; yields TraceStats per
-    range, or None where ``cancel`` asked to stop."""
-    if choice.device_scene is not None:
-        yield _gpu_pass(choice, out, done, counts, cancel)
-        return
-    import numba
-
-    from . import cpu
-
-    numba.set_num_threads(thread_count(threads))
-    for p0, p1 in chunks:
-        if cancel is not None and cancel():
-            yield None
-            return
-        start = time.perf_counter()
-        n = cpu.trace_chunk(choice.packed, out, p0, p1, done, counts)
-        yield TraceStats(camera_rays=int(n[0]), bounce_rays=int(n[1]), shadow_rays=int(n[2]), light_rays=int(n[3]),
-                         skipped_shadow_rays=int(n[4]), chunk_seconds=time.perf_counter() - start)
-
-
-def _gpu_pass(choice: Choice, out, done: np.ndarray, counts: np.ndarray, cancel) -> TraceStats | None:
-    """The whole pass on the GPU (tofcore.compiled.cuda.trace_pass), or None where ``cancel`` asked to stop."""
-    from . import cuda
-
-    if cancel is not None and cancel():
-        return None
-    start = time.perf_counter()
-    n = cuda.trace_pass(choice.device_scene, out, done, counts)
-    return TraceStats(camera_rays=int(n[0]), bounce_rays=int(n[1]), shadow_rays=int(n[2]), light_rays=int(n[3]),
-                      skipped_shadow_rays=int(n[4]), chunk_seconds=time.perf_counter() - start)
 
 
 def cpu_kernels_cached() -> bool | None:

@@ -111,7 +111,7 @@ def _normal(key: np.uint64, index, zeros, dim: int):
 def standard_normal(shape, stream: NoiseStream, xp=np):
     """(shape) standard normals of the next draw of ``stream``, on the array module ``xp``.
 
-    On a device one fused kernel per uniform (:func:`tofcore.gpu.fused.uniform`) over all elements; on the
+    On a device one fused kernel per uniform (:func:`tofcore.fused.uniform`) over all elements; on the
     host block by block (:data:`BLOCK`), the same numbers.
     """
     shape = tuple(shape)
@@ -174,7 +174,7 @@ def poisson(mean, key: np.uint64, dim: int, *, check: bool = True):
     The numbers of element i are uniforms of (key, i, dimension): the draw's first dimension for the
     inversion, the next two per PTRS round, the two after the last round for the Gaussian. So NumPy
     draws, block by block (:data:`BLOCK`), round by round only the elements still open, and the device twin
-    (:func:`tofcore.gpu.fused.poisson`) runs the same loop per element in one kernel: both give the
+    (:func:`tofcore.fused.poisson`) runs the same loop per element in one kernel: both give the
     same counts.
     """
     lam = asarray(mean, dtype=np.float64)

@@ -8,7 +8,8 @@ L = |LED → x_k| + … + |x_1 → lens| (float64, metres) and bounce count k (1
 
 The modules, in the order of the data (docs/architecture.md):
 
-* :mod:`~tofcore.tracer.trace` — :func:`trace` / :func:`trace_progressive`: settings → passes of samples;
+* :mod:`~tofcore.tracer.trace` — :func:`trace` / :func:`trace_progressive`: settings → passes of samples, run
+  through one :class:`~tofcore.tracer.trace.Tracer` interface and decided there alone (a ``PassPolicy``);
 * :mod:`~tofcore.tracer.setup` — the settings checked into one typed :class:`TraceSetup`;
 * :mod:`~tofcore.tracer.sampler` — the one table of sample dimensions (:mod:`~tofcore.tracer.qmc`,
   :mod:`~tofcore.rng` below it);
@@ -16,7 +17,8 @@ The modules, in the order of the data (docs/architecture.md):
 * :mod:`~tofcore.tracer.stages` — camera rays, intersect, shade, next event, light vertex, scatter
   (:mod:`~tofcore.tracer.surface` and :mod:`~tofcore.tracer.light_paths` below them);
 * :mod:`~tofcore.tracer.integrator` — the path loop of one chunk; :mod:`~tofcore.tracer.accumulate` — its sums;
-* :mod:`~tofcore.tracer.parallel` — chunks, worker processes (:mod:`~tofcore.tracer.workers`), GPU chunk sizes;
+* :mod:`~tofcore.tracer.parallel` — the NumPy ``ReferenceTracer``: chunks, worker processes
+  (:mod:`~tofcore.tracer.workers`), GPU chunk sizes (the compiled tracer, :mod:`tofcore.compiled.tracer`, stands above);
 * :mod:`~tofcore.tracer.transport` — the result; :mod:`~tofcore.tracer.estimator` — its error estimate and
   the adaptive allocation of samples.
 

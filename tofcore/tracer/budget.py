@@ -1,8 +1,10 @@
 r"""A time budget that is used: the next pass sized from the measured cost of the passes so far.
 
-A render with ``time_budget_s`` traces progressive passes (:func:`tofcore.tracer.trace.pass_schedule`:
-1, 1, 2, 4, 8, 16, 16, … samples per pixel). Before each pass, :class:`TimeBudget` models the cost of
-one pass cycle (tracing, the error estimate, the adaptive allocation, an intermediate frame) as
+A trace whose :class:`~tofcore.tracer.trace.PassPolicy` has a ``time_budget_s`` (a render with one) runs
+progressive passes (:func:`tofcore.tracer.trace.pass_schedule`: 1, 1, 2, 4, 8, 16, 16, … samples per pixel),
+and its :class:`~tofcore.tracer.trace.PassSchedule` asks this module for each pass's size. Before each
+pass, :class:`TimeBudget` models the cost of one pass cycle (tracing, the error estimate, the adaptive
+allocation, an intermediate frame) as
 
 .. math:: t(n) = a + b\,n,
 

@@ -64,6 +64,14 @@ def variance_of_mean(means: np.ndarray, counts: np.ndarray) -> np.ndarray:
     return np.where((counts.min(axis=0) >= 1)[None], var, np.nan)
 
 
+def rms_error(error_m: np.ndarray, distance_m: np.ndarray) -> float | None:
+    """RMS of a per-pixel error over the pixels that see a surface (finite first-hit ``distance_m``) and have an
+    error (finite); None where none has. What a target error is held against (``tofcore.render``'s
+    convergence log, :class:`tofcore.tracer.trace.PassSchedule`)."""
+    values = error_m[np.isfinite(distance_m) & np.isfinite(error_m)]
+    return float(np.sqrt(np.mean(np.square(values)))) if values.size else None
+
+
 # ------------------------------------------------------------------ MIS
 def bsdf_strategy_weight(p_bsdf_area, prev_delta, led, q_led: float, cos_axis, cos_geo, dist):
     """Balance-heuristic weight of strategy A for next-event estimates at y to one LED.

@@ -1,20 +1,20 @@
-"""Parallel execution of a trace: chunks of pixels, worker processes over shared memory, GPU chunk sizes.
+"""Parallel execution of a trace: the NumPy reference tracer's chunks, worker processes, GPU chunk sizes.
 
-A pass's samples are cut into chunks of whole pixels (:func:`chunks`), about ``chunk_size`` paths each
-and at least 4 per worker; each chunk is traced by :func:`~tofcore.tracer.integrator.trace_chunk` on a
-worker process (:mod:`tofcore.tracer.workers`: the set-up and the accumulators live once in shared
-memory), on a thread where no process can start, or in this process. Chunks own disjoint pixels and sum
-their samples in order, so the frame is the same bit for bit whatever the split or the worker count.
-On the GPU one chunk is as large as the free device memory allows (:func:`gpu_chunk_paths`).
+:class:`ReferenceTracer` runs the passes that :mod:`tofcore.tracer.trace` decides. A pass's samples are cut
+into chunks of whole pixels (:func:`chunks`), about ``chunk_size`` paths each and at least 4 per worker;
+each chunk is traced by :func:`~tofcore.tracer.integrator.trace_chunk` on a worker process
+(:mod:`tofcore.tracer.workers`: the set-up and the accumulators live once in shared memory), on a thread
+where no process can start, or in this process. Chunks own disjoint pixels and sum their samples in order,
+so the frame is the same bit for bit whatever the split or the worker count. On the GPU one chunk is as
+large as the free device memory allows (:func:`gpu_chunk_paths`).
 """
 
 from __future__ import annotations
 
 import functools
-import importlib
 import pickle
 import uuid
-from collections.abc import Callable
+from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -104,52 +104,87 @@ def _trace_shared_chunk(shared_objects, p0: int, p1: int) -> TraceStats:
     return trace_chunk(setup, out, p0, p1, first=first, counts=counts)
 
 
-COMPILED_TRACER = "tofcore.compiled"
-"""The compiled per-path tracer. It stands above the tracer (it reuses the scene's, the tracer's and
-the sensor's functions), so the tracer imports it by name, as :func:`tofcore.backend.twin` imports device
-kernels; it decides itself whether it can run a trace (:func:`tofcore.compiled.choose`)."""
+@dataclass(frozen=True)
+class Execution:
+    """How the chunks of a trace run, checked (``trace_progressive``'s ``chunk_size``, ``workers``, ``cancel``)."""
+
+    chunk_size: int                      # paths per chunk at most
+    workers: int                         # processes (NumPy) or threads (compiled) tracing chunks at once
+    cancel: Callable[[], bool] | None    # polled before every chunk
 
 
-@dataclass
-class PassRunner:
-    """Runs the chunks of each pass: on the worker processes (``shared``), else on ``threads``, else here."""
+class ReferenceTracer:
+    """The NumPy reference tracer, the one that defines the frame: a :class:`~tofcore.tracer.trace.Tracer`.
 
-    setup: TraceSetup
-    transport: Transport
-    shared: SharedTrace | None
-    threads: ThreadPoolExecutor
-    workers: int
-    chunk_size: int
-    cancel: Callable[[], bool] | None
-    compiled: object = None     # the compiled tracer's choice (tofcore.compiled.choose) when it runs the trace
+    Each pass is cut into chunks of whole pixels (:func:`chunks`), each traced by
+    :func:`~tofcore.tracer.integrator.trace_chunk`: on the worker processes over shared memory, on threads
+    where no process can start, or in this process when a pass has one chunk. As a class it is also the
+    tracer choice that always picks the reference: ``trace_progressive(tracer=ReferenceTracer)``.
+    """
+
+    name = "numpy"
+
+    def __init__(self, setup: TraceSetup, execution: Execution, reason: str = ""):
+        self.setup = setup
+        self.execution = execution
+        self.reason = reason                      # why the reference runs where another tracer was asked for
+        self._why_not = "one"                     # why the chunks do not run on worker processes ("" once they may)
+        self._shared: SharedTrace | None = None
+        self._threads: ThreadPoolExecutor | None = None
+        self._transport: Transport | None = None
+
+    def start(self, stats: TraceStats) -> None:
+        """Before the first hits: start the worker processes, which boot and import tofcore meanwhile."""
+        if self.execution.workers > 1 and not self.setup.device.is_gpu:
+            self._why_not = start_workers(self.execution.workers)
+
+    def attach(self, transport: Transport) -> str:
+        """The frame's sums exist: put them into shared memory for the workers; returns how chunks run."""
+        self._transport = transport
+        self._threads = ThreadPoolExecutor(max_workers=self.execution.workers)
+        with workers.sigint_held():  # a Ctrl-C meanwhile is raised once `_shared` holds what to release
+            if not self._why_not:
+                self._shared, self._why_not = share(self.setup, transport)
+        if self._shared is not None:
+            return "processes"
+        return "one" if self._why_not == "one" else f"threads: {self._why_not}"
 
     def run(self, done: np.ndarray, counts: np.ndarray) -> None:
         """Trace samples [done[p], done[p] + counts[p]) of every pixel; raises Cancelled when asked to stop."""
-        xp = self.setup.xp
-        pieces = chunks(counts, pass_chunk_paths(int(counts.sum()), self.chunk_size, self.workers))
-        if self.compiled is not None:
-            compiled = importlib.import_module(COMPILED_TRACER)
-            pieces = compiled.pass_pieces(self.compiled, counts, self.chunk_size, chunks)
-            results = compiled.trace_pass(self.compiled, self.transport, done, counts, pieces, self.workers,
-                                          self.cancel)
-        elif self.shared is not None and len(pieces) > 1:
-            results = run_in_processes(self.shared, self.workers, done, counts, pieces, self.cancel)
+        xp, n_workers, cancel = self.setup.xp, self.execution.workers, self.execution.cancel
+        pieces = chunks(counts, pass_chunk_paths(int(counts.sum()), self.execution.chunk_size, n_workers))
+        if self._shared is not None and len(pieces) > 1:
+            results = run_in_processes(self._shared, n_workers, done, counts, pieces, cancel)
         else:
-            run = functools.partial(trace_chunk, self.setup, self.transport, first=xp.asarray(done),
+            run = functools.partial(trace_chunk, self.setup, self._transport, first=xp.asarray(done),
                                     counts=xp.asarray(counts))
 
             def job(chunk: tuple[int, int]) -> TraceStats | None:
-                return None if self.cancel is not None and self.cancel() else run(*chunk)
+                return None if cancel is not None and cancel() else run(*chunk)
 
-            results = self.threads.map(job, pieces) if self.shared is None else map(job, pieces)
-        finished = 0
-        for chunk_stats in results:
-            if chunk_stats is None:
-                raise Cancelled("trace: cancelled")
-            self.transport.stats.add(chunk_stats)
-            finished += 1
-        if finished < len(pieces):
+            results = self._threads.map(job, pieces) if self._shared is None else map(job, pieces)
+        collect(results, len(pieces), self._transport.stats)
+
+    def close(self) -> None:
+        """The trace has ended: stop the threads, give the transport private copies of the shared sums."""
+        if self._threads is not None:
+            self._threads.shutdown()
+        if self._shared is not None:
+            shared, self._shared = self._shared, None
+            unshare(shared, self._transport)
+
+
+def collect(results: Iterable[TraceStats | None], n_chunks: int, stats: TraceStats) -> None:
+    """Add each chunk's statistics to the trace's; raises Cancelled where a chunk was cancelled (None) or
+    fewer than ``n_chunks`` came back."""
+    finished = 0
+    for chunk_stats in results:
+        if chunk_stats is None:
             raise Cancelled("trace: cancelled")
+        stats.add(chunk_stats)
+        finished += 1
+    if finished < n_chunks:
+        raise Cancelled("trace: cancelled")
 
 
 MIN_CHUNK_PATHS = 1 << 13

@@ -50,12 +50,12 @@ class CorrelationList:
 
 @dataclass(frozen=True)
 class TraceSettings:
-    """The keyword arguments of :func:`~tofcore.tracer.trace.trace_progressive`, documented there."""
+    """The keyword arguments of :func:`~tofcore.tracer.trace.trace_progressive` that set a trace up, documented
+    there (the passes' policy and the tracer choice go to :mod:`tofcore.tracer.trace` itself)."""
 
     world_from_sensor: np.ndarray | None = None
     correlations: Sequence[Correlation] | Callable = ()
     ambient: Ambient | None = None
-    spp: int = 16
     max_depth: int = 5
     seed: int = 0
     chunk_size: int | None = None
@@ -64,11 +64,8 @@ class TraceSettings:
     transient_max_m: float | None = None
     cancel: Callable[[], bool] | None = None
     device: str | backend.Device = "cpu"
-    progressive: bool = True
     sampler: str = "sobol"
     light_paths: bool = True
-    allocate: Callable | None = None
-    pass_size: Callable | None = None
 
 
 @dataclass(frozen=True)

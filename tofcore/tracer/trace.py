@@ -1,17 +1,25 @@
 """Tracing a frame: :func:`trace` and :func:`trace_progressive`, passes of samples over the whole frame.
 
-A trace checks its settings into a :class:`~tofcore.tracer.setup.TraceSetup`, traces the noise-free first
-hits (:func:`~tofcore.tracer.stages.first_hit`), then runs passes of samples (:func:`pass_schedule`), each
-cut into chunks that :mod:`tofcore.tracer.parallel` runs, and yields the accumulated
-:class:`~tofcore.tracer.transport.Transport` after every pass.
+A trace checks its settings into a :class:`~tofcore.tracer.setup.TraceSetup`, has its :class:`Tracer` chosen
+(the NumPy :class:`~tofcore.tracer.parallel.ReferenceTracer` unless the caller hands in another choice, as
+:func:`tofcore.trace` and :func:`tofcore.render` hand in :func:`tofcore.compiled.tracer.choose`), traces the
+noise-free first hits (:func:`~tofcore.tracer.stages.first_hit`), then runs passes of samples and yields the
+accumulated :class:`~tofcore.tracer.transport.Transport` after every pass.
+
+This module alone decides the passes (:class:`PassSchedule`): how many samples each pass gets
+(:func:`pass_schedule`, cut to a time budget by :class:`~tofcore.tracer.budget.TimeBudget`), which pixels get
+them (:func:`~tofcore.tracer.estimator.allocate_samples`) and when the trace ends (``spp``, the budget, a
+target error), from the caller's :class:`PassPolicy` and what the caller reports after each pass
+(:class:`PassReport`: the error of each pixel of its output, which the tracer cannot compute, since it never
+sees the sensor model).
 """
 
 from __future__ import annotations
 
-import importlib
 import time
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
@@ -22,20 +30,98 @@ from ..scene.ambient import Ambient
 from ..scene.camera import Camera
 from ..scene.led import LED
 from ..scene.scene import Scene
-from . import parallel, qmc, workers
+from . import parallel, qmc
+from .budget import TimeBudget
+from .estimator import allocate_samples, rms_error
+from .parallel import Execution, ReferenceTracer
 from .setup import Correlation, TraceSettings, TraceSetup, make_setup
 from .stages import first_hit
 from .transport import FirstHit, TraceStats, Transport
+
+
+class Tracer(Protocol):
+    """What runs the passes of one trace; the pass loop (:func:`trace_progressive`) calls its methods in order.
+
+    Two implement it: :class:`~tofcore.tracer.parallel.ReferenceTracer` (NumPy, the frame's definition) and
+    :class:`tofcore.compiled.tracer.CompiledTracer`. A *tracer choice* (:data:`TracerChoice`) makes one for a
+    trace's checked set-up and :class:`~tofcore.tracer.parallel.Execution`.
+    """
+
+    name: str    # "numpy" or "compiled": TraceStats.tracer
+    reason: str  # why the NumPy reference runs where the choice would rather not ("" otherwise)
+
+    def start(self, stats: TraceStats) -> None:
+        """Before the first hits: start what runs meanwhile (worker processes, a kernel compile)."""
+
+    def attach(self, transport: Transport) -> str:
+        """The frame's sums exist, the passes add to them; returns how the chunks run (TraceStats.parallel)."""
+
+    def run(self, done: np.ndarray, counts: np.ndarray) -> None:
+        """One pass: samples [done[p], done[p] + counts[p]) of every pixel p; raises Cancelled when asked to."""
+
+    def close(self) -> None:
+        """The trace has ended, however: release what :meth:`start` and :meth:`attach` took."""
+
+
+TracerChoice = Callable[[TraceSetup, Execution], Tracer]
+"""Picks the tracer for a trace: (set-up, execution) → :class:`Tracer`, called once per trace."""
+
+
+@dataclass(frozen=True)
+class PassPolicy:
+    """How a trace spends its samples: how many, in which passes, on which pixels, and when it may stop early.
+
+    Parameters
+    ----------
+    spp : most samples per pixel (the mean over the pixels where ``adaptive``).
+    progressive : passes of 1, 1, 2, 4, … samples (True) or of 16 (False), :func:`pass_schedule`. A time
+        budget or a target error always gets progressive passes: they act on measurements of early passes.
+    time_budget_s : seconds from the trace's start to the caller's final result: each pass is sized from the
+        measured cost of the passes before it so that the budget is used (:mod:`tofcore.tracer.budget`),
+        up to ``spp``. Not reproducible across machines.
+    target_error_m : stop once the RMS of the reported error (:class:`PassReport`) over the pixels that see a
+        surface is at most this.
+    adaptive : after a uniform pilot of 16 samples per pixel, give each pass's samples to the pixels whose
+        reported error is largest (:func:`~tofcore.tracer.estimator.allocate_samples`).
+    """
+
+    spp: int = 16
+    progressive: bool = True
+    time_budget_s: float | None = None
+    target_error_m: float | None = None
+    adaptive: bool = False
+
+    def __post_init__(self):
+        if not isinstance(self.spp, (int, np.integer)) or self.spp < 1:
+            raise ConfigError(f"trace: spp must be an integer >= 1, got {self.spp!r}")
+        for name in ("progressive", "adaptive"):
+            if not isinstance(getattr(self, name), (bool, np.bool_)):
+                raise ConfigError(f"trace: {name} must be True or False, got {getattr(self, name)!r}")
+        for name in ("time_budget_s", "target_error_m"):
+            value = getattr(self, name)
+            if value is not None and (not isinstance(value, (int, float)) or not np.isfinite(value) or value <= 0):
+                raise ConfigError(f"trace: {name} must be a number > 0, got {value!r}")
+
+
+@dataclass(frozen=True)
+class PassReport:
+    """What the caller measured after a pass (:meth:`Passes.report`): the error a target and the adaptive
+    allocation act on, and what the caller's own work per pass costs the time budget."""
+
+    error_m: np.ndarray            # (H, W) standard error of each pixel's output (m), NaN where not known yet
+    estimate_s: float = 0.0        # seconds that estimate took (the final frame needs a few of them)
+    frame_s: float | None = None   # seconds the caller's latest frame took to build; None before the first
 
 
 def trace(scene: Scene, camera: Camera, leds: Sequence[LED], **kwargs) -> Transport:
     """Trace a whole frame; see :func:`trace_progressive` for the parameters.
 
     Only the finished frame is wanted, so the passes are of 16 samples (``progressive=False``, fewer
-    waits for the slowest chunk) unless ``progressive`` is given.
+    waits for the slowest chunk) unless ``progressive`` or a ``policy`` is given.
     """
     transport = None
-    kwargs.setdefault("progressive", False)
+    if kwargs.get("policy") is None:
+        kwargs.setdefault("progressive", False)
     passes = trace_progressive(scene, camera, leds, **kwargs)
     try:
         for transport in passes:
@@ -49,14 +135,15 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       world_from_sensor: np.ndarray | None = None,
                       correlations: Sequence[Correlation] | Callable = (),
                       ambient: Ambient | None = None,
-                      spp: int = 16, max_depth: int = 5, seed: int = 0,
+                      spp: int | None = None, max_depth: int = 5, seed: int = 0,
                       chunk_size: int | None = None, workers: int | None = None,
                       transient_bin_m: float | None = None, transient_max_m: float | None = None,
                       cancel: Callable[[], bool] | None = None,
-                      device: str | backend.Device = "cpu", progressive: bool = True,
-                      sampler: str = "sobol", light_paths: bool = True,
+                      device: str | backend.Device = "cpu", progressive: bool | None = None,
+                      sampler: str = "sobol", light_paths: bool = True, policy: PassPolicy | None = None,
                       allocate: Callable[[Transport, int], np.ndarray | None] | None = None,
-                      pass_size: Callable[[Transport, int], int] | None = None) -> Iterator[Transport]:
+                      pass_size: Callable[[Transport, int], int] | None = None,
+                      tracer: TracerChoice = ReferenceTracer) -> Passes:
     """Trace in progressive passes, yielding the accumulated :class:`Transport` after each.
 
     Parameters
@@ -66,7 +153,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     correlations : g_j(τ), τ in seconds, one per sensor bucket/phase image; or a bank τ → (J, N) of them
         all with ``len`` J (:meth:`tofcore.sensor.modulation.Modulation.correlation_bank`, faster).
     ambient : background radiance; ``None`` or black skips all ambient work.
-    spp : samples per pixel in total; max_depth : surface vertices per path (1 = direct only).
+    spp : samples per pixel in total (default 16); max_depth : surface vertices per path (1 = direct only).
     seed : non-negative int; the same seed gives the same frame for any ``chunk_size``.
     chunk_size : paths in flight per chunk; bounds memory. Default: 65,536 on the CPU (temporaries
         stay in cache); on the GPU as many as :func:`~.parallel.gpu_chunk_paths` allows in free device memory.
@@ -78,93 +165,193 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         Chunks own disjoint pixels, so the result does not depend on it.
     transient_bin_m, transient_max_m : optional histogram of w over path length (bin width, range), metres.
     cancel : polled before every chunk; when it returns True, :class:`~tofcore.errors.Cancelled` is raised.
-    progressive : passes of 1, 1, 2, 4, … samples (True) or of 16 (False); see :func:`pass_schedule`.
+    progressive : passes of 1, 1, 2, 4, … samples (True, default) or of 16 (False); see :func:`pass_schedule`.
     sampler : ``"sobol"`` (randomized QMC, :mod:`tofcore.tracer.qmc`) or ``"independent"`` (plain uniforms, for
         comparisons). Both are unbiased and keep the R replicates of the error estimate.
     light_paths : connect every camera vertex to one light vertex per sample (an LED's first hit), both
         strategies weighted by multiple importance sampling (:mod:`tofcore.tracer.light_paths`). Unbiased
         either way; it removes the fireflies of surfaces close to an LED. Needs ``max_depth`` ≥ 2.
-    allocate : adaptive sampling: called before every pass with the accumulated transport and the pass's
-        mean samples per pixel n; returns (P,) int samples per pixel for this pass (summing to about n·P,
-        e.g. :func:`tofcore.tracer.estimator.allocate_samples`) or None for n everywhere. Each pixel's samples
-        keep their indices 0, 1, 2, … whatever the allocation, so a pixel's estimate is the same
-        function of its own samples as without it. ``spp`` then counts the mean over the pixels.
-    pass_size : called before every pass with the accumulated transport and the scheduled pass's samples
-        per pixel n (:func:`next_pass_size`); returns the pass's samples per pixel, 0..n (0 ends the trace).
-        A time budget sizes its last pass with it (:mod:`tofcore.tracer.budget`); the samples stay the same
-        whatever the sizes, only the passes they fall into change.
+    policy : the whole :class:`PassPolicy` (time budget, target error, adaptive allocation) instead of
+        ``spp`` and ``progressive``; its budget, target and allocation act on what :meth:`Passes.report`
+        is told after each pass (``tofcore.render`` tells it the depth error of its frame).
+    allocate : the caller's own allocation, instead of the policy's: called before every pass with the
+        accumulated transport and the pass's mean samples per pixel n; returns (P,) int samples per pixel for
+        this pass (summing to about n·P, e.g. :func:`tofcore.tracer.estimator.allocate_samples`) or None for n
+        everywhere. Each pixel's samples keep their indices 0, 1, 2, … whatever the allocation, so a pixel's
+        estimate is the same function of its own samples as without it. ``spp`` then counts the mean.
+    pass_size : the caller's own cut of each pass: called before every pass with the accumulated transport and
+        the pass's scheduled samples per pixel n; returns the pass's samples per pixel, 0..n (0 ends the
+        trace). The samples stay the same whatever the sizes, only the passes they fall into change.
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy) or ``"auto", or a resolved :class:`tofcore.backend.Device`.
         On the GPU the accumulators of the yielded :class:`Transport` are CuPy arrays (``first_hit`` is
         always NumPy); the same seed gives the same sums within float rounding (``tests/tofcore/test_gpu.py``).
+    tracer : picks the :class:`Tracer` that runs the passes (:data:`TracerChoice`): the NumPy reference here;
+        :func:`tofcore.trace_progressive` passes :func:`tofcore.compiled.tracer.choose`, the compiled tracer
+        wherever it can run the trace.
 
-    The yielded object is the live accumulator: copy what you keep between passes.
+    Returns :class:`Passes`: iterate it; the yielded object is the live accumulator, so copy what you keep
+    between passes.
     """
     settings = TraceSettings(
-        world_from_sensor=world_from_sensor, correlations=correlations, ambient=ambient, spp=spp,
-        max_depth=max_depth, seed=seed, chunk_size=chunk_size, workers=workers, transient_bin_m=transient_bin_m,
-        transient_max_m=transient_max_m, cancel=cancel, device=device, progressive=progressive, sampler=sampler,
-        light_paths=light_paths, allocate=allocate, pass_size=pass_size)
-    return _passes(scene, camera, leds, settings)
+        world_from_sensor=world_from_sensor, correlations=correlations, ambient=ambient, max_depth=max_depth,
+        seed=seed, chunk_size=chunk_size, workers=workers, transient_bin_m=transient_bin_m,
+        transient_max_m=transient_max_m, cancel=cancel, device=device, sampler=sampler, light_paths=light_paths)
+    schedule = PassSchedule(_policy(policy, spp, progressive), allocate=allocate, pass_size=pass_size)
+    return Passes(_passes(scene, camera, leds, settings, schedule, tracer), schedule)
 
 
-def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSettings) -> Iterator[Transport]:
-    """:func:`trace_progressive` on its checked settings."""
+def _policy(policy: PassPolicy | None, spp: int | None, progressive: bool | None) -> PassPolicy:
+    """The policy given, or the one that ``spp`` and ``progressive`` stand for."""
+    if policy is None:
+        return PassPolicy(spp=16 if spp is None else spp, progressive=True if progressive is None else progressive)
+    if not isinstance(policy, PassPolicy):
+        raise ConfigError(f"trace: policy must be a tofcore.tracer.trace.PassPolicy, got {type(policy).__name__}")
+    if spp is not None or progressive is not None:
+        raise ConfigError(f"trace: spp and progressive go into the policy when one is given, got spp={spp!r} "
+                          f"and progressive={progressive!r} beside it")
+    return policy
+
+
+class Passes(Iterator[Transport]):
+    """The passes of one trace, each run when the next is asked for (:func:`trace_progressive`).
+
+    Iterate for the accumulated :class:`Transport` after each pass. After a pass the caller may
+    :meth:`report` what it measured: the schedule then decides the next pass at once and says whether one
+    follows. :meth:`close` ends the trace early and releases its workers' shared memory and device arrays.
+    """
+
+    def __init__(self, run: Iterator[Transport], schedule: PassSchedule):
+        self._run = run
+        self._schedule = schedule
+        self._latest: Transport | None = None
+
+    def __next__(self) -> Transport:
+        self._latest = next(self._run)
+        return self._latest
+
+    def report(self, report: PassReport) -> bool:
+        """Hand the schedule the caller's measurements of the pass just traced; True when no pass follows
+        (``spp`` reached, the time budget spent or the target error met)."""
+        if self._latest is None:
+            raise ConfigError("trace: a pass report comes after a pass")
+        return self._schedule.report(report, self._latest.first_hit.distance_m)
+
+    def close(self) -> None:
+        self._run.close()
+
+
+def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSettings, schedule: PassSchedule,
+            choose: TracerChoice) -> Iterator[Transport]:
+    """:func:`trace_progressive` on its checked settings: the passes that ``schedule`` asks for, on the tracer
+    that ``choose`` picks."""
+    schedule.start()
     dev = backend.select_device(settings.device)
     setup = make_setup(scene, camera, leds, settings, dev)
-    chunk_size, n_workers = _parallel_settings(settings, setup)
+    execution = _execution(settings, setup)
     start = time.perf_counter()
-    tracer = importlib.import_module(parallel.COMPILED_TRACER).choose(setup)  # compiled where numba allows
-    stats = TraceStats(tracer=tracer.tracer, tracer_reason=tracer.reason)
-    if tracer.packed is not None and not dev.is_gpu and settings.cancel is not None:
-        # numba's compile cannot be cancelled, a child process compiling for us can
-        stats.compile = importlib.import_module(parallel.COMPILED_TRACER + ".child_compile").compile_aside(
-            settings.cancel)
-    # Start the worker processes first: they boot and import tofcore while this one traces the first hits.
-    # The compiled tracer runs on numba's threads instead (they release the GIL).
-    spawn = n_workers > 1 and not dev.is_gpu and tracer.packed is None
-    why_not = parallel.start_workers(n_workers) if spawn else "one"
-    transport = _empty_transport(setup, first_hit(setup, stats), stats)
-    shared = None
-    try:  # from the shared memory on, the finally releases it, whatever stops the trace (Ctrl-C included)
-        with workers.sigint_held():  # a Ctrl-C meanwhile is raised once `shared` holds what to release
-            shared, why_not = (None, why_not) if why_not else parallel.share(setup, transport)
-        stats.parallel = "processes" if shared is not None else "one" if why_not == "one" else f"threads: {why_not}"
-        if tracer.packed is not None:
-            stats.parallel = importlib.import_module(parallel.COMPILED_TRACER).parallel_label(tracer, n_workers)
+    tracer = choose(setup, execution)
+    stats = TraceStats(tracer=tracer.name, tracer_reason=tracer.reason)
+    try:  # from here on, close() releases what the tracer took, whatever stops the trace (Ctrl-C included)
+        tracer.start(stats)  # worker processes boot while this one traces the first hits
+        transport = _empty_transport(setup, first_hit(setup, stats), stats)
+        stats.parallel = tracer.attach(transport)
         stats.setup_seconds = time.perf_counter() - start
-        n_pix = camera.width * camera.height
-        done = np.zeros(n_pix, np.int64)  # host copy of transport.sample_count
-        with ThreadPoolExecutor(max_workers=n_workers) as threads:
-            runner = parallel.PassRunner(setup, transport, shared, threads, n_workers, chunk_size, settings.cancel,
-                                         compiled=tracer if tracer.packed is not None else None)
-            nominal = 0  # samples per pixel the passes so far were asked for
-            while nominal < settings.spp:
-                n_samples = next_pass_size(nominal, int(settings.spp), settings.progressive)
-                if settings.pass_size is not None:
-                    n_samples = _checked_pass_size(settings.pass_size(transport, n_samples), n_samples)
-                    if n_samples == 0:
-                        return
-                nominal += n_samples
-                counts = None if settings.allocate is None else settings.allocate(transport, n_samples)
-                counts = np.full(n_pix, n_samples, np.int64) if counts is None else _checked_counts(counts, n_pix)
-                runner.run(done, counts)
-                done += counts
-                transport.sample_count += dev.xp.asarray(counts)
-                stats.passes += 1
-                stats.seconds = time.perf_counter() - start
-                yield transport
+        while (counts := schedule.next_pass(transport)) is not None:
+            tracer.run(schedule.done, counts)
+            schedule.add(counts)
+            transport.sample_count += dev.xp.asarray(counts)
+            stats.passes += 1
+            stats.seconds = time.perf_counter() - start
+            yield transport
     finally:
-        if shared is not None:
-            parallel.unshare(shared, transport)
-        if tracer.packed is not None:
-            importlib.import_module(parallel.COMPILED_TRACER).release(tracer)
+        tracer.close()
 
 
-def _parallel_settings(settings: TraceSettings, setup: TraceSetup) -> tuple[int, int]:
-    """(paths per chunk, workers), checked; the GPU traces one stream of large chunks."""
-    spp, chunk_size, workers = settings.spp, settings.chunk_size, settings.workers
-    if not isinstance(spp, (int, np.integer)) or spp < 1:
-        raise ConfigError(f"trace: spp must be an integer >= 1, got {spp!r}")
+class PassSchedule:
+    """The passes of one trace under a :class:`PassPolicy`: each pass's samples per pixel, and when to stop.
+
+    Before each pass (:meth:`next_pass`) the pass gets n samples per pixel: the next size of
+    :func:`pass_schedule` after the passes so far, cut to what the time budget leaves; the caller's
+    ``pass_size`` may cut it further. They are spread over the pixels: n each, or, after the pilot, by the
+    reported error (``adaptive``), or by the caller's ``allocate``. A :meth:`report` after a pass makes that
+    decision at once, with the caller's measurements, so the caller learns whether the pass was the last.
+    """
+
+    def __init__(self, policy: PassPolicy, *, allocate=None, pass_size=None):
+        self.policy = policy
+        self.progressive = policy.progressive or policy.time_budget_s is not None or policy.target_error_m is not None
+        self._allocate, self._pass_size = allocate, pass_size
+        self.done: np.ndarray | None = None   # (P,) samples each pixel has so far (host), from the first pass on
+        self.nominal = 0                      # samples per pixel the passes so far were asked for
+        self.next_n = next_pass_size(0, policy.spp, self.progressive)  # the coming pass's; 0: the trace ends
+        self._decided = True                  # next_n holds the decision for the coming pass
+        self._error_m: np.ndarray | None = None  # the latest reported error, (H, W) m
+        self._budget = None if policy.time_budget_s is None else TimeBudget(policy.time_budget_s)
+        self._start_s = self._cycle_start_s = 0.0  # the trace's start; the current pass cycle's (time budget)
+        self._traced = 0.0                    # mean samples per pixel traced before the current cycle
+
+    def start(self) -> None:
+        """The trace starts: a time budget counts from now."""
+        self._start_s = self._cycle_start_s = _clock()
+
+    def next_pass(self, transport: Transport) -> np.ndarray | None:
+        """(P,) samples per pixel of the coming pass, or None where the trace ends."""
+        if self.done is None:
+            self.done = np.zeros(transport.width * transport.height, np.int64)
+        if not self._decided:
+            self._decide(None)
+        n = self.next_n
+        if self._pass_size is not None and n:
+            n = _checked_pass_size(self._pass_size(transport, n), n)
+        if n == 0:
+            return None
+        self.nominal, self._decided = self.nominal + n, False
+        counts = self._allocate(transport, n) if self._allocate is not None else self._allocation(n)
+        return np.full(self.done.size, n, np.int64) if counts is None else _checked_counts(counts, self.done.size)
+
+    def add(self, counts: np.ndarray) -> None:
+        """A pass has traced ``counts`` more samples per pixel."""
+        self.done += counts
+
+    def report(self, report: PassReport, distance_m: np.ndarray) -> bool:
+        """Decide the coming pass from the caller's measurements of the pass just traced (``distance_m``: the
+        first hits, (H, W), NaN where no surface); True when none follows."""
+        if self._decided:
+            raise ConfigError("trace: one pass report after each pass, got a second one")
+        self._error_m = np.asarray(backend.to_host(report.error_m), np.float64)
+        self._decide(report)
+        target = self.policy.target_error_m
+        rms = None if target is None else rms_error(self._error_m, distance_m)
+        if rms is not None and rms <= target:
+            self.next_n = 0
+        return self.next_n == 0
+
+    def _decide(self, report: PassReport | None) -> None:
+        """The coming pass's scheduled samples per pixel, cut to the time budget (0: the trace ends)."""
+        spp = self.policy.spp
+        n = next_pass_size(self.nominal, spp, self.progressive) if self.nominal < spp else 0
+        if self._budget is not None and n:
+            now, traced = _clock(), float(self.done.mean())
+            if report is not None:
+                self._budget.estimate_s, self._budget.frame_s = report.estimate_s, report.frame_s
+            self._budget.record(traced - self._traced, now - self._cycle_start_s)
+            self._cycle_start_s, self._traced = now, traced
+            n = self._budget.next_pass(n, now - self._start_s)
+        self.next_n, self._decided = n, True
+
+    def _allocation(self, n: int) -> np.ndarray | None:
+        """The policy's allocation of a pass of n samples per pixel (None: n everywhere)."""
+        if not self.policy.adaptive or self._error_m is None:
+            return None
+        return allocate_samples(self._error_m, self.done, n)
+
+
+_clock = time.perf_counter  # the time budget's clock (seconds); tests replace it to check the budgeted passes
+
+
+def _execution(settings: TraceSettings, setup: TraceSetup) -> Execution:
+    """How the chunks run, checked; the GPU traces one stream of large chunks."""
+    chunk_size, workers = settings.chunk_size, settings.workers
     if chunk_size is None:
         chunk_size = (parallel.gpu_chunk_paths(setup.xp, setup.n_channels) if setup.device.is_gpu
                       else parallel.CPU_CHUNK_PATHS)
@@ -176,7 +363,7 @@ def _parallel_settings(settings: TraceSettings, setup: TraceSetup) -> tuple[int,
     limits.MAX_WORKERS.check(int(workers), "trace", "workers")
     if setup.device.is_gpu:
         workers = 1  # one stream of large wavefronts; threads would only serialise on it
-    return chunk_size, workers
+    return Execution(chunk_size=chunk_size, workers=workers, cancel=settings.cancel)
 
 
 def _empty_transport(setup: TraceSetup, first: FirstHit, stats: TraceStats) -> Transport:
@@ -221,7 +408,8 @@ def pass_schedule(spp: int, progressive: bool = True) -> list[int]:
     without them a render needs no small passes, and on a GPU every pass costs the same kernel
     launches whatever its size. Depends on spp and ``progressive`` only (never on chunk size or
     device), so results are reproducible, and the first passes of a longer render equal a shorter
-    render of the same kind.
+    render of the same kind. A time budget cuts a pass short (:class:`PassSchedule`); the schedule then
+    goes on from the samples traced.
     """
     passes, done = [], 0
     while done < spp:

@@ -15,6 +15,11 @@ each bit-identical to its NumPy twin (integer arithmetic; float operations in th
   PTRS (up to 24 rejection rounds) per element; as masked array code on a device ~1,900 operations a frame.
   Integer hashing is exact; ``exp``, ``log`` and ``cos`` are CUDA's (≤ 1–2 ulp from glibc's), so a count
   can differ from NumPy's only where a comparison falls within a few ulp (never seen on 10⁶ counts).
+
+Device-only code, like :mod:`tofcore.gpu`, but beside that folder rather than in it: these kernels twin the
+tracer's and the sensor's functions and take their constants from them, so they stand a floor above both,
+while :mod:`tofcore.gpu.traversal` (the BVH's twin) stands below the compiled tracer that launches it. In one
+folder the two would lift the compiled tracer, and the render that picks it, a floor (docs/architecture.md).
 """
 
 from __future__ import annotations
@@ -22,10 +27,10 @@ from __future__ import annotations
 import functools
 import math
 
-from .. import backend
-from ..sensor import noise as _noise
-from ..tracer import qmc
-from .. import rng as _rng
+from . import backend
+from .sensor import noise as _noise
+from .tracer import qmc
+from . import rng as _rng
 
 _MASK64 = (1 << 64) - 1
 
