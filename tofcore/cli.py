@@ -144,6 +144,17 @@ def check_output_folder(path: Path, flag: str = "--out") -> None:
                           f"({str(parent)!r} is {'not a folder' if not parent.is_dir() else 'not writable'})")
 
 
+FALL_BACK_COST = ("the compiled tracer renders the same frame about 2x faster on 2 CPU cores and 4x faster on "
+                  "an H200: docs/benchmarks.md")
+
+
+def fell_back(transport: dict) -> bool:
+    """Whether a frame was traced by the NumPy reference although the user did not ask for it
+    (``TOFCORE_TRACER=numpy``): the compiled tracer could not run it, or numba is missing."""
+    reason = transport.get("tracer_reason") or ""
+    return transport.get("tracer") == "numpy" and not reason.startswith("TOFCORE_TRACER=numpy")
+
+
 def _scene(name: str):
     """(scene, pose or None, ambient or None) of ``--scene``: a demo scene, .npz, mesh file or .blend."""
     from .scene.demo import NAMES, demo_ambient, demo_scene
@@ -321,10 +332,13 @@ def cmd_render(args: argparse.Namespace) -> int:
                        f"({exc.strerror or exc}); files already in the folder are whole (each is written to a "
                        f"temp name and renamed), the others were not written") from None
     lines = []
+    tracer = frame.stats["transport"]
     if args.verbose:
-        tracer = frame.stats["transport"]
         lines.append(f"tracer: {tracer['tracer']}" + (f" ({tracer['tracer_reason']})" if tracer["tracer_reason"]
                                                       else ""))
+    elif fell_back(tracer) and not args.quiet:
+        lines.append(f"note: traced by the NumPy reference, not the compiled tracer: {tracer['tracer_reason']} "
+                     f"({FALL_BACK_COST})")
     if not args.quiet:
         lines += [_convergence_table(frame.stats["convergence"]), summary(frame),
                   f"wrote {len(files)} files to {args.out}/: {', '.join(sorted(p.name for p in files.values()))}"]

@@ -150,3 +150,19 @@ def test_main_called_as_a_function_gives_the_signal_handlers_back(capsys):
     with pytest.raises(SystemExit):
         main(["no-such-command"])
     assert (signal.getsignal(signal.SIGINT), signal.getsignal(signal.SIGTERM)) == before
+
+
+def test_a_render_the_compiled_tracer_could_not_run_says_why_and_what_it_costs(tmp_path, capsys, monkeypatch):
+    """Without --verbose, a frame traced by the NumPy reference although the user did not ask for it gets one
+    note: the reason and the cost; a frame the user asked NumPy for (TOFCORE_TRACER=numpy) gets none."""
+    from tofcore.compiled import tracer
+
+    argv = [a for a in _tiny(tmp_path) if a != "--quiet"]
+    code, out, _ = _run(argv, capsys)  # the suite's default: TOFCORE_TRACER=numpy
+    assert code == 0 and "note: traced by the NumPy reference" not in out
+    monkeypatch.setenv("TOFCORE_TRACER", "auto")
+    monkeypatch.setattr(tracer, "numba_version", lambda: None)
+    code, out, _ = _run(argv, capsys)
+    assert code == 0
+    assert "note: traced by the NumPy reference, not the compiled tracer: numba is not installed" in out
+    assert "about 2x faster on 2 CPU cores" in out
