@@ -29,7 +29,8 @@ peaks over two bins and has about 2/3 of the box's variance per bin on smooth si
   change — per pixel the sum over bins (steady radiance inside the range) and the mean path length Σ w·L / Σ w
   (mitransient's from bin centres: ± w/2 quantisation, RMS w/√12 per pixel for a narrow peak) — with
   z-scores from the references' spreads; and on the coarse grid (‖r_t − r_m‖ / ‖r_m‖ beside the noise of the
-  two references), where what remains beyond noise is the kernels' 0.5 cm edge ramps.
+  two references), where what remains beyond noise is the kernels' 0.5 cm edge ramps
+  (bench/transient_kernel_check.py: with 1 mm tofcore bins the 10 cm difference falls to the noise).
 
 Timing, per renderer, after a warm-up render of each size (kernels compiled, memory pools filled): the call
 until its histogram is complete on the device (device synchronised before and after; tofcore:
@@ -37,8 +38,9 @@ until its histogram is complete on the device (device synchronised before and af
 most ``--mi-batch`` spp accumulated on the device, ``dr.eval`` + ``dr.sync_thread``); the download of the
 (P, B) histogram to the host is timed apart (``copy_s``, not in the curves). Each spp setting is rendered
 ``--repeat`` times with other seeds (fewer if slow): median time, RMS over the repeats of the error. Time to
-each ``--levels`` relative error is read off each renderer's error-against-time curve (log-log interpolation
-where it crosses; else extrapolated from the last point with error ∝ t^(−1/2), marked). Ratio = tofcore's
+each ``--levels`` relative error is read off each renderer's error-against-time curve (its lower envelope:
+a point's time is the least of its own and every later point's; log-log interpolation where it crosses;
+else extrapolated from the last point with error ∝ t^(−1/2), marked). Ratio = tofcore's
 time / mitransient's.
 
 GPU (one run, peers unpacked by bench/gpu/setup_peers.sh)::
@@ -47,7 +49,8 @@ GPU (one run, peers unpacked by bench/gpu/setup_peers.sh)::
 
 CPU smoke test (mitransient on ``llvm_ad_mono``: DRJIT_LIBLLVM_PATH, a Mitsuba with LLVM variants)::
 
-    .venv/bin/python bench/bench_transient.py --device cpu --size 32x27 --ref-spp 256 --max-spp 64 --out /tmp/bt
+    .venv/bin/python bench/bench_transient.py --device cpu --size 32x27 --ref-spp tofcore:256,mitransient:1024 \
+        --max-spp tofcore:64,mitransient:1024 --mi-batch 256 --out /tmp/bt
 
 Writes ``bench_transient.json``, ``bench_transient.png`` and ``bench_transient.md`` (the table) in ``--out``.
 """
