@@ -18,7 +18,9 @@
 # does not load. The plugins the frame loads were read from /proc/self/maps after rendering it with
 # llvm_ad_rgb and llvm_ad_mono (bench_peers.run_mitsuba): box diffuse hdrfilm independent merge path
 # perspective point roughconductor srgb twosided uniform (merge: the scene merges its meshes at load;
-# mitransient's transient_path and phasor_hdr_film are Python). A few small plugins that a dict
+# mitransient's transient_path, phasor_hdr_film and transient_hdr_film are Python; bench/bench_transient.py's
+# transient_hdr_film frame loads box diffuse hdrfilm independent merge perspective ply point twosided uniform,
+# read the same way with llvm_ad_mono: nothing more to keep). A few small plugins that a dict
 # without an explicit choice falls back to are kept too (gaussian rfilter, d65, the mesh loaders).
 #
 # Usage: bench/gpu/fetch_peers.sh            (from anywhere inside the repository)
