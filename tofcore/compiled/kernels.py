@@ -38,9 +38,10 @@ from .. import rng as _rng
 from ..tracer import sampler as _sampler
 from ..tracer import surface as _surface
 from ._target import cpu_parallel_function, device_function, gpu_kernel_function, gpu_module
-from .layout import (EXTINCTION, HARMONIC, IOR, LAMBERTIAN, METALLIC, METALLIC_MAP, N_COUNTERS, NORMAL_MAP, PHASOR,
-                     POINT, PULSED, REFLECTANCE, REFLECTANCE_MAP, ROUGHNESS, ROUGHNESS_MAP, SINE, SQUARE,
-                     STACK_SIZE, TABLE)
+from .layout import (EXTINCTION, HARMONIC, IOR, LAMBERTIAN, LED_INTENSITY, LED_KIND, LED_POWER, LED_PROBABILITY,
+                     LED_SKIP_FIRST_SHADOW, MATERIAL_COLUMNS, METALLIC, METALLIC_MAP, NORMAL_MAP, N_COUNTERS, PHASOR,
+                     POINT, PULSED, REFLECTANCE, REFLECTANCE_MAP, ROUGHNESS, ROUGHNESS_MAP, SINE, SQUARE, STACK_SIZE,
+                     TABLE)
 
 # ------------------------------------------------------------------ constants, from the reference modules
 GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
@@ -982,13 +983,13 @@ def led_estimate(frame, leds, vertex, state, i):
     cos_geo = dot(wi_world, ng)
     cos_shading = dot(wi_world, ns)
     cos_axis = -dot(wi_world, (frame[4, 0], frame[4, 1], frame[4, 2]))
-    kind = np.int64(led_table[i, 0])
+    kind = np.int64(led_table[i, LED_KIND])
     f = eval_bsdf(params, wo, to_local(surf, wi_world))
-    w = throughput * f * max(cos_shading, 0.0) * led_intensity(kind, led_table[i, 1], cos_axis) / (dist * dist)
+    w = throughput * f * max(cos_shading, 0.0) * led_intensity(kind, led_table[i, LED_INTENSITY], cos_axis) / (dist * dist)
     if not cos_geo > 0:
         w = 0.0
     if use_mis:  # strategy A's balance-heuristic weight (light_paths.bsdf_strategy_weight)
-        p_light = led_table[i, 3] * emission_pdf(kind, cos_axis) * max(cos_geo, 0.0) / (dist * dist)
+        p_light = led_table[i, LED_PROBABILITY] * emission_pdf(kind, cos_axis) * max(cos_geo, 0.0) / (dist * dist)
         share = bsdf_area_pdf / (bsdf_area_pdf + p_light) if bsdf_area_pdf + p_light > 0 else 1.0
         w = w * (1.0 if prev_delta else share)
     return w, dist, led
@@ -1000,7 +1001,7 @@ def connect_led(geo, frame, leds, vertex, state, i, work):
     w, dist, led = led_estimate(frame, leds, vertex, state, i)
     counters = work[0]
     if w > 0:
-        if state[1] == 1 and leds[1][i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
+        if state[1] == 1 and leds[1][i, LED_SKIP_FIRST_SHADOW] != 0.0:  # the camera ray proved this LED sees the first hit
             counters[4] += 1
         else:
             o, d, t_max = shadow_ray(vertex[1], led, point_offset(led, SPAWN_RELATIVE))
@@ -1022,9 +1023,9 @@ def light_ray(frame, leds, rng):
         if u_led >= led_cdf[c]:
             index += 1
     u1, u2 = sample_2d(key, pixel, sample, DIM_EMISSION, independent)
-    kind = np.int64(led_table[index, 0])
+    kind = np.int64(led_table[index, LED_KIND])
     local = sample_emission(kind, u1, u2)
-    pdf_dir = led_table[index, 3] * emission_pdf(kind, local[2])
+    pdf_dir = led_table[index, LED_PROBABILITY] * emission_pdf(kind, local[2])
     direction = rotate(local, frame)
     origin = (led_positions[index, 0], led_positions[index, 1], led_positions[index, 2])
     offset = point_offset(origin, LEAVE_RELATIVE)
@@ -1049,8 +1050,8 @@ def light_vertex_at(geo, leds, ray, prim, u, v):
     led_distance = norm(sub(surf[0], origin))
     cos_geo = dot(to_led, surf[1])
     cos_shading = max(dot(to_led, surf[4]), 0.0)
-    q = led_table[index, 3]
-    emitted = led_table[index, 2] / (q if q > 0 else 1.0) * cos_shading / cos_geo if cos_geo > 0 else 0.0
+    q = led_table[index, LED_PROBABILITY]
+    emitted = led_table[index, LED_POWER] / (q if q > 0 else 1.0) * cos_shading / cos_geo if cos_geo > 0 else 0.0
     margin = 4.0 * spawn_offset(geo, prim, surf[0], surf[1])
     if not led_distance > point_offset(origin, LEAVE_RELATIVE):  # an LED on (or behind) the surface it lights
         return True, surf, to_led, led_distance, 0.0, 0.0, margin
@@ -1362,7 +1363,10 @@ GPU_MAX_CHANNELS = 32
 #             channels of its next-event estimates (bucket depth − 1) and of its connection (bucket depth);
 #             total (J + 2, n) its channel totals; counters (N_COUNTERS, n) its rays
 # wf_gather adds each depth's addends per pixel in sample order: the pass's sums are the CPU's, addend by addend.
-LIGHT_FOUND, LIGHT_SURF, LIGHT_PARAMS, LIGHT_TO_LED, LIGHT_REST, LIGHT_COLUMNS = 0, 1, 16, 21, 24, 28
+LIGHT_FOUND, LIGHT_SURF, LIGHT_PARAMS = 0, 1, 16  # the flag, 5 vectors of the surface, its material record
+LIGHT_TO_LED = LIGHT_PARAMS + len(MATERIAL_COLUMNS)  # then y → LED, and 4 numbers (light_vertex_at)
+LIGHT_REST = LIGHT_TO_LED + 3
+LIGHT_COLUMNS = LIGHT_REST + 4
 NO_RAY = np.float32(-1.0)
 """t_max of a ray slot that traces nothing (an ended path, an estimate that needs no shadow test)."""
 
@@ -1505,7 +1509,7 @@ def queue_next_events(leds, frame, vertex, state, path_length, j, buffers):
         pend_w[i, j] = w
         pend_length[i, j] = path_length + dist
         if w > 0:
-            if state[1] == 1 and leds[1][i, 4] != 0.0:  # the camera ray proved this LED sees the first hit
+            if state[1] == 1 and leds[1][i, LED_SKIP_FIRST_SHADOW] != 0.0:  # the camera ray proved this LED sees the first hit
                 counters[4, j] += 1
             else:
                 k = j * (n_led + 1) + i

@@ -20,6 +20,11 @@ REFLECTANCE_MAP, ROUGHNESS_MAP, METALLIC_MAP, NORMAL_MAP = (TEXTURE_SLOTS.index(
 
 POINT, LAMBERTIAN = LED_KINDS.index("point"), LED_KINDS.index("lambertian")
 
+LED_COLUMNS = ("kind", "intensity_w_sr", "power_w", "probability", "skip_first_shadow")
+"""The kernels' LED table, one row per LED: kind code, intensity (W/sr), power (W), emission probability,
+whether the first hit's shadow ray is skipped (tofcore.compiled.setup.led_arrays)."""
+LED_KIND, LED_INTENSITY, LED_POWER, LED_PROBABILITY, LED_SKIP_FIRST_SHADOW = range(len(LED_COLUMNS))
+
 N_COUNTERS = 5
 """Ray counters per pixel: camera, bounce, shadow and light rays, skipped first-hit shadow rays."""
 

@@ -158,8 +158,12 @@ def led_arrays(ctx) -> tuple:
     """(positions (L, 3) scene frame, table (L, 5): kind, intensity W/sr, power W, emission probability,
     first-hit shadow skipped; cdf (L − 1,) of the emission probabilities)."""
     q = np.asarray(ctx.led_probability, dtype=np.float64)
-    table = np.array([[layout.LED_KINDS.index(led.kind), led.intensity_w_sr, led.power_w, q[i],
-                       float(ctx.skip_first_shadow[i])] for i, led in enumerate(ctx.leds)], dtype=np.float64)
+    rows = []
+    for i, led in enumerate(ctx.leds):
+        values = {"kind": layout.LED_KINDS.index(led.kind), "intensity_w_sr": led.intensity_w_sr,
+                  "power_w": led.power_w, "probability": q[i], "skip_first_shadow": float(ctx.skip_first_shadow[i])}
+        rows.append([values[name] for name in layout.LED_COLUMNS])  # the named columns, in the kernels' order
+    table = np.array(rows, dtype=np.float64)
     return (np.ascontiguousarray(to_host(ctx.led_positions), dtype=np.float64), table,
             np.ascontiguousarray(np.cumsum(q)[:-1]))
 
