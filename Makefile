@@ -67,7 +67,8 @@ test-blender: addon
 		--out out/blender-gui $(if $(DOCS),--docs $(DOCS))
 
 # The compiled tracer (numba) in that Blender: the add-on's Install numba from WHEELS (a folder with the cp313
-# numba, llvmlite and pip wheels: README, "Tested in a real Blender GUI"), cold/warm/NumPy renders; ~5 min.
+# numba, llvmlite and pip wheels: README, "Tested in a real Blender GUI"), cold/warm/NumPy renders, the textured
+# scene under an HDRI World compiled and NumPy; ~5 min.
 .PHONY: test-blender-numba
 test-blender-numba: addon
 	$(PY) tests/blender_gui/numba_run.py dist/tof_camera-$$(sed -n 's/^version = "\(.*\)"/\1/p' blender_manifest.toml).zip \

@@ -21,9 +21,10 @@ compile            the kernels, once (30 s on a fast machine; 128–183 s on a b
                    machine code is cached beside tofcore's sources (the extension's ``.local/lib/python3.x/
                    site-packages/tofcore/compiled/__pycache__``; ~/.cache/tofcore where that folder is
                    read-only); later Blender sessions load it in about a second.
-which renders      all but those with an ambient environment map (a World with an Environment Texture),
-                   transient histograms or textures (``tofcore.compiled.setup``); a plain World colour is
-                   compiled. :func:`blender_reason` names the Blender setting in the UI.
+which renders      every one the add-on makes: image textures, a World colour or an Environment Texture
+                   (HDRI) as ambient light (``tofcore.compiled.setup.unsupported``; tests/blender_gui/
+                   numba_run.py renders a textured scene under an HDRI World compiled). :func:`blender_reason`
+                   names the Blender setting in the UI where tofcore gives a reason.
 =================  =====================================================================================
 
 The pip run, its staging folder and cancellation are :class:`.gpu.Installer`'s. Nothing here imports

@@ -16,6 +16,9 @@ one fresh HOME for all its Blender processes, in this order:
    process (compiles the kernels, caches them);
 5. ``render warm``: the same in another new process (loads the cache);
 6. ``render numpy``: the same with ``TOFCORE_TRACER=numpy``;
+   ``render textured`` and ``render textured-numpy``: the same camera on scenario.py's step 2 scene — a
+   checker Image Texture on Base Color and Roughness, the World an Environment Texture (HDRI), both
+   generated and packed — compiled (warm cache), then with ``TOFCORE_TRACER=numpy``;
    then ``cancel-cold``: on an empty kernel cache (its own ``NUMBA_CACHE_DIR``), the Render ToF job cancelled
    3 s into the compile (what Esc does), and a second job that waits for the compile going on in its child
    process;
@@ -26,7 +29,10 @@ one fresh HOME for all its Blender processes, in this order:
 Then checks that numba was installed into the add-on's folder, that the cold and warm renders used the
 compiled tracer and the add-on says so, that the warm one compiled nothing new (the cache's files are the
 same), that the compiled depth equals the NumPy depth as tests/tofcore/test_compiled.py requires
-(``isclose(rtol=1e-9, atol=1e-9)`` or both NaN on ≥ 99.5 % of the pixels), and that the GUI scenario
+(``isclose(rtol=1e-9, atol=1e-9)`` or both NaN on ≥ 99.5 % of the pixels), that the textured scene under
+the HDRI World exported its two textures and its environment map without a warning, rendered with the
+compiled tracer (``tracer == "compiled"``, empty ``tracer_reason``) and gave the NumPy tracer's depth at that
+tolerance, and that the GUI scenario
 passed with every frame it wrote traced by the compiled tracer. Prints one line per check and
 the timings; exit code 0 pass, 1 fail, 2 bad arguments. Needs root (chroot); one Blender at a time.
 """
@@ -49,7 +55,8 @@ import run  # tests/blender_gui/run.py: how the GUI scenario is judged
 HERE = Path(__file__).resolve().parent
 ROOT = Path(os.environ.get("ROOT", "/opt/blender-trixie"))
 WHEELS = ("numba-0.68.*-cp313-*.whl", "llvmlite-0.50.*-cp313-*.whl", "pip-*.whl")
-RENDERS = (("cold", ""), ("warm", ""), ("numpy", "TOFCORE_TRACER=numpy "))
+RENDERS = (("cold", ""), ("warm", ""), ("numpy", "TOFCORE_TRACER=numpy "), ("textured", ""),
+           ("textured-numpy", "TOFCORE_TRACER=numpy "))
 
 
 def run_script(work: str) -> str:
@@ -92,6 +99,19 @@ def run_script(work: str) -> str:
     return "\n".join(lines) + "\n"
 
 
+def same_depth(out: Path, compiled: str, numpy_: str) -> tuple[bool, str]:
+    """The compiled depth (``depth-COMPILED.npy``) against the NumPy one, at tests/tofcore/test_compiled.py's
+    tolerance: ``isclose(rtol=1e-9, atol=1e-9)`` or both NaN on ≥ 99.5 % of the pixels."""
+    if not ((out / f"depth-{compiled}.npy").is_file() and (out / f"depth-{numpy_}.npy").is_file()):
+        return False, f"depth arrays {compiled}, {numpy_} missing"
+    a, b = np.load(out / f"depth-{numpy_}.npy"), np.load(out / f"depth-{compiled}.npy")
+    same = np.isclose(a, b, rtol=1e-9, atol=1e-9) | (np.isnan(a) & np.isnan(b))
+    return (a.shape == b.shape and same.mean() >= 0.995,
+            f"depth {compiled} (compiled) vs {numpy_} {a.shape}: {same.mean():.2%} of the pixels within 1e-9, "
+            f"{'bit for bit' if np.array_equal(a, b, equal_nan=True) else 'not bit for bit'}; "
+            f"{np.isfinite(a).mean():.0%} valid")
+
+
 def judge(out: Path) -> list[tuple[bool, str]]:
     """(passed, one line) per check of the module docstring."""
     load = lambda name: json.loads((out / f"{name}.json").read_text()) if (out / f"{name}.json").is_file() else {}
@@ -125,14 +145,25 @@ def judge(out: Path) -> list[tuple[bool, str]]:
                    f"cached {cancel.get('cached_before')} -> {cancel.get('cached_after')}"))
     checks.append((numpy_.get("transport", {}).get("tracer") == "numpy",
                    f"render numpy: tracer {numpy_.get('transport', {}).get('tracer')!r}, {numpy_.get('seconds')} s"))
-    if (out / "depth-warm.npy").is_file() and (out / "depth-numpy.npy").is_file():
-        a, b = np.load(out / "depth-numpy.npy"), np.load(out / "depth-warm.npy")
-        same = np.isclose(a, b, rtol=1e-9, atol=1e-9) | (np.isnan(a) & np.isnan(b))
-        checks.append((a.shape == b.shape and same.mean() >= 0.995,
-                       f"depth compiled vs NumPy {a.shape}: {same.mean():.2%} of the pixels within 1e-9, "
-                       f"{'bit for bit' if np.array_equal(a, b, equal_nan=True) else 'not bit for bit'}"))
-    else:
-        checks.append((False, "depth arrays missing"))
+    checks.append(same_depth(out, "warm", "numpy"))
+    textured, textured_numpy = load("render-textured"), load("render-textured-numpy")
+    transport, export = textured.get("transport", {}), textured.get("export", {})
+    plan = textured.get("plan") or {}
+    checks.append((export.get("textures") == {"GUI Checker": {"reflectance_texture": [64, 64],
+                                                              "roughness_texture": [64, 64]}}
+                   and export.get("environment") == [32, 64] and export.get("warnings") == []
+                   and plan.get("textures") is True and plan.get("ambient") is True,
+                   f"textured export: {export.get('textures')}, ambient map {export.get('environment')}, warnings "
+                   f"{export.get('warnings')}; plan textures {plan.get('textures')}, ambient {plan.get('ambient')}"))
+    checks.append((transport.get("tracer") == "compiled" and transport.get("tracer_reason") == ""
+                   and "compiled" in textured.get("tracer_text", ""),
+                   f"render textured (Image Textures, HDRI World): tracer {transport.get('tracer')!r}, reason "
+                   f"{transport.get('tracer_reason')!r} ({transport.get('parallel')}), {textured.get('seconds')} s "
+                   f"in Render ToF; {textured.get('tracer_text')!r}"))
+    checks.append((textured_numpy.get("transport", {}).get("tracer") == "numpy",
+                   f"render textured-numpy: tracer {textured_numpy.get('transport', {}).get('tracer')!r}, "
+                   f"{textured_numpy.get('seconds')} s"))
+    checks.append(same_depth(out, "textured", "textured-numpy"))
     gui = out / "gui"
     rc = int((gui / "rc").read_text()) if (gui / "rc").is_file() else -1
     problems = run.judge(gui, rc)

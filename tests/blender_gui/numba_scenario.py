@@ -15,7 +15,11 @@ Runs in Blender's own Python with the extension zip installed (``bl_ext.user_def
   scenario.py's step 1), the add-on's Render ToF operator; records the operator's wall time,
   ``frame.stats["transport"]``, the add-on's tracer text and status line, numba's threading layer and where
   the kernels' machine code is cached (with its files), and saves the frame's float64 depth as
-  ``depth-LABEL.npy`` for numba_run.py to compare tracers.
+  ``depth-LABEL.npy`` for numba_run.py to compare tracers. A LABEL starting with ``textured`` renders
+  scenario.py's step 2 scene instead: the checker Image Texture on Base Color and Roughness of every mesh
+  and the World's Environment Texture (an HDRI sky), both generated and packed (:func:`textured_scene`,
+  the same images as scenario.py's); then the record also holds what the export made of them
+  (``export``: textures per material, the ambient map's shape, warnings) and ``frame.stats["plan"]``.
 """
 
 import importlib
@@ -71,6 +75,62 @@ def install() -> dict:
             "python": sys.executable, "online_access": bpy.app.online_access}
 
 
+#: scenario.py's step 2 images (keep the two in step): a checker on the default cube, a sky with a sun.
+CHECKER_PX, CHECKER_CELLS, CHECKER_SRGB = 64, 4, (0.9, 0.35)
+SKY_W, SKY_H, SKY_GROUND = 64, 32, 0.01
+
+
+def textured_scene() -> None:
+    """scenario.py's :func:`textured_scene` (that file runs its GUI scenario when imported): a checker Image
+    Texture on the Base Color and Roughness of a material given to every mesh, a World whose Background colour
+    is an Environment Texture; both images generated and packed."""
+    n, cell = CHECKER_PX, CHECKER_PX // (4 * CHECKER_CELLS)
+    rows, cols = np.indices((n, n)) // cell
+    rgba = np.ones((n, n, 4), np.float32)
+    rgba[..., :3] = np.where((rows + cols) % 2 == 0, *CHECKER_SRGB)[..., None]
+    checker = bpy.data.images.new("GUI Checker", n, n)
+    checker.pixels.foreach_set(rgba.ravel())
+    checker.pack()
+    material = bpy.data.materials.new("GUI Checker")
+    material.use_nodes = True
+    tree = material.node_tree
+    bsdf = next(node for node in tree.nodes if node.type == 'BSDF_PRINCIPLED')
+    texture = tree.nodes.new("ShaderNodeTexImage")
+    texture.image = checker
+    tree.links.new(texture.outputs["Color"], bsdf.inputs["Base Color"])
+    tree.links.new(texture.outputs["Color"], bsdf.inputs["Roughness"])
+    elevation = ((np.arange(SKY_H) + 0.5) / SKY_H - 0.5) * np.pi    # rows bottom-up: row 0 = nadir
+    sky = np.ones((SKY_H, SKY_W, 4), np.float32)
+    sky[..., :3] = np.where(elevation > 0, 0.02 + 0.08 * np.sin(elevation), SKY_GROUND)[:, None, None]
+    sky[24:27, 8:12, :3] = 2.0
+    hdri = bpy.data.images.new("GUI Sky", SKY_W, SKY_H, float_buffer=True)
+    hdri.pixels.foreach_set(sky.ravel())
+    hdri.pack()
+    world = bpy.data.worlds.new("GUI HDRI")
+    world.use_nodes = True
+    nodes = world.node_tree.nodes
+    environment = nodes.new("ShaderNodeTexEnvironment")
+    environment.image = hdri
+    background = next(node for node in nodes if node.type == 'BACKGROUND')
+    world.node_tree.links.new(environment.outputs["Color"], background.inputs["Color"])
+    for mesh in {obj.data for obj in bpy.context.scene.objects if obj.type == 'MESH'}:
+        mesh.materials.clear()
+        mesh.materials.append(material)
+    bpy.context.scene.world = world
+
+
+def export_record() -> dict:
+    """What the add-on's export makes of the scene: textures per material, the ambient light, warnings."""
+    result = addon("export").export_scene(bpy.context.evaluated_depsgraph_get(), bpy.context.scene.camera)
+    ambient = result.ambient
+    environment = ambient.environment if ambient is not None else None
+    return {"textures": {m.name: {k: list(t.data.shape) for k, t in m.textures.items()}
+                         for m in result.scene.materials},
+            "environment": list(environment.data.shape) if environment is not None else None,
+            "ambient_constant": ambient.radiance_w_m2_sr if ambient is not None else None,
+            "warnings": result.warnings}
+
+
 def add_tof_camera(label: str) -> None:
     """A ToF camera looking at the default cube, 128 × 106, 8 spp, 3 vertices, writing into OUT/tof-LABEL."""
     bpy.ops.tof.add_camera()
@@ -94,6 +154,8 @@ def render(label: str) -> dict:
         return frame, written
 
     ops.RenderJob.run = keep_frame
+    if label.startswith("textured"):
+        textured_scene()
     add_tof_camera(label)
     status_before = list(prefs.compiled_status_line())
     started = time.perf_counter()
@@ -107,6 +169,8 @@ def render(label: str) -> dict:
               "tracer_text": compiled.tracer_text(transport), "status_before": status_before,
               "status_after": list(prefs.compiled_status_line()), "numba_folder": prefs.numba_folder(),
               "sys_path_has_numba_folder": prefs.numba_folder() in sys.path}
+    if label.startswith("textured"):
+        record.update(export=export_record(), plan=frame.stats.get("plan"))
     if "numba" in sys.modules:
         import numba
 

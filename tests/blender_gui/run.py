@@ -8,7 +8,7 @@ then passes only when
 
 * Blender exited 0 (a crash — issue 19's segfault — ends it with a signal, or the scenario never finishes),
 * every step of the scenario reported and passed (``results.json``),
-* Blender printed no ``Error:`` report before the scenario's deliberate one (step 7), and printed that one
+* Blender printed no ``Error:`` report before the scenario's deliberate one (step 8), and printed that one
   (Blender prints the reports of operators called from Python; a modal operator's later reports show in the
   status bar, which the scenario checks on every screenshot).
 
@@ -27,7 +27,7 @@ import sys
 from pathlib import Path
 
 HERE = Path(__file__).resolve().parent
-STEPS = ("render", "live_preview", "cancel", "animation", "preset", "error_report")
+STEPS = ("render", "textured", "live_preview", "cancel", "animation", "preset", "error_report")
 MARKER = "GUI-TEST: an error report on purpose follows"
 
 
@@ -49,7 +49,7 @@ def judge(out: Path, returncode: int) -> list[str]:
     before, _, after = log.partition(MARKER)
     problems += [f"Blender reported: {line}" for line in before.splitlines() if line.startswith("Error:")]
     if MARKER in log and not any(line.startswith("Error:") and "Preset File" in line for line in after.splitlines()):
-        problems.append("the deliberate 'Preset File' error of step 7 was not printed as 'Error:'")
+        problems.append("the deliberate 'Preset File' error of step 8 was not printed as 'Error:'")
     return problems
 
 

@@ -9,16 +9,26 @@ looks at:
 1. ``render``: Add ToF Camera, aim it at the default cube, Render ToF (INVOKE, as a click) → the 14 files
    in ``tof/0001/``, the "ToF Depth" image filled, the depth image colourful on screen, no red error
    icon in the status bar or the Info editor.
-2. ``live_preview``: Live Preview on, the camera moved three times → the preview re-renders at preview
+2. ``textured``: every mesh gets a material whose Principled BSDF reads an Image Texture (a checker made
+   here: ``images.new``, pixels set, packed; no file) on Base Color and Roughness, and the World's
+   Background an Environment Texture (an equirectangular sky made here: bright above the horizon, dark
+   below); Render ToF (INVOKE) → the 14 files in ``textured/0001/``; the add-on's export holds both
+   textures and the environment map with no warning; against step 1's untextured frame, the amplitude
+   on the cube follows the checker (dark cells ≈ 0.13×, light ≈ 1×, several changes along a row) and the
+   background's intensity follows the map (the ground at 0.2× the default World's grey, brighter towards
+   the horizon); ``frame.json`` plans textures and ambient light and names the tracer (NumPy where numba
+   is not installed, with the reason; compiled where it is); the ToF Amplitude image on screen, sampled
+   at its pixel centres, is that image (the checker visible). The material and World are put back.
+3. ``live_preview``: Live Preview on, the camera moved three times → the preview re-renders at preview
    resolution and the image follows the camera; nothing written.
-3. ``cancel``: a long render (1024 spp) cancelled with Esc after its first pass → state cancelled within
+4. ``cancel``: a long render (1024 spp) cancelled with Esc after its first pass → state cancelled within
    seconds, nothing written (no temp files), Blender alive.
-4. ``animation``: Render ToF Animation over frames 1-3 with the camera keyed → ``anim/0001 … 0003`` with
+5. ``animation``: Render ToF Animation over frames 1-3 with the camera keyed → ``anim/0001 … 0003`` with
    the 14 files each, the scene back on its frame.
-5. ``preset``: a custom sensor saved with the Sensor Presets "+" and applied to a second camera.
-6. The Info log is saved (``info_log.txt``); run.py checks that Blender printed no "Error:" report before
-   step 7.
-7. ``error_report``: an empty Preset File → an ERROR naming "Preset File"; a render whose output folder
+6. ``preset``: a custom sensor saved with the Sensor Presets "+" and applied to a second camera.
+7. The Info log is saved (``info_log.txt``); run.py checks that Blender printed no "Error:" report before
+   step 8.
+8. ``error_report``: an empty Preset File → an ERROR naming "Preset File"; a render whose output folder
    cannot be made → "ToF render failed" with the red error icon in the Info editor (which proves that the
    screenshot check of the earlier steps, status bar and Info editor, can see an error report).
 
@@ -45,6 +55,14 @@ FILES = {"frame.exr", "depth.exr", "depth_mm.png", "ir.png", "depth.png", "inten
 #: UI is not); a depth image shown in the image editor has thousands of them.
 COLOURFUL = 0.3
 MIN_COLOURFUL_PX = 1500
+#: Step 2's images, made in the scenario (packed, no file). The checker: CHECKER_PX² pixels, 8-bit sRGB like a
+#: painted texture, CHECKER_CELLS cells a side on each face of the default cube (its UV map gives every face a
+#: quarter of the image's side), light and dark cells of sRGB 0.9 and 0.35 (linear 0.79 and 0.10: 0.98× and
+#: 0.13× the default material's 0.8). The sky: SKY_W × SKY_H float radiance, equirectangular (Blender's
+#: mapping, Z up), 0.02 at the horizon to 0.10 at the zenith, SKY_GROUND below the horizon (0.2× the default
+#: World's grey 0.05), a 2.0 "sun" patch.
+CHECKER_PX, CHECKER_CELLS, CHECKER_SRGB = 64, 4, (0.9, 0.35)
+SKY_W, SKY_H, SKY_GROUND = 64, 32, 0.01
 
 results: list = []
 shots: dict = {}
@@ -177,6 +195,119 @@ def show_depth() -> None:
             bpy.ops.image.view_all(fit_view=True)
 
 
+def textured_scene() -> tuple:
+    """Step 2's scene: a checker Image Texture on the Base Color and Roughness of a new material given to every
+    mesh, and a new World whose Background colour is an Environment Texture (a sky); both images generated here
+    and packed. Returns what :func:`untextured_scene` puts back: ([(mesh, its materials)], the old World)."""
+    n, cell = CHECKER_PX, CHECKER_PX // (4 * CHECKER_CELLS)
+    rows, cols = np.indices((n, n)) // cell
+    light = (rows + cols) % 2 == 0
+    rgba = np.ones((n, n, 4), np.float32)
+    rgba[..., :3] = np.where(light, *CHECKER_SRGB)[..., None]
+    checker = bpy.data.images.new("GUI Checker", n, n)                # 8-bit, sRGB
+    checker.pixels.foreach_set(rgba.ravel())
+    checker.pack()
+    material = bpy.data.materials.new("GUI Checker")
+    material.use_nodes = True
+    tree = material.node_tree
+    bsdf = next(node for node in tree.nodes if node.type == 'BSDF_PRINCIPLED')
+    texture = tree.nodes.new("ShaderNodeTexImage")
+    texture.image = checker
+    tree.links.new(texture.outputs["Color"], bsdf.inputs["Base Color"])
+    tree.links.new(texture.outputs["Color"], bsdf.inputs["Roughness"])
+
+    v = (np.arange(SKY_H) + 0.5) / SKY_H                          # Blender stores rows bottom-up: row 0 = nadir
+    elevation = (v - 0.5) * np.pi
+    radiance = np.where(elevation > 0, 0.02 + 0.08 * np.sin(elevation), SKY_GROUND)
+    sky = np.ones((SKY_H, SKY_W, 4), np.float32)
+    sky[..., :3] = radiance[:, None, None]
+    sky[24:27, 8:12, :3] = 2.0                                    # a sun, 48° up, on the camera's side
+    hdri = bpy.data.images.new("GUI Sky", SKY_W, SKY_H, float_buffer=True)
+    hdri.pixels.foreach_set(sky.ravel())
+    hdri.pack()
+    world = bpy.data.worlds.new("GUI HDRI")
+    world.use_nodes = True
+    nodes = world.node_tree.nodes
+    environment = nodes.new("ShaderNodeTexEnvironment")
+    environment.image = hdri
+    background = next(node for node in nodes if node.type == 'BACKGROUND')
+    world.node_tree.links.new(environment.outputs["Color"], background.inputs["Color"])
+
+    scene = bpy.context.scene
+    meshes = {obj.data for obj in scene.objects if obj.type == 'MESH'}
+    kept = [(mesh, list(mesh.materials)) for mesh in meshes]
+    for mesh in meshes:
+        mesh.materials.clear()
+        mesh.materials.append(material)
+    old_world, scene.world = scene.world, world
+    return kept, old_world
+
+
+def untextured_scene(kept: tuple) -> None:
+    meshes, world = kept
+    for mesh, materials in meshes:
+        mesh.materials.clear()
+        for material in materials:
+            mesh.materials.append(material)
+    bpy.context.scene.world = world
+
+
+def read_frame(folder: str) -> dict:
+    """The float channels of ``folder/frame.exr`` the textured step compares (tofcore's own EXR reader)."""
+    from tofcore.output.writers import read_exr
+
+    return read_exr(os.path.join(folder, "frame.exr"), ["amplitude", "intensity", "gt_depth"])
+
+
+def checker_in_amplitude(plain: dict, textured: dict) -> tuple:
+    """(share of dark cells, share of light cells, mean changes dark↔light along a row) on the cube's pixels:
+    the amplitude ratio textured / untextured (same camera, samples and seed) is ~0.13 on dark cells, ~1 on
+    light ones."""
+    cube = np.isfinite(plain["gt_depth"]) & np.isfinite(textured["gt_depth"]) & (plain["amplitude"] > 0)
+    ratio = np.where(cube, textured["amplitude"] / np.where(cube, plain["amplitude"], 1.0), np.nan)
+    dark, light = cube & (ratio < 0.4), cube & (ratio > 0.7)
+    changes = [np.count_nonzero(np.diff(dark[y][cube[y]].astype(np.int8))) for y in range(cube.shape[0])
+               if cube[y].sum() >= 10]
+    n = max(int(cube.sum()), 1)
+    return dark.sum() / n, light.sum() / n, float(np.mean(changes)) if changes else 0.0
+
+
+def sky_in_intensity(plain: dict, textured: dict) -> tuple:
+    """(median intensity ratio textured / untextured on the background's lower half, mean intensity of the
+    background's top 3 rows / its lower half's median, textured): where no surface is hit the sensor sees the
+    ambient light itself, the map's ground (SKY_GROUND against the default World's 0.0509) and, at the top of
+    the image, just above the horizon."""
+    background = ~np.isfinite(plain["gt_depth"]) & ~np.isfinite(textured["gt_depth"])
+    lower = background.copy()
+    lower[:background.shape[0] // 2] = False
+    top = background.copy()
+    top[3:] = False
+    ground = float(np.median(textured["intensity"][lower]))
+    ratio = float(np.median(textured["intensity"][lower] / np.maximum(plain["intensity"][lower], 1e-12)))
+    return ratio, float(textured["intensity"][top].mean()) / max(ground, 1e-12)
+
+
+def image_on_screen(pixels: np.ndarray, name: str) -> tuple:
+    """(correlation, rectangle): the screen at the centres of image ``name``'s pixels, placed where the image
+    editor draws them (its view: the image spans 0..1), against that image's grey values; r near 1: the image
+    is on screen as stored. The rectangle is the image's on the screen (x, y from the bottom, width, height)."""
+    image = bpy.data.images[name]
+    width, height = image.size
+    data = np.empty(width * height * 4, np.float32)
+    image.pixels.foreach_get(data)
+    grey = data.reshape(height, width, 4)[..., :3].mean(axis=-1)        # row 0 at the bottom, as the screen's
+    region = next(r for r in layout["image"].regions if r.type == 'WINDOW')
+    (left, bottom), (right, top) = (region.view2d.view_to_region(u, v, clip=False) for u, v in ((0, 0), (1, 1)))
+    left, right, bottom, top = left + region.x, right + region.x, bottom + region.y, top + region.y
+    box = (int(left), int(bottom), int(right - left), int(top - bottom))
+    cx = np.floor(left + (np.arange(width) + 0.5) * (right - left) / width).astype(int)
+    cy = np.floor(bottom + (np.arange(height) + 0.5) * (top - bottom) / height).astype(int)
+    if min(cx.min(), cy.min()) < 0 or cx.max() >= pixels.shape[1] or cy.max() >= pixels.shape[0]:
+        return 0.0, box
+    seen = pixels[np.ix_(cy, cx)][..., :3].mean(axis=-1)
+    return float(np.corrcoef(seen.ravel(), grey.ravel())[0, 1]), box
+
+
 def scenario():
     context = bpy.context
     bpy.ops.preferences.addon_enable(module=ADDON)
@@ -216,7 +347,61 @@ def scenario():
     check("render", error_banner_px(pixels) < 20,
           f"screenshot: {error_banner_px(pixels)} red pixels in the status bar and the Info editor")
 
-    # 2. Live Preview while the camera moves ----------------------------------------------------------
+    # 2. A textured scene under an HDRI World ---------------------------------------------------------
+    kept = textured_scene()
+    exported = importlib.import_module(f"{ADDON}.export").export_scene(context.evaluated_depsgraph_get(), camera)
+    textures = {m.name: {k: t.data.shape for k, t in m.textures.items()} for m in exported.scene.materials}
+    ambient = exported.ambient
+    environment = ambient.environment.data if ambient is not None and ambient.environment is not None else None
+    check("textured", textures == {"GUI Checker": {"reflectance_texture": (CHECKER_PX, CHECKER_PX),
+                                                   "roughness_texture": (CHECKER_PX, CHECKER_PX)}}
+          and environment is not None and environment.shape == (SKY_H, SKY_W) and ambient.radiance_w_m2_sr == 0
+          and abs(float(environment[-1, 0]) - SKY_GROUND) < 1e-4 and not exported.warnings,
+          f"export: textures {textures}; ambient map {None if environment is None else environment.shape}, "
+          f"nadir {None if environment is None else float(environment[-1, 0]):.4g}, constant "
+          f"{None if ambient is None else ambient.radiance_w_m2_sr}; warnings {exported.warnings}")
+    tof.output_dir = os.path.join(OUT, "textured", "####", "")
+    returned = click("render")
+    finished = yield from wait_for(lambda: ops.active_render_job() is None, 120)
+    folder = os.path.join(OUT, "textured", "0001")
+    written, state = files_in(folder), ops.last_result.get("state")
+    check("textured", returned == {'RUNNING_MODAL'} and finished and state == "done" and written == FILES,
+          f"Render ToF returned {returned}, state {state!r}, files in textured/0001: {len(written)}")
+    stats = json.load(open(os.path.join(folder, "frame.json")))["stats"] if "frame.json" in written else {}
+    plan, transport = stats.get("plan", {}), stats.get("transport", {})
+    tracer, reason = transport.get("tracer"), transport.get("tracer_reason") or ""
+    check("textured", plan.get("textures") is True and plan.get("ambient") is True
+          and ((tracer == "compiled" and not reason) or (tracer == "numpy" and reason.startswith("numba is not"))),
+          f"frame.json: plan textures {plan.get('textures')}, ambient {plan.get('ambient')}; tracer {tracer!r} "
+          f"({reason!r}), {transport.get('parallel')!r}; add-on: "
+          f"{importlib.import_module(f'{ADDON}.compiled').tracer_text(transport)!r}")
+    plain, textured = read_frame(os.path.join(OUT, "tof", "0001")), read_frame(folder)
+    dark, light, changes = checker_in_amplitude(plain, textured)
+    check("textured", 0.2 <= dark <= 0.7 and 0.2 <= light <= 0.7 and changes >= 3,
+          f"amplitude on the cube against the untextured frame: {dark:.0%} dark cells (< 0.4x), {light:.0%} light "
+          f"(> 0.7x), {changes:.1f} dark/light changes a row")
+    ground, horizon = sky_in_intensity(plain, textured)
+    check("textured", 0.1 <= ground <= 0.3 and horizon > 1.2,
+          f"background intensity (the ambient map seen directly): ground {ground:.3f}x the default World's "
+          f"(map {SKY_GROUND / 0.0509:.3f}x), top rows {horizon:.2f}x the ground")
+    layout["image"].spaces.active.image = bpy.data.images["ToF Amplitude"]
+    layout["image"].spaces.active.display_channels = 'COLOR'      # invalid pixels black, not the alpha checker
+    with context.temp_override(area=layout["image"],
+                               region=next(r for r in layout["image"].regions if r.type == 'WINDOW')):
+        bpy.ops.image.view_all(fit_view=True)
+    yield 1.0
+    pixels = screenshot("textured")
+    r, box = image_on_screen(pixels, "ToF Amplitude")
+    aspect = box[2] / box[3] if box else 0.0
+    check("textured", r > 0.8 and abs(aspect / (128 / 106) - 1) < 0.05 and error_banner_px(pixels) < 20,
+          f"screenshot: ToF Amplitude at {box} (aspect {aspect:.3f}, image 1.208) matches the image, r = {r:.3f}; "
+          f"{error_banner_px(pixels)} red pixels")
+    layout["image"].spaces.active.display_channels = 'COLOR_ALPHA'
+    untextured_scene(kept)
+    show_depth()
+    yield 0.5
+
+    # 3. Live Preview while the camera moves ----------------------------------------------------------
     before = files_in(os.path.join(OUT, "tof"))
     tof.live_preview = True
     came = yield from wait_for(lambda: ops.last_result.get("kind") == "preview"
@@ -241,7 +426,7 @@ def scenario():
     tof.live_preview = False
     yield 0.5
 
-    # 3. Esc cancels a long render --------------------------------------------------------------------
+    # 4. Esc cancels a long render --------------------------------------------------------------------
     tof.spp, tof.max_depth = 1024, 5
     tof.output_dir = os.path.join(OUT, "cancel", "####", "")
     click("render")
@@ -260,7 +445,7 @@ def scenario():
     check("cancel", leftovers == [], f"nothing written: {leftovers}")
     check("cancel", error_banner_px(pixels) < 20, "no error banner")
 
-    # 4. Render ToF Animation, frames 1-3 -------------------------------------------------------------
+    # 5. Render ToF Animation, frames 1-3 -------------------------------------------------------------
     scene = context.scene
     tof.spp, tof.max_depth = 4, 2
     tof.output_dir = os.path.join(OUT, "anim", "####", "")
@@ -285,7 +470,7 @@ def scenario():
     check("animation", colourful_px(pixels, rect(layout["image"])) >= MIN_COLOURFUL_PX and error_banner_px(pixels) < 20,
           "the last frame on screen, no error banner")
 
-    # 5. A custom sensor as a Blender preset ----------------------------------------------------------
+    # 6. A custom sensor as a Blender preset ----------------------------------------------------------
     tof.width, tof.height, tof.noise_model = 64, 53, 'none'
     bpy.ops.tof.sensor_preset_add(name="GUI Custom Sensor")
     saved = os.path.join(bpy.utils.user_resource('SCRIPTS', path="presets"), "tof_camera", "sensor",
@@ -302,11 +487,11 @@ def scenario():
     check("preset", (applied.preset, applied.width, applied.height, applied.noise_model) == ("kinect_v2", 64, 53, 'none'),
           f"applied to {other.name!r}: {applied.preset}, {applied.width}x{applied.height}, noise {applied.noise_model}")
 
-    # 6. The Info log, as a record (run.py checks Blender's log for "Error:" lines) --------------------
+    # 7. The Info log, as a record (run.py checks Blender's log for "Error:" lines) --------------------
     with open(os.path.join(OUT, "info_log.txt"), "w") as fh:
         fh.write(info_log())
 
-    # 7. Errors the user causes, on purpose: reported, naming the field; the detectors see them ------------
+    # 8. Errors the user causes, on purpose: reported, naming the field; the detectors see them ------------
     print("GUI-TEST: an error report on purpose follows", flush=True)
     applied.preset, applied.preset_path = 'CUSTOM', ""
     yield 0.5
