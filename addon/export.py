@@ -520,7 +520,7 @@ def material_from_blender(material, *, warnings: list[str] | None = None, images
 
     Reads the Principled BSDF linked to the active material output's
     "Surface" (through reroutes; the first Principled BSDF inside mix/add
-    shaders, with a warning), its inputs by name, image textures on
+    shaders, with a warning), its inputs by name (Coat Weight and Coat Roughness too), image textures on
     "Base Color", "Roughness", "Metallic" and a Normal Map node on "Normal",
     and the IR override ``material.tof`` when it is switched on.
     """
@@ -528,7 +528,8 @@ def material_from_blender(material, *, warnings: list[str] | None = None, images
     images = images if images is not None else _ImageCache(warnings)
     name = material.name
     inputs = {"base_color": mapping.BLENDER_DEFAULT_BASE_COLOR, "roughness": mapping.BLENDER_DEFAULT_ROUGHNESS,
-              "metallic": 0.0, "ior": mapping.BLENDER_DEFAULT_IOR}
+              "metallic": 0.0, "ior": mapping.BLENDER_DEFAULT_IOR, "coat": 0.0,
+              "coat_roughness": mapping.BLENDER_DEFAULT_COAT_ROUGHNESS}
     textures: dict[str, tofcore.Texture] = {}
     bsdf = _surface_bsdf(material, warnings)
     if bsdf is None:
@@ -547,6 +548,15 @@ def material_from_blender(material, *, warnings: list[str] | None = None, images
                 texture = images.texture(image, key, name)
                 if texture is not None:
                     textures[_TEXTURE_FIELDS[key]] = texture
+        for key, socket_names in (("coat", ("Coat Weight", "Clearcoat")),
+                                  ("coat_roughness", ("Coat Roughness", "Clearcoat Roughness"))):
+            socket_name = next((n for n in socket_names if bsdf.inputs.get(n) is not None), socket_names[0])
+            value, image = _socket_value(bsdf, socket_name, name, warnings)
+            if value is not None:
+                inputs[key] = value
+            if image is not None:
+                warnings.append(f"material {name!r}: an image on {socket_name!r} is not supported; its unlinked "
+                                f"value is used")
         normal = _normal_map_image(bsdf, name, warnings)
         if normal is not None:
             texture = images.texture(normal, "normal", name)

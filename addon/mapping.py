@@ -32,6 +32,9 @@ Base Color (metals only)     ``extinction``             k from F0 = Y with η = 
                                                         0 when Metallic = 0
 Normal → Normal Map →        ``normal_texture``         tangent-space RGB in [0, 1], unchanged (strength 1)
 Image Texture
+Coat Weight (Clearcoat)      ``coat``                   unchanged, clipped to [0, 1] (the coat's IOR: tofcore's 1.5,
+                                                        Blender's default)
+Coat Roughness               ``coat_roughness``         σ = r² / √2, as Roughness
 ===========================  =========================  ===========================================================
 
 IR override (``material.tof.use_override``): ``reflectance`` (0..1) and
@@ -112,6 +115,8 @@ LUMINANCE_WEIGHTS = (0.2126, 0.7152, 0.0722)
 BLENDER_DEFAULT_BASE_COLOR = (0.8, 0.8, 0.8)
 BLENDER_DEFAULT_ROUGHNESS = 0.5
 BLENDER_DEFAULT_IOR = 1.5
+BLENDER_DEFAULT_COAT_ROUGHNESS = 0.03
+"""Blender 4's Principled BSDF default Coat Roughness."""
 
 #: Limits of tofcore.Material's fields (see tofcore/scene/material.py).
 SIGMA_MAX = math.pi / 2
@@ -188,8 +193,8 @@ def f0_from_extinction(ior: float, extinction: float) -> float:
 
 # --------------------------------------------------------------------------- materials
 def material_fields(*, base_color=BLENDER_DEFAULT_BASE_COLOR, roughness: float = BLENDER_DEFAULT_ROUGHNESS,
-                    metallic: float = 0.0, ior: float = BLENDER_DEFAULT_IOR,
-                    override_reflectance: float | None = None, override_roughness: float | None = None,
+                    metallic: float = 0.0, ior: float = BLENDER_DEFAULT_IOR, coat: float = 0.0,
+                    coat_roughness: float = BLENDER_DEFAULT_COAT_ROUGHNESS, override_reflectance: float | None = None, override_roughness: float | None = None,
                     override_extinction: float | None = None) -> dict:
     """Scalar :class:`tofcore.Material` keyword arguments from Principled BSDF inputs (module table).
 
@@ -199,13 +204,15 @@ def material_fields(*, base_color=BLENDER_DEFAULT_BASE_COLOR, roughness: float =
     roughness : Blender roughness r in [0, 1].
     metallic : "Metallic" in [0, 1].
     ior : "IOR" (≥ 1 for dielectrics; the conductor's real part η).
+    coat, coat_roughness : "Coat Weight" in [0, 1] and "Coat Roughness" r in [0, 1] (Blender 3: "Clearcoat",
+        "Clearcoat Roughness").
     override_reflectance, override_roughness, override_extinction :
         The material's IR override (reflectance in [0, 1], σ in radians,
         extinction k); None keeps the derived value.
 
     Returns
     -------
-    dict with ``reflectance``, ``roughness``, ``metallic``, ``ior``, ``extinction``.
+    dict with ``reflectance``, ``roughness``, ``metallic``, ``ior``, ``extinction``, ``coat``, ``coat_roughness``.
     """
     metallic = float(min(max(float(metallic), 0.0), 1.0))
     ior = float(min(max(float(ior), IOR_RANGE[0]), IOR_RANGE[1]))
@@ -219,7 +226,8 @@ def material_fields(*, base_color=BLENDER_DEFAULT_BASE_COLOR, roughness: float =
     if override_extinction is not None and metallic > 0.0:
         extinction = float(override_extinction)
     return {"reflectance": reflectance, "roughness": sigma, "metallic": metallic, "ior": ior,
-            "extinction": extinction}
+            "extinction": extinction, "coat": float(min(max(float(coat), 0.0), 1.0)),
+            "coat_roughness": float(sigma_from_blender_roughness(coat_roughness))}
 
 
 # --------------------------------------------------------------------------- images

@@ -377,6 +377,16 @@ def test_principled_inputs_map_to_tofcore_fields(clean_bpy):
     assert not result.warnings
 
 
+def test_principled_coat_maps_to_the_clear_coat(clean_bpy):
+    """Blender's Coat Weight and Coat Roughness → tofcore's clear coat (mapping.material_fields)."""
+    material = new_material("Lacquer", **{"Base Color": (0.2, 0.2, 0.2, 1.0), "Coat Weight": 0.8,
+                                          "Coat Roughness": 0.2})
+    m = export.material_from_blender(material)
+    assert m.coat == pytest.approx(0.8, rel=1e-6)
+    assert m.coat_roughness == pytest.approx(0.04 / math.sqrt(2), rel=1e-5)
+    assert export.material_from_blender(new_material("Plain")).coat == 0.0
+
+
 def test_metal_reflectance_sets_extinction(clean_bpy):
     material = new_material("Alu", **{"Base Color": (0.9, 0.9, 0.9, 1.0), "Metallic": 1.0, "IOR": 1.5})
     m = export.material_from_blender(material)

@@ -178,3 +178,14 @@ def test_camera_errors_name_the_value():
                                                resolution_x=10, resolution_y=10)
     with pytest.raises(ValueError, match="fx and fy must be > 0"):
         mapping.blender_camera_from_intrinsics(10, 10, 0.0, 5.0, 5.0, 5.0)
+
+
+def test_coat_weight_and_roughness_map_to_the_clear_coat():
+    """Blender's Coat Weight → coat (clipped to [0, 1]); Coat Roughness r → σ = r² / √2, as Roughness; no coat by
+    default."""
+    plain = mapping.material_fields()
+    assert plain["coat"] == 0.0
+    assert plain["coat_roughness"] == pytest.approx(mapping.BLENDER_DEFAULT_COAT_ROUGHNESS ** 2 / math.sqrt(2))
+    fields = mapping.material_fields(coat=1.7, coat_roughness=0.4)
+    assert fields["coat"] == 1.0 and fields["coat_roughness"] == pytest.approx(0.16 / math.sqrt(2))
+    tofcore.Material(name="lacquer", **fields)

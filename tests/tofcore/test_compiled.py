@@ -74,8 +74,9 @@ def small_preset(name: str, width: int = 40):
 
 
 def odd_materials_room() -> tofcore.Scene:
-    """The demo room with a mirror, a half-metal, an η = 1 dielectric and interpolated vertex normals:
-    delta lobes, the blended Fresnel, shading normals apart from the geometric ones."""
+    """The demo room with a mirror, a half-metal, an η = 1 dielectric, clear coats (rough over a rough base, a
+    mirror coat over a mirror) and interpolated vertex normals: delta lobes, the blended Fresnel, the coat's
+    lobes, shading normals apart from the geometric ones."""
     room = tofcore.demo_scene("room", detail=2)
     rng = np.random.default_rng(3)
     normals = np.zeros_like(room.vertices, dtype=np.float64)
@@ -84,7 +85,9 @@ def odd_materials_room() -> tofcore.Scene:
     materials = (Material(name="mirror", reflectance=0.2, roughness=0.0),
                  Material(name="half metal", metallic=0.5, ior=1.4, extinction=3.0, roughness=0.3),
                  Material(name="no fresnel", reflectance=0.9, roughness=0.8, ior=1.0),
-                 Material(name="metal", metallic=1.0, ior=1.35, extinction=9.6, roughness=0.15))
+                 Material(name="metal", metallic=1.0, ior=1.35, extinction=9.6, roughness=0.15),
+                 Material(name="lacquer", reflectance=0.6, roughness=0.5, coat=1.0, coat_roughness=0.1),
+                 Material(name="varnished mirror", reflectance=0.3, roughness=0.0, coat=0.5, coat_roughness=0.0))
     ids = room.material_ids % len(materials)
     return tofcore.Scene.from_arrays(room.vertices, room.triangles, ids, materials, normals=normals,
                                      name="odd room")
@@ -438,7 +441,7 @@ def test_the_wavefronts_light_table_round_trips_a_light_vertex():
     from tofcore.compiled import kernels
 
     surf = ((1.0, 2.0, 3.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.6, 0.8),
-            (0.5, 0.2, 0.0, 1.5, 0.0))
+            (0.5, 0.2, 0.0, 1.5, 0.0, 0.4, 0.1))
     light = (True, surf, (0.0, -0.6, -0.8), 2.5, 0.125, 3.0e-2, 1e-6)
     table = np.zeros((kernels.LIGHT_COLUMNS, 3))
     kernels.store_light(table, 1, light)

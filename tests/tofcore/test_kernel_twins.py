@@ -92,7 +92,8 @@ VALUE_TESTED = (
     # textures, the sky, transient bins
     "texture_sample", "perturb_normal", "ambient_radiance", "add_transient",
     # reflection
-    "fresnel_dielectric", "fresnel_conductor", "specular_fresnel", "outgoing", "rough_alpha",
+    "fresnel_dielectric", "fresnel_conductor", "specular_fresnel", "outgoing", "rough_alpha", "specular_density",
+    "coat_fresnel", "reflect_visible_normal",
     "beckmann_distribution", "half_vector", "oren_nayar", "cos_azimuth_difference", "eval_terms", "pdf_terms",
     "eval_bsdf", "eval_pdf_bsdf", "sample_bsdf",
     # one path
@@ -331,27 +332,34 @@ def test_random_numbers_equal_tofcore_rng_and_qmc():
 # ------------------------------------------------------------------ vectors, frames, offsets, shadow rays
 @jitted
 def _surf(rows, i):
-    """The kernels' surface tuple from row i of (N, 20) rows: position, ng, tangent, bitangent, ns, 5 params."""
+    """The kernels' surface tuple from row i of (N, SURFACE_ROWS) rows: position, ng, tangent, bitangent, ns, the
+    material record (the material table's fields)."""
     return ((rows[i, 0], rows[i, 1], rows[i, 2]), (rows[i, 3], rows[i, 4], rows[i, 5]),
             (rows[i, 6], rows[i, 7], rows[i, 8]), (rows[i, 9], rows[i, 10], rows[i, 11]),
-            (rows[i, 12], rows[i, 13], rows[i, 14]), (rows[i, 15], rows[i, 16], rows[i, 17], rows[i, 18], rows[i, 19]))
+            (rows[i, 12], rows[i, 13], rows[i, 14]),
+            kernels.surface_params(rows[i, 15], rows[i, 16], rows[i, 17], rows[i, 18], rows[i, 19], rows[i, 20],
+                                   rows[i, 21]))
 
 
 @jitted
 def _put_surf(rows, i, surf):
-    """Row i of (N, 20) rows from the kernels' surface tuple (:func:`_surf` backwards)."""
+    """Row i of (N, SURFACE_ROWS) rows from the kernels' surface tuple (:func:`_surf` backwards)."""
     position, ng, tangent, bitangent, ns, params = surf  # a heterogeneous tuple takes constant indices only
     for k, v in enumerate((position, ng, tangent, bitangent, ns)):
         rows[i, 3 * k], rows[i, 3 * k + 1], rows[i, 3 * k + 2] = v
-    rows[i, 15], rows[i, 16], rows[i, 17], rows[i, 18], rows[i, 19] = params
+    rows[i, 15], rows[i, 16], rows[i, 17], rows[i, 18], rows[i, 19], rows[i, 20], rows[i, 21] = params
 
 
 def surface_rows(surf: surface.Surface) -> np.ndarray:
-    """(N, 20) rows of a NumPy :class:`~tofcore.tracer.surface.Surface` for :func:`_surf`."""
+    """(N, SURFACE_ROWS) rows of a NumPy :class:`~tofcore.tracer.surface.Surface` for :func:`_surf`."""
     p = surf.params
     return np.ascontiguousarray(np.column_stack([surf.position, surf.geometric_normal, surf.tangent, surf.bitangent,
-                                                 surf.shading_normal, p.reflectance, p.roughness, p.metallic, p.ior,
-                                                 p.extinction]), dtype=np.float64)
+                                                 surf.shading_normal, *(getattr(p, name) for name in PARAMETER_NAMES)]),
+                                dtype=np.float64)
+
+
+SURFACE_ROWS = 15 + len(PARAMETER_NAMES)
+"""Columns of a surface row: five vectors and the material record."""
 
 
 @jitted
@@ -568,7 +576,7 @@ def test_textures_sky_map_normal_maps_and_transient_bins_equal_numpy():
         Tally._add_transient(tally, np.zeros(1, np.int64), np.array([w]), np.array([length]))
     twin("add_transient", film, film_ref)
     twin("perturb_normal", bent, surface._perturb(setup.table, prim, n_in, rgb))
-    values = (0.25, 0.5, 0.75, 1.5, 2.5)
+    values = (0.25, 0.5, 0.75, 1.5, 2.5, 0.6, 0.125)
     reference = bsdf.SurfaceParams(**dict(zip(PARAMETER_NAMES, values)))
     assert tuple(f.name for f in dataclasses.fields(bsdf.SurfaceParams)) == PARAMETER_NAMES
     twin("surface_params", np.array(kernels.surface_params(*values)),
@@ -578,42 +586,47 @@ def test_textures_sky_map_normal_maps_and_transient_bins_equal_numpy():
 # ------------------------------------------------------------------ reflection (tofcore.scene.fresnel, bsdf, sampling)
 @jitted
 def _params(p, i):
-    return p[i, 0], p[i, 1], p[i, 2], p[i, 3], p[i, 4]
+    return kernels.surface_params(p[i, 0], p[i, 1], p[i, 2], p[i, 3], p[i, 4], p[i, 5], p[i, 6])
 
 
 @jitted
-def _reflection(params, wo, wi, u, fresnel_o, probability, pair_valid, pair_h, pair_scalars):
-    """Every reflection function on point i's parameters and directions; ``fresnel_o``, ``probability`` and the
-    pair's terms are the reference's, as inputs of the functions that take them."""
+def _reflection(params, wo, wi, u, outgoing, pair_valid, pair_h, pair_scalars):
+    """Every reflection function on point i's parameters and directions; ``outgoing`` (F_d(θ_o), P_s, F_c(θ_o),
+    P_c) and the pair's terms are the reference's, as inputs of the functions that take them."""
     n = len(wo)
-    scalars = np.empty((14, n))
+    scalars = np.empty((18, n))
     h = np.empty((2, n, 3))
-    terms = np.empty((6, n))
-    sampled = np.empty((n, 3))
+    terms = np.empty((8, n))
+    sampled = np.empty((2, n, 3))
     sample_terms = np.empty((3, n))
     for i in range(n):
         p, o, w = _params(params, i), _vec(wo, i), _vec(wi, i)
+        _put(sampled[1], i, kernels.reflect_visible_normal(o, u[i, 3], u[i, 1], u[i, 2], u[i, 0]))
         scalars[0, i] = kernels.fresnel_dielectric(w[2], p[3])
         scalars[1, i] = kernels.fresnel_conductor(w[2], p[3], p[4])
         scalars[2, i] = kernels.specular_fresnel(p, w[2])
-        scalars[3, i], scalars[4, i] = kernels.outgoing(p, o[2])
-        scalars[5, i] = kernels.rough_alpha(p)
+        scalars[3, i], scalars[4, i], scalars[13, i], scalars[14, i] = kernels.outgoing(p, o[2])
+        scalars[5, i] = kernels.rough_alpha(p[1])
         scalars[6, i] = kernels.beckmann_distribution(w[2], u[i, 3])
         scalars[7, i] = kernels.oren_nayar(p[0], p[1], w[2], o[2], u[i, 4])
         scalars[8, i] = kernels.cos_azimuth_difference(o, w)
         scalars[9, i] = kernels.eval_bsdf(p, o, w)
         scalars[10, i], scalars[11, i] = kernels.eval_pdf_bsdf(p, o, w)
-        cos_i, cos_oh, alpha, distribution = pair_scalars[0, i], pair_scalars[1, i], pair_scalars[2, i], \
-            pair_scalars[3, i]
-        scalars[12, i] = kernels.pdf_terms(o, probability[i], cos_i, pair_valid[i], _vec(pair_h, i), cos_oh, alpha,
-                                           distribution)
+        pair = (pair_scalars[0, i], pair_valid[i], _vec(pair_h, i), pair_scalars[1, i], pair_scalars[2, i],
+                pair_scalars[3, i], pair_scalars[4, i], pair_scalars[5, i])
+        scalars[12, i] = kernels.pdf_terms(o, (outgoing[1, i], outgoing[3, i]), pair)
+        scalars[15, i] = kernels.specular_density(o, _vec(pair_h, i), pair_scalars[1, i], pair_scalars[4, i],
+                                                  pair_scalars[5, i])
+        scalars[16, i] = kernels.coat_fresnel(p, o[2])
         _put(h[0], i, kernels.half_vector(o, w))
-        f, t_cos_i, valid, t_h, t_cos_oh, t_alpha, t_distribution = kernels.eval_terms(p, o, w, fresnel_o[i])
+        f, (t_cos_i, valid, t_h, t_cos_oh, t_alpha, t_distribution, t_coat_alpha, t_coat_distribution) = \
+            kernels.eval_terms(p, o, w, outgoing[0, i], outgoing[2, i])
         terms[0, i], terms[1, i], terms[2, i] = f, t_cos_i, 1.0 if valid else 0.0
         terms[3, i], terms[4, i], terms[5, i] = t_cos_oh, t_alpha, t_distribution
+        terms[6, i], terms[7, i] = t_coat_alpha, t_coat_distribution
         _put(h[1], i, t_h)
         s_wi, weight, pdf, is_delta = kernels.sample_bsdf(p, o, u[i, 0], u[i, 1], u[i, 2])
-        _put(sampled, i, s_wi)
+        _put(sampled[0], i, s_wi)
         sample_terms[0, i], sample_terms[1, i], sample_terms[2, i] = weight, pdf, 1.0 if is_delta else 0.0
     return scalars, h, terms, sampled, sample_terms
 
@@ -650,41 +663,68 @@ def reflection_inputs(n: int):
     return params, wo, wi, u
 
 
+def _coated(params: bsdf.SurfaceParams, n: int) -> bsdf.SurfaceParams:
+    """The points of ``params`` half of them under a clear coat: weights 0.3 and 1, a mirror coat, one just below
+    the mirror threshold and rough ones."""
+    g = draws(5)
+    coat = g.choice([0.0, 0.0, 0.3, 1.0], n)
+    coat_roughness = g.choice([0.0, 0.5 * bsdf.SMOOTH_ROUGHNESS_RAD, 0.05, 0.4], n)
+    return dataclasses.replace(params, coat=coat, coat_roughness=coat_roughness)
+
+
 @needs_numba
 def test_reflection_equals_fresnel_bsdf_and_sampling():
     """Fresnel terms, lobe probabilities, the half vector and α bit for bit; everything through the Beckmann D
     (exp), Oren–Nayar (acos, sin, tan, pow) or a sampled microfacet normal (log1p, sin, cos) to 1e-12."""
     params, wo, wi, u = reflection_inputs(3000)
+    params = _coated(params, 3000)
+    coated = params.coat > 0.0
     cos_o, cos_i = wo[:, 2], wi[:, 2]
     out = bsdf._outgoing(params, cos_o)
     pair = bsdf._pair(params, wo, wi)
-    pair_scalars = np.array([pair.cos_i, pair.cos_oh, pair.alpha, pair.distribution])
+    # the kernels' coat terms are 0 at a point without a coat (the reference computes them for the whole batch)
+    coat_alpha, coat_distribution = (np.where(coated, a, 0.0) for a in (pair.coat_alpha, pair.coat_distribution))
+    pair_scalars = np.array([pair.cos_i, pair.cos_oh, pair.alpha, pair.distribution, coat_alpha, coat_distribution])
+    outgoing = np.array([out.fresnel_o, out.probability, np.where(coated, out.coat_fresnel_o, 0.0),
+                         out.coat_probability])
     matrix = np.column_stack([getattr(params, k) for k in PARAMETER_NAMES])
-    scalars, h, terms, sampled, sample_terms = _reflection(matrix, wo, wi, u, out.fresnel_o, out.probability,
-                                                           pair.valid, pair.h, pair_scalars)
+    scalars, h, terms, sampled, sample_terms = _reflection(matrix, wo, wi, u, outgoing, pair.valid, pair.h,
+                                                           pair_scalars)
     twin("fresnel_dielectric", scalars[0], fresnel.fresnel_dielectric(cos_i, params.ior))
     twin("fresnel_conductor", scalars[1], fresnel.fresnel_conductor(cos_i, params.ior, params.extinction))
     twin("specular_fresnel", scalars[2], bsdf.specular_fresnel(params, cos_i))
-    twin("outgoing", scalars[3:5], np.array([out.fresnel_o, out.probability]))
-    twin("rough_alpha", scalars[5], bsdf._rough_alpha(params))
+    twin("outgoing", np.vstack([scalars[3:5], scalars[13:15]]), outgoing)
+    twin("rough_alpha", scalars[5], bsdf._rough_alpha(params.roughness))
     twin("beckmann_distribution", scalars[6], sampling.beckmann_distribution(cos_i, u[:, 3]), TRANSCENDENTAL)
     twin("oren_nayar", scalars[7], bsdf.oren_nayar(params.reflectance, params.roughness, cos_i, cos_o, u[:, 4]),
          TRANSCENDENTAL)
     twin("cos_azimuth_difference", scalars[8], bsdf.cos_azimuth_difference(wo, wi))
     twin("eval_bsdf", scalars[9], bsdf.eval_bsdf(params, wo, wi), TRANSCENDENTAL)
     twin("eval_pdf_bsdf", scalars[10:12], np.array(bsdf.eval_pdf_bsdf(params, wo, wi)), TRANSCENDENTAL)
-    twin("pdf_terms", scalars[12], bsdf._pdf(wo, out.probability, pair))
+    twin("pdf_terms", scalars[12], bsdf._pdf(wo, out.probability, pair, out.coat_probability))
+    rough_coat = (pair.cos_oh > 0.0) & (coat_alpha > 0.0)
+    twin("specular_density", scalars[15], np.where(rough_coat, sampling.pdf_vcavity_visible_normal(
+        wo, pair.h, coat_alpha, distribution=coat_distribution) * (1.0 / (4.0 * np.where(rough_coat, pair.cos_oh, 1.0))),
+        0.0))
+    twin("coat_fresnel", scalars[16], np.where(coated, fresnel.fresnel_dielectric(cos_o, bsdf.COAT_IOR), 0.0))
     twin("half_vector", h[0], bsdf._half_vector(wo, wi))
-    twin("eval_terms", terms[0], bsdf._eval(params, wo, wi, cos_o, out.fresnel_o, pair), TRANSCENDENTAL)
+    twin("eval_terms", terms[0], bsdf._eval(params, wo, wi, cos_o, out.fresnel_o, pair, out.coat_fresnel_o),
+         TRANSCENDENTAL)
     twin("eval_terms", terms[1:3], np.array([pair.cos_i, pair.valid]), what="(cos θ_i, valid)")
     twin("eval_terms", h[1], pair.h, what="(h)")
     twin("eval_terms", terms[3:5], np.array([pair.cos_oh, pair.alpha]), what="(ω_o·ω_h, α)")
     twin("eval_terms", terms[5], pair.distribution, TRANSCENDENTAL, what="(D)")
+    twin("eval_terms", terms[6:8], np.array([coat_alpha, coat_distribution]), TRANSCENDENTAL, what="(the coat's α, D)")
     s = bsdf.sample_bsdf(params, wo, u[:, 0], u[:, 1], u[:, 2])
-    twin("sample_bsdf", sampled, s.wi, TRANSCENDENTAL, what="(wi)")
+    twin("sample_bsdf", sampled[0], s.wi, TRANSCENDENTAL, what="(wi)")
+    alpha = u[:, 3]  # 0 (a mirror) for the first point
+    twin("reflect_visible_normal", sampled[1], bsdf._reflect(
+        wo, sampling.sample_vcavity_visible_normal(wo, alpha, u[:, 1], u[:, 2], u[:, 0]), alpha), TRANSCENDENTAL)
     twin("sample_bsdf", sample_terms[0:2], np.array([s.weight, s.pdf]), TRANSCENDENTAL, what="(weight, pdf)")
     twin("sample_bsdf", sample_terms[2], s.is_delta, what="(is_delta)")
     assert 0 < s.is_delta.sum() < len(wo) and (s.weight == 0).any() and (s.weight > 0).any()
+    coat_mirror = s.is_delta & coated & (params.coat_roughness < bsdf.SMOOTH_ROUGHNESS_RAD)
+    assert coat_mirror.any() and (s.is_delta & coated & (params.roughness < bsdf.SMOOTH_ROUGHNESS_RAD)).any()
 
 
 # ------------------------------------------------------------------ camera (tofcore.scene.camera)
@@ -757,14 +797,16 @@ def test_camera_rays_equal_the_camera_model():
 def odd_materials_room() -> tofcore.Scene:
     """The demo room with a mirror, a half metal, an η = 1 dielectric, a metal and interpolated vertex normals:
     delta lobes, the blended Fresnel, shading normals apart from the geometric ones (as test_compiled.py); the
-    walls textured (reflectance, roughness, a normal map) and the metal's metallic mask too."""
+    walls textured (reflectance, roughness, a normal map) and the metal's metallic mask too; the half metal under
+    a clear coat."""
     room = tofcore.demo_scene("room", detail=2)
     g = draws(6)
     normals = np.zeros_like(room.vertices, dtype=np.float64)
     normals[room.triangles.ravel()] = np.repeat(room.face_normals, 3, axis=0)
     normals += 0.15 * g.normal(size=normals.shape)
     materials = (Material(name="mirror", reflectance=0.2, roughness=0.0),
-                 Material(name="half metal", metallic=0.5, ior=1.4, extinction=3.0, roughness=0.3),
+                 Material(name="half metal", metallic=0.5, ior=1.4, extinction=3.0, roughness=0.3, coat=0.7,
+                          coat_roughness=0.2),
                  Material(name="no fresnel", reflectance=0.9, roughness=0.8, ior=1.0),
                  Material(name="metal", metallic=1.0, ior=1.35, extinction=9.6, roughness=0.15,
                           metallic_texture=Texture(g.choice([0.0, 1.0], (4, 4)), "mask")),
@@ -813,7 +855,7 @@ def _scene_queries(geo, o, d, t_max, ignore, o64, d64, prim, u, v):
         t[2, i], hit[2, i], bary[1, 0, i], bary[1, 1, i] = kernels.intersect(geo, ray_o, ray_d, t_max[i], ignore[i],
                                                                              False, work)
     m = len(prim)
-    rows = np.empty((m, 20))
+    rows = np.empty((m, SURFACE_ROWS))
     offset = np.empty(m)
     for i in range(m):
         surf = kernels.surface_at(geo, prim[i], u[i], v[i], _vec(o64, i), _vec(d64, i))
@@ -901,7 +943,7 @@ def stage_levels():
 
 
 def light_rows(setup, light, rows: np.ndarray):
-    """(found (N,), surface rows (N, 20), rest (N, 7): y → LED, |y − LED|, emitted, p_B, margin) of the light
+    """(found (N,), surface rows (N, SURFACE_ROWS), rest (N, 7): y → LED, |y − LED|, emitted, p_B, margin) of the light
     vertices ``rows`` (−1: none), the margin as light_paths.connect computes it."""
     found = rows >= 0
     take = np.where(found, rows, 0)
@@ -1051,7 +1093,7 @@ def _light_rays(scene, key, independent, pixel, sample):
     ray_out = np.empty((n, 8))
     ray_f32 = np.empty((2, n, 3), np.float32)
     found = np.empty(n, np.bool_)
-    rows = np.empty((n, 20))
+    rows = np.empty((n, SURFACE_ROWS))
     rest = np.empty((n, 7))
     work = (np.zeros(kernels.N_COUNTERS, np.int64), np.empty(kernels.STACK_SIZE, np.int64),
             np.empty(kernels.STACK_SIZE, np.float32), np.zeros(1))
@@ -1077,7 +1119,7 @@ def _light_vertices_at(scene, ray_out, ray_f32, prim, u, v):
     geo, leds = scene[0], scene[4]
     n = len(prim)
     found = np.empty(n, np.bool_)
-    rows = np.empty((n, 20))
+    rows = np.empty((n, SURFACE_ROWS))
     rest = np.empty((n, 7))
     for i in range(n):
         ray = (np.int64(ray_out[i, 0]), (ray_out[i, 1], ray_out[i, 2], ray_out[i, 3]),

@@ -38,10 +38,10 @@ from .. import rng as _rng
 from ..tracer import sampler as _sampler
 from ..tracer import surface as _surface
 from ._target import cpu_parallel_function, device_function, gpu_kernel_function, gpu_module
-from .layout import (EXTINCTION, HARMONIC, IOR, LAMBERTIAN, LED_INTENSITY, LED_KIND, LED_POWER, LED_PROBABILITY,
-                     LED_SKIP_FIRST_SHADOW, MATERIAL_COLUMNS, METALLIC, METALLIC_MAP, NORMAL_MAP, N_COUNTERS, PHASOR,
-                     POINT, PULSED, REFLECTANCE, REFLECTANCE_MAP, ROUGHNESS, ROUGHNESS_MAP, SINE, SQUARE, STACK_SIZE,
-                     TABLE)
+from .layout import (COAT, COAT_ROUGHNESS, EXTINCTION, HARMONIC, IOR, LAMBERTIAN, LED_INTENSITY, LED_KIND, LED_POWER,
+                     LED_PROBABILITY, LED_SKIP_FIRST_SHADOW, MATERIAL_COLUMNS, METALLIC, METALLIC_MAP, NORMAL_MAP,
+                     N_COUNTERS, PHASOR, POINT, PULSED, REFLECTANCE, REFLECTANCE_MAP, ROUGHNESS, ROUGHNESS_MAP, SINE,
+                     SQUARE, STACK_SIZE, TABLE)
 
 # ------------------------------------------------------------------ constants, from the reference modules
 GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
@@ -62,6 +62,7 @@ DIM_PIXEL, DIM_LENS = _sampler.PIXEL, _sampler.LENS  # the sampler's one table (
 DIM_LED_CHOICE, DIM_EMISSION = _sampler.LED_CHOICE, _sampler.EMISSION
 SMOOTH_ROUGHNESS_RAD = _bsdf.SMOOTH_ROUGHNESS_RAD
 MIN_LOBE_PROBABILITY = _bsdf.MIN_LOBE_PROBABILITY
+COAT_IOR = _bsdf.COAT_IOR
 SPAWN_RELATIVE = _surface.SPAWN_RELATIVE
 LEAVE_RELATIVE = _surface.LEAVE_RELATIVE
 OFFSET_FLOOR_M = _surface.OFFSET_FLOOR_M
@@ -555,15 +556,16 @@ def surface_at(geo, prim, u, v, ray_origin, ray_direction):
     ns = scale(ns, -1.0 if dot(ns, ng) < 0 else 1.0)
     tangent, bitangent = orthonormal_basis(ns)
     params = surface_params(min(max(reflectance, 0.0), 1.0), max(roughness, 0.0), min(max(metallic, 0.0), 1.0),
-                            materials[m, IOR], materials[m, EXTINCTION])
+                            materials[m, IOR], materials[m, EXTINCTION], materials[m, COAT],
+                            materials[m, COAT_ROUGHNESS])
     return position, ng, tangent, bitangent, ns, params
 
 
 @fn
-def surface_params(reflectance, roughness, metallic, ior, extinction):
+def surface_params(reflectance, roughness, metallic, ior, extinction, coat, coat_roughness):
     """The ``params`` record of a surface point (tofcore.scene.bsdf.SurfaceParams): its fields in the order of
     layout.MATERIAL_COLUMNS (the material table), read by name (params[REFLECTANCE], …)."""
-    return (reflectance, roughness, metallic, ior, extinction)
+    return (reflectance, roughness, metallic, ior, extinction, coat, coat_roughness)
 
 
 # ------------------------------------------------------------------ textures (tofcore.scene.material, ambient)
@@ -725,7 +727,8 @@ def specular_fresnel(params, cos_theta):
 
 @fn
 def outgoing(params, cos_o):
-    """(F_d(cos θ_o), P_s): the terms of ω_o alone (bsdf._outgoing)."""
+    """(F_d(cos θ_o), P_s, F_d(cos θ_o; η_c), P_c): the terms of ω_o alone (bsdf._outgoing); the coat's two
+    are 0 without a coat."""
     reflectance, metallic, ior = params[REFLECTANCE], params[METALLIC], params[IOR]
     fresnel_o = fresnel_dielectric(cos_o, ior)
     specular = specular_fresnel(params, cos_o) if metallic != 0.0 else fresnel_o
@@ -737,13 +740,24 @@ def outgoing(params, cos_o):
         probability = min(max(share, MIN_LOBE_PROBABILITY), 1.0 - MIN_LOBE_PROBABILITY)
     else:
         probability = 1.0 if has_specular else 0.0
-    return fresnel_o, probability
+    coat_fresnel_o = 0.0
+    coat_probability = 0.0
+    if params[COAT] > 0.0:
+        coat_fresnel_o = fresnel_dielectric(cos_o, COAT_IOR)
+        coat = params[COAT] * coat_fresnel_o
+        base = (1.0 - coat) * total
+        coat_total = coat + base
+        coat_share = min(max(coat / (coat_total if coat_total > 0.0 else 1.0), MIN_LOBE_PROBABILITY),
+                         1.0 - MIN_LOBE_PROBABILITY)
+        if coat > 0.0:
+            coat_probability = coat_share if base > 0.0 else 1.0
+    return fresnel_o, probability, coat_fresnel_o, coat_probability
 
 
 @fn
-def rough_alpha(params):
-    """Beckmann α = √2 σ, or 0 for a mirror lobe (bsdf._rough_alpha)."""
-    return SQRT2 * params[ROUGHNESS] if params[ROUGHNESS] >= SMOOTH_ROUGHNESS_RAD else 0.0
+def rough_alpha(roughness):
+    """Beckmann α = √2 σ of a specular lobe of roughness σ, or 0 for a mirror lobe (bsdf._rough_alpha)."""
+    return SQRT2 * roughness if roughness >= SMOOTH_ROUGHNESS_RAD else 0.0
 
 
 @fn
@@ -797,16 +811,24 @@ def cos_azimuth_difference(wo, wi):
 
 
 @fn
-def eval_terms(params, wo, wi, fresnel_o):
-    """f_r and the direction-pair terms (cos θ_i, valid, h, ω_o·ω_h, α, D) (bsdf._pair and bsdf._eval)."""
+def eval_terms(params, wo, wi, fresnel_o, coat_fresnel_o):
+    """f_r and the direction pair's terms ``pair`` = (cos θ_i, valid, h, ω_o·ω_h, α, D, α_c, D_c) (bsdf._pair and
+    bsdf._eval; the coat's α_c and D_c are 0 without a coat)."""
     cos_o, cos_i = wo[2], wi[2]
     h = half_vector(wo, wi)
     cos_oh = wo[0] * h[0] + wo[1] * h[1] + wo[2] * h[2]
-    alpha = rough_alpha(params)
+    alpha = rough_alpha(params[ROUGHNESS])
     distribution = beckmann_distribution(h[2], alpha)
+    coat = params[COAT]
+    coat_alpha = 0.0
+    coat_distribution = 0.0
+    if coat > 0.0:
+        coat_alpha = rough_alpha(params[COAT_ROUGHNESS])
+        coat_distribution = beckmann_distribution(h[2], coat_alpha)
     valid = cos_o > 0.0 and cos_i > 0.0
+    pair = (cos_i, valid, h, cos_oh, alpha, distribution, coat_alpha, coat_distribution)
     if not valid:
-        return 0.0, cos_i, valid, h, cos_oh, alpha, distribution
+        return 0.0, pair
     transmitted = (1.0 - fresnel_dielectric(cos_i, params[IOR])) * (1.0 - fresnel_o)
     diffuse = (1.0 - params[METALLIC]) * transmitted * oren_nayar(params[REFLECTANCE], params[ROUGHNESS], cos_i,
                                                                   cos_o, cos_azimuth_difference(wo, wi))
@@ -818,73 +840,125 @@ def eval_terms(params, wo, wi, fresnel_o):
     specular = 0.0
     if denominator > 0.0:
         specular = specular_fresnel(params, cos_oh) * distribution * geometry / denominator
-    return diffuse + specular, cos_i, valid, h, cos_oh, alpha, distribution
+    if not coat > 0.0:
+        return diffuse + specular, pair
+    # the clear coat: c f_TS(F_d(ω_i·ω_h; η_c), α_c) + (1 − c F_c(θ_i))(1 − c F_c(θ_o)) f_base
+    through = (1.0 - coat * fresnel_dielectric(cos_i, COAT_IOR)) * (1.0 - coat * coat_fresnel_o)
+    coat_specular = 0.0
+    if denominator > 0.0:
+        coat_specular = fresnel_dielectric(cos_oh, COAT_IOR) * coat_distribution * geometry / denominator
+    return coat * coat_specular + through * (diffuse + specular), pair
 
 
 @fn
-def pdf_terms(wo, probability, cos_i, valid, h, cos_oh, alpha, distribution):
-    """Solid-angle density of the non-delta lobes (bsdf._pdf with sampling.pdf_vcavity_visible_normal)."""
+def specular_density(wo, h, cos_oh, alpha, distribution):
+    """Solid-angle density of reflecting ω_o about a V-cavity visible normal h of roughness α: D_ωo(h) / (4 ω_o·ω_h),
+    0 for a mirror (sampling.pdf_vcavity_visible_normal, times the reflection's Jacobian as bsdf._pdf)."""
+    if not (cos_oh > 0.0 and alpha > 0.0):
+        return 0.0
+    reflect_jacobian = 1.0 / (4.0 * cos_oh)
+    visible = max(wo[0] * h[0] + wo[1] * h[1] + wo[2] * h[2], 0.0)
+    visible_other = max(wo[0] * -h[0] + wo[1] * -h[1] + wo[2] * h[2], 0.0)
+    total = visible + visible_other
+    share = visible / (total if total > 0.0 else 1.0)
+    return 2.0 * (distribution * max(h[2], 0.0)) * share * reflect_jacobian
+
+
+@fn
+def pdf_terms(wo, lobes, pair):
+    """Solid-angle density of the non-delta lobes (bsdf._pdf): ``lobes`` = (P_s, P_c), ``pair`` as eval_terms
+    returns it; with a coat P_c p_coat + (1 − P_c) p_base."""
+    probability, coat_probability = lobes
+    cos_i, valid, h, cos_oh, alpha, distribution, coat_alpha, coat_distribution = pair
     if not valid:
         return 0.0
-    specular = 0.0
-    if cos_oh > 0.0 and alpha > 0.0:
-        reflect_jacobian = 1.0 / (4.0 * cos_oh)
-        visible = max(wo[0] * h[0] + wo[1] * h[1] + wo[2] * h[2], 0.0)
-        visible_other = max(wo[0] * -h[0] + wo[1] * -h[1] + wo[2] * h[2], 0.0)
-        total = visible + visible_other
-        share = visible / (total if total > 0.0 else 1.0)
-        specular = 2.0 * (distribution * max(h[2], 0.0)) * share * reflect_jacobian
-    return probability * specular + (1.0 - probability) * (max(cos_i, 0.0) / PI)
+    specular = specular_density(wo, h, cos_oh, alpha, distribution)
+    density = probability * specular + (1.0 - probability) * (max(cos_i, 0.0) / PI)
+    if coat_probability > 0.0:
+        coat = specular_density(wo, h, cos_oh, coat_alpha, coat_distribution)
+        density = coat_probability * coat + (1.0 - coat_probability) * density
+    return density
+
+
+@fn
+def coat_fresnel(params, cos_o):
+    """F_d(cos θ_o; η_c) where the point has a coat, else 0 (what outgoing returns for it)."""
+    return fresnel_dielectric(cos_o, COAT_IOR) if params[COAT] > 0.0 else 0.0
 
 
 @fn
 def eval_bsdf(params, wo, wi):
     """f_r (1/sr) without the cosine (bsdf.eval_bsdf)."""
-    return eval_terms(params, wo, wi, fresnel_dielectric(wo[2], params[IOR]))[0]
+    return eval_terms(params, wo, wi, fresnel_dielectric(wo[2], params[IOR]), coat_fresnel(params, wo[2]))[0]
 
 
 @fn
 def eval_pdf_bsdf(params, wo, wi):
     """(f_r, pdf) of one direction pair (bsdf.eval_pdf_bsdf)."""
-    fresnel_o, probability = outgoing(params, wo[2])
-    f, cos_i, valid, h, cos_oh, alpha, distribution = eval_terms(params, wo, wi, fresnel_o)
-    return f, pdf_terms(wo, probability, cos_i, valid, h, cos_oh, alpha, distribution)
+    fresnel_o, probability, coat_fresnel_o, coat_probability = outgoing(params, wo[2])
+    f, pair = eval_terms(params, wo, wi, fresnel_o, coat_fresnel_o)
+    return f, pdf_terms(wo, (probability, coat_probability), pair)
+
+
+@fn
+def reflect_visible_normal(wo, alpha, u1, u2, u_swap):
+    """ω_o reflected about a V-cavity visible normal of roughness α drawn from (u1, u2, u_swap), or about the
+    normal for α = 0 (sampling.sample_vcavity_visible_normal and bsdf._reflect)."""
+    m = (0.0, 0.0, 1.0)
+    if alpha > 0.0:
+        tan2_theta = -alpha * alpha * math.log1p(-u1)
+        cos_theta = 1.0 / math.sqrt(1.0 + tan2_theta)
+        sin_theta = math.sqrt(tan2_theta) * cos_theta
+        phi = TWO_PI * u2
+        m = (sin_theta * math.cos(phi), sin_theta * math.sin(phi), cos_theta)
+        visible = max(wo[0] * m[0] + wo[1] * m[1] + wo[2] * m[2], 0.0)
+        visible_other = max(wo[0] * -m[0] + wo[1] * -m[1] + wo[2] * m[2], 0.0)
+        if u_swap * (visible + visible_other) >= visible and visible_other > 0.0:
+            m = (-m[0], -m[1], m[2])
+    c = 2.0 * (wo[0] * m[0] + wo[1] * m[1] + wo[2] * m[2])
+    return c * m[0] - wo[0], c * m[1] - wo[1], c * m[2] - wo[2]
 
 
 @fn
 def sample_bsdf(params, wo, u_lobe, u1, u2):
-    """(wi, weight, pdf, is_delta) of one BSDF sample (bsdf.sample_bsdf); see its contract."""
+    """(wi, weight, pdf, is_delta) of one BSDF sample (bsdf.sample_bsdf); see its contract. With a coat its
+    lobe is picked first (u_lobe < P_c), the base's lobes share the rest of u_lobe."""
     cos_o = wo[2]
-    fresnel_o, probability = outgoing(params, cos_o)
-    pick_specular = u_lobe < probability
-    if pick_specular:
-        u_swap = u_lobe / (probability if probability > 0.0 else 1.0)
+    fresnel_o, probability, coat_fresnel_o, coat_probability = outgoing(params, cos_o)
+    pick_coat = False
+    u_coat = 0.0
+    if coat_probability > 0.0:
+        pick_coat = u_lobe < coat_probability
+        u_coat = min(max(u_lobe / coat_probability, 0.0), ONE_BELOW_ONE)
+        u_lobe = min(max((u_lobe - coat_probability) / (1.0 - coat_probability if coat_probability < 1.0 else 1.0),
+                         0.0), ONE_BELOW_ONE)
+    if pick_coat:
+        coat_alpha = rough_alpha(params[COAT_ROUGHNESS])
+        wi = reflect_visible_normal(wo, coat_alpha, u1, u2, u_coat)
+        if coat_alpha == 0.0 and cos_o > 0.0:  # the coat's mirror: reflectance c F_c(θ_o)
+            return wi, params[COAT] * coat_fresnel_o / coat_probability, coat_probability, True
     else:
-        u_swap = (u_lobe - probability) / (1.0 - probability if probability < 1.0 else 1.0)
-    u_swap = min(max(u_swap, 0.0), ONE_BELOW_ONE)
-    alpha = rough_alpha(params)
-    if pick_specular:
-        m = (0.0, 0.0, 1.0)
-        if alpha > 0.0:  # a V-cavity visible normal (sampling.sample_vcavity_visible_normal)
-            tan2_theta = -alpha * alpha * math.log1p(-u1)
-            cos_theta = 1.0 / math.sqrt(1.0 + tan2_theta)
-            sin_theta = math.sqrt(tan2_theta) * cos_theta
-            phi = TWO_PI * u2
-            m = (sin_theta * math.cos(phi), sin_theta * math.sin(phi), cos_theta)
-            visible = max(wo[0] * m[0] + wo[1] * m[1] + wo[2] * m[2], 0.0)
-            visible_other = max(wo[0] * -m[0] + wo[1] * -m[1] + wo[2] * m[2], 0.0)
-            if u_swap * (visible + visible_other) >= visible and visible_other > 0.0:
-                m = (-m[0], -m[1], m[2])
-        c = 2.0 * (wo[0] * m[0] + wo[1] * m[1] + wo[2] * m[2])
-        wi = (c * m[0] - wo[0], c * m[1] - wo[1], c * m[2] - wo[2])
-    else:
-        wi = cosine_hemisphere(u1, u2)
-    if pick_specular and alpha == 0.0 and cos_o > 0.0:  # the mirror: a delta lobe
-        mirror_fresnel = specular_fresnel(params, cos_o) if params[METALLIC] != 0.0 else fresnel_o
-        return wi, mirror_fresnel / (probability if probability > 0.0 else 1.0), probability, True
-    f, cos_i, valid, h, cos_oh, a, distribution = eval_terms(params, wo, wi, fresnel_o)
-    pdf = pdf_terms(wo, probability, cos_i, valid, h, cos_oh, a, distribution)
-    f_cos = f * max(cos_i, 0.0)
+        pick_specular = u_lobe < probability
+        if pick_specular:
+            u_swap = u_lobe / (probability if probability > 0.0 else 1.0)
+        else:
+            u_swap = (u_lobe - probability) / (1.0 - probability if probability < 1.0 else 1.0)
+        u_swap = min(max(u_swap, 0.0), ONE_BELOW_ONE)
+        alpha = rough_alpha(params[ROUGHNESS])
+        if pick_specular:
+            wi = reflect_visible_normal(wo, alpha, u1, u2, u_swap)
+        else:
+            wi = cosine_hemisphere(u1, u2)
+        if pick_specular and alpha == 0.0 and cos_o > 0.0:  # the base's mirror: a delta lobe
+            mirror_fresnel = specular_fresnel(params, cos_o) if params[METALLIC] != 0.0 else fresnel_o
+            if coat_probability > 0.0:  # seen through the coat twice, (1 − c F_c(θ_o))²
+                through = 1.0 - params[COAT] * coat_fresnel_o
+                pick = (1.0 - coat_probability) * probability
+                return wi, through * through * mirror_fresnel / (pick if pick > 0.0 else 1.0), pick, True
+            return wi, mirror_fresnel / (probability if probability > 0.0 else 1.0), probability, True
+    f, pair = eval_terms(params, wo, wi, fresnel_o, coat_fresnel_o)
+    pdf = pdf_terms(wo, (probability, coat_probability), pair)
+    f_cos = f * max(pair[0], 0.0)
     return wi, (f_cos / pdf if pdf > 0.0 else 0.0), pdf, False
 
 
@@ -1408,6 +1482,8 @@ def store_light(out, j, light):
     out[LIGHT_PARAMS + METALLIC, j] = params[METALLIC]
     out[LIGHT_PARAMS + IOR, j] = params[IOR]
     out[LIGHT_PARAMS + EXTINCTION, j] = params[EXTINCTION]
+    out[LIGHT_PARAMS + COAT, j] = params[COAT]
+    out[LIGHT_PARAMS + COAT_ROUGHNESS, j] = params[COAT_ROUGHNESS]
     store_vec(out, j, LIGHT_TO_LED, light[2])
     out[LIGHT_REST, j] = light[3]
     out[LIGHT_REST + 1, j] = light[4]
@@ -1422,7 +1498,8 @@ def load_light(table, j):
             load_vec(table, j, LIGHT_SURF + 9), load_vec(table, j, LIGHT_SURF + 12),
             surface_params(table[LIGHT_PARAMS + REFLECTANCE, j], table[LIGHT_PARAMS + ROUGHNESS, j],
                            table[LIGHT_PARAMS + METALLIC, j], table[LIGHT_PARAMS + IOR, j],
-                           table[LIGHT_PARAMS + EXTINCTION, j]))
+                           table[LIGHT_PARAMS + EXTINCTION, j], table[LIGHT_PARAMS + COAT, j],
+                           table[LIGHT_PARAMS + COAT_ROUGHNESS, j]))
     return (table[LIGHT_FOUND, j] != 0.0, surf, load_vec(table, j, LIGHT_TO_LED), table[LIGHT_REST, j],
             table[LIGHT_REST + 1, j], table[LIGHT_REST + 2, j], table[LIGHT_REST + 3, j])
 

@@ -3,15 +3,16 @@
 from __future__ import annotations
 
 from ..scene.led import KINDS as LED_KINDS  # index = LED kind code: 0 point, 1 Lambertian
-from ..scene.material import PARAMETER_NAMES as MATERIAL_COLUMNS  # reflectance, roughness, metallic, ior, extinction
+from ..scene.material import PARAMETER_NAMES as MATERIAL_COLUMNS  # reflectance … extinction, coat, coat_roughness
 from ..scene.material import TEXTURE_SLOTS
 
 PHASOR, SINE, SQUARE, PULSED, HARMONIC, TABLE = 0, 1, 2, 3, 4, 5
 """Kinds of correlation channel (tofcore.sensor.modulation's functions; HARMONIC and TABLE are custom
 waveforms given as data: a Fourier series, a table over one period)."""
 
-REFLECTANCE, ROUGHNESS, METALLIC, IOR, EXTINCTION = (MATERIAL_COLUMNS.index(name) for name in (
-    "reflectance", "roughness", "metallic", "ior", "extinction"))
+REFLECTANCE, ROUGHNESS, METALLIC, IOR, EXTINCTION, COAT, COAT_ROUGHNESS = (
+    MATERIAL_COLUMNS.index(name) for name in ("reflectance", "roughness", "metallic", "ior", "extinction", "coat",
+                                              "coat_roughness"))
 """The named fields of the kernels' ``params`` tuple and material columns (tofcore.scene.material.PARAMETERS)."""
 
 REFLECTANCE_MAP, ROUGHNESS_MAP, METALLIC_MAP, NORMAL_MAP = (TEXTURE_SLOTS.index(name) for name in (

@@ -47,6 +47,20 @@ Beckmann D (eq. 2.26, α = √2 σ) and the V-cavity G (eq. 2.27); metals have n
 diffuse part. Below σ = `SMOOTH_ROUGHNESS_RAD` the specular lobe is a perfect
 mirror (a delta lobe, eq. 2.17) with reflectance F(cos θ_o).
 
+Clear coat (Blender's Principled BSDF "Coat"; not in the thesis). A coat of weight c ∈ [0, 1] and
+roughness σ_c is a dielectric interface of η_c = `COAT_IOR` over the model above (the base f_base):
+
+.. math::
+
+    f_r = c\,f_{TS}\big(F_d(\omega_i\cdot\omega_h; \eta_c);\ \alpha_c = \sqrt2\,\sigma_c\big)
+          + \big(1 - c F_d(\cos\theta_i; \eta_c)\big)\big(1 - c F_d(\cos\theta_o; \eta_c)\big) f_{base}
+
+light is reflected by the coat or transmitted through it twice (no refraction of the direction, no
+absorption, no reflections between the layers: the common single-scattering layer model). Symmetric
+in ω_i and ω_o, so reciprocal; the base's albedo is scaled by at most (1 − c F_c(θ_o)) where the coat
+takes c F_c(θ_o), so the albedo stays ≤ 1 (white furnace, tests). A smooth coat (σ_c below
+`SMOOTH_ROUGHNESS_RAD`) is a second mirror lobe. With c = 0 every value is the base's, bit for bit.
+
 Departures from the thesis
 ~~~~~~~~~~~~~~~~~~~~~~~~~~
 * **Diffuse Fresnel weight.** The thesis code (§5.1.2) weights the diffuse
@@ -82,6 +96,8 @@ metallic     float   1       mask m in [0, 1]: f_r = (1 − m) dielectric + m co
 ior          float   1       η > 0: dielectric index and conductor real part (1.52);
                              a blend 0 < m < 1 uses the same η for both parts
 extinction   float   1       k ≥ 0, conductor absorption (ignored by the dielectric part)
+coat         float   1       c in [0, 1]: weight of the clear coat (0: none)
+coat_rough…  float   rad     σ_c ≥ 0: the coat's roughness (``coat_roughness``; 0 = mirror)
 ===========  ======  ======  ==========================================================
 
 Example
@@ -100,7 +116,7 @@ True
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass, fields, replace
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -117,6 +133,8 @@ FloatArray = NDArray[np.float64]
 
 #: Below this roughness σ (radians) the specular lobe is a perfect mirror.
 SMOOTH_ROUGHNESS_RAD = 1e-4
+#: Index of refraction of the clear coat (Blender's Principled BSDF default Coat IOR).
+COAT_IOR = 1.5
 #: Smallest probability of picking a lobe that can be non-zero (keeps a lobe
 #: with a poor albedo estimate from being starved; any value in (0, 0.5) is unbiased).
 MIN_LOBE_PROBABILITY = 0.05
@@ -128,6 +146,8 @@ _PARAMETER_RULES = {
     "metallic": ("in [0, 1]", lambda x: (x >= 0.0) & (x <= 1.0)),
     "ior": ("finite and > 0", lambda x: np.isfinite(x) & (x > 0.0)),
     "extinction": ("finite and >= 0", lambda x: np.isfinite(x) & (x >= 0.0)),
+    "coat": ("in [0, 1]", lambda x: (x >= 0.0) & (x <= 1.0)),
+    "coat_roughness": ("finite and >= 0 (radians)", lambda x: np.isfinite(x) & (x >= 0.0)),
 }
 
 
@@ -144,6 +164,8 @@ class SurfaceParams:
     metallic: FloatArray
     ior: FloatArray
     extinction: FloatArray
+    coat: FloatArray = 0.0
+    coat_roughness: FloatArray = 0.0
 
     def __post_init__(self) -> None:
         names = [field.name for field in fields(self)]
@@ -164,9 +186,11 @@ class SurfaceParams:
                                      f"got {float(getattr(self, name)[b][0])!r}")
         metallic = self.metallic
         # Which Fresnel terms the points need (specular_fresnel), read back once here.
-        has_metal, all_metal = (bool(x) for x in np.stack([metallic.any(), (metallic == 1.0).all()]).tolist())
+        has_metal, all_metal, has_coat = (bool(x) for x in np.stack(
+            [metallic.any(), (metallic == 1.0).all(), (self.coat > 0.0).any()]).tolist())
         object.__setattr__(self, "_has_metal", has_metal)
         object.__setattr__(self, "_all_metal", all_metal)
+        object.__setattr__(self, "_has_coat", has_coat)  # points without a coat take the base's code alone
 
     def take(self, index) -> SurfaceParams:
         """The parameters of the points ``index`` (integer array)."""
@@ -381,6 +405,8 @@ class _Outgoing:
     cos_o: FloatArray  #: cos θ_o
     fresnel_o: FloatArray  #: F_d(cos θ_o), the dielectric Fresnel of the diffuse weight
     probability: FloatArray  #: P_s, `specular_probability`
+    coat_fresnel_o: FloatArray | None = None  #: F_d(cos θ_o; η_c) (None without a coat)
+    coat_probability: FloatArray | None = None  #: P_c, `coat_probability` (None without a coat)
 
 
 def _outgoing(params: SurfaceParams, cos_o: FloatArray) -> _Outgoing:
@@ -393,7 +419,26 @@ def _outgoing(params: SurfaceParams, cos_o: FloatArray) -> _Outgoing:
     has_diffuse = diffuse > 0.0
     both = np.clip(share, MIN_LOBE_PROBABILITY, 1.0 - MIN_LOBE_PROBABILITY)
     probability = np.where(has_specular & has_diffuse, both, np.where(has_specular, 1.0, 0.0))
-    return _Outgoing(cos_o=cos_o, fresnel_o=fresnel_o, probability=probability)
+    if not params._has_coat:
+        return _Outgoing(cos_o=cos_o, fresnel_o=fresnel_o, probability=probability)
+    coat_fresnel_o = fresnel_dielectric(cos_o, COAT_IOR)
+    coat = params.coat * coat_fresnel_o
+    base = (1.0 - coat) * total
+    coat_total = coat + base
+    coat_share = np.clip(coat / np.where(coat_total > 0.0, coat_total, 1.0), MIN_LOBE_PROBABILITY,
+                         1.0 - MIN_LOBE_PROBABILITY)
+    has_coat = coat > 0.0
+    coat_probability = np.where(has_coat & (base > 0.0), coat_share, np.where(has_coat, 1.0, 0.0))
+    return _Outgoing(cos_o=cos_o, fresnel_o=fresnel_o, probability=probability, coat_fresnel_o=coat_fresnel_o,
+                     coat_probability=coat_probability)
+
+
+def coat_probability(params: SurfaceParams, cos_theta_o: ArrayLike) -> FloatArray:
+    """Probability that `sample_bsdf` picks the coat's lobe (unitless): the coat's albedo estimated as
+    c F_d(cos θ_o; η_c) against the base's, (1 − c F_d(cos θ_o; η_c)) times `specular_probability`'s two
+    estimates; at least `MIN_LOBE_PROBABILITY` for either where both can be non-zero, 0 without a coat."""
+    out = _outgoing(params, asarray(cos_theta_o, dtype=np.float64))
+    return out.coat_probability if out.coat_probability is not None else namespace(out.cos_o).zeros_like(out.cos_o)
 
 
 @dataclass(frozen=True)
@@ -406,14 +451,20 @@ class _Pair:
     cos_oh: FloatArray  #: ω_o·ω_h
     alpha: FloatArray  #: Beckmann α, 0 for a mirror lobe
     distribution: FloatArray  #: D(ω_h) (eq. 2.26)
+    coat_alpha: FloatArray | None = None  #: the coat's α, 0 for a mirror coat (None without a coat)
+    coat_distribution: FloatArray | None = None  #: the coat's D(ω_h)
 
 
 def _pair(params: SurfaceParams, wo: FloatArray, wi: FloatArray) -> _Pair:
     cos_i = wi[..., 2]
     h = _half_vector(wo, wi)
-    alpha = _rough_alpha(params)
-    return _Pair(cos_i=cos_i, valid=(wo[..., 2] > 0.0) & (cos_i > 0.0), h=h, cos_oh=np.sum(wo * h, axis=-1),
+    alpha = _rough_alpha(params.roughness)
+    pair = _Pair(cos_i=cos_i, valid=(wo[..., 2] > 0.0) & (cos_i > 0.0), h=h, cos_oh=np.sum(wo * h, axis=-1),
                  alpha=alpha, distribution=beckmann_distribution(h[..., 2], alpha))
+    if not params._has_coat:
+        return pair
+    coat_alpha = _rough_alpha(params.coat_roughness)
+    return replace(pair, coat_alpha=coat_alpha, coat_distribution=beckmann_distribution(h[..., 2], coat_alpha))
 
 
 def _half_vector(wo: FloatArray, wi: FloatArray) -> FloatArray:
@@ -430,9 +481,9 @@ def _normal_like(w: FloatArray) -> FloatArray:
     return normal
 
 
-def _rough_alpha(params: SurfaceParams) -> FloatArray:
-    """Beckmann α where the specular lobe is rough, 0 where it is a mirror."""
-    return np.where(params.roughness >= SMOOTH_ROUGHNESS_RAD, beckmann_alpha(params.roughness), 0.0)
+def _rough_alpha(roughness: FloatArray) -> FloatArray:
+    """Beckmann α where a specular lobe of roughness σ is rough, 0 where it is a mirror."""
+    return np.where(roughness >= SMOOTH_ROUGHNESS_RAD, beckmann_alpha(roughness), 0.0)
 
 
 def eval_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> FloatArray:
@@ -456,8 +507,8 @@ def eval_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> FloatArray
     return _eval(params, wo, wi, cos_o, fresnel_dielectric(cos_o, params.ior), _pair(params, wo, wi))
 
 
-def _eval(params: SurfaceParams, wo, wi, cos_o, fresnel_o, pair: _Pair) -> FloatArray:
-    """`eval_bsdf` from the shared terms."""
+def _eval(params: SurfaceParams, wo, wi, cos_o, fresnel_o, pair: _Pair, coat_fresnel_o=None) -> FloatArray:
+    """`eval_bsdf` from the shared terms (``coat_fresnel_o``: F_d(cos θ_o; η_c) where known)."""
     transmitted = (1.0 - fresnel_dielectric(pair.cos_i, params.ior)) * (1.0 - fresnel_o)
     diffuse = (1.0 - params.metallic) * transmitted * oren_nayar(
         params.reflectance, params.roughness, pair.cos_i, cos_o, cos_azimuth_difference(wo, wi)
@@ -469,7 +520,20 @@ def _eval(params: SurfaceParams, wo, wi, cos_o, fresnel_o, pair: _Pair) -> Float
         pair.cos_i,
         cos_o,
     )
-    return np.where(pair.valid, diffuse + specular, 0.0)
+    if not params._has_coat:
+        return np.where(pair.valid, diffuse + specular, 0.0)
+    if coat_fresnel_o is None:
+        coat_fresnel_o = fresnel_dielectric(cos_o, COAT_IOR)
+    coat = params.coat
+    through = (1.0 - coat * fresnel_dielectric(pair.cos_i, COAT_IOR)) * (1.0 - coat * coat_fresnel_o)
+    coat_specular = coat * torrance_sparrow(
+        fresnel_dielectric(pair.cos_oh, COAT_IOR),
+        pair.coat_distribution,
+        vcavity_geometry(pair.h[..., 2], cos_o, pair.cos_i, pair.cos_oh),
+        pair.cos_i,
+        cos_o,
+    )
+    return np.where(pair.valid, coat_specular + through * (diffuse + specular), 0.0)
 
 
 def pdf_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> FloatArray:
@@ -503,17 +567,23 @@ def pdf_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> FloatArray:
     """
     wo = asarray(wo, dtype=np.float64)
     wi = asarray(wi, dtype=np.float64)
-    return _pdf(wo, specular_probability(params, wo[..., 2]), _pair(params, wo, wi))
+    out = _outgoing(params, wo[..., 2])
+    return _pdf(wo, out.probability, _pair(params, wo, wi), out.coat_probability)
 
 
-def _pdf(wo, probability, pair: _Pair) -> FloatArray:
-    """`pdf_bsdf` from the shared terms."""
+def _pdf(wo, probability, pair: _Pair, coat_probability=None) -> FloatArray:
+    """`pdf_bsdf` from the shared terms; with a coat P_c p_coat + (1 − P_c) p_base."""
     cos_oh = pair.cos_oh
     reflect_jacobian = 1.0 / (4.0 * np.where(cos_oh > 0.0, cos_oh, 1.0))
     rough = (cos_oh > 0.0) & (pair.alpha > 0.0)
     visible_normal = pdf_vcavity_visible_normal(wo, pair.h, pair.alpha, distribution=pair.distribution)
     specular = np.where(rough, visible_normal * reflect_jacobian, 0.0)
     density = probability * specular + (1.0 - probability) * pdf_cosine_hemisphere(pair.cos_i)
+    if coat_probability is not None:
+        coat_rough = (cos_oh > 0.0) & (pair.coat_alpha > 0.0)
+        coat_normal = pdf_vcavity_visible_normal(wo, pair.h, pair.coat_alpha, distribution=pair.coat_distribution)
+        coat = np.where(coat_rough, coat_normal * reflect_jacobian, 0.0)
+        density = coat_probability * coat + (1.0 - coat_probability) * density
     return np.where(pair.valid, density, 0.0)
 
 
@@ -527,7 +597,8 @@ def eval_pdf_bsdf(params: SurfaceParams, wo: ArrayLike, wi: ArrayLike) -> tuple[
     wi = asarray(wi, dtype=np.float64)
     out = _outgoing(params, wo[..., 2])
     pair = _pair(params, wo, wi)
-    return _eval(params, wo, wi, out.cos_o, out.fresnel_o, pair), _pdf(wo, out.probability, pair)
+    return (_eval(params, wo, wi, out.cos_o, out.fresnel_o, pair, out.coat_fresnel_o),
+            _pdf(wo, out.probability, pair, out.coat_probability))
 
 
 def sample_bsdf(
@@ -559,7 +630,13 @@ def sample_bsdf(
     wo = asarray(wo, dtype=np.float64)
     u_lobe = asarray(u_lobe, dtype=np.float64)
     out = _outgoing(params, wo[..., 2])
-    cos_o, probability = out.cos_o, out.probability
+    cos_o, probability, coat_probability = out.cos_o, out.probability, out.coat_probability
+    if coat_probability is not None:  # the coat's lobe first: u_lobe < P_c; the base's lobes share the rest
+        pick_coat = u_lobe < coat_probability
+        u_coat = np.clip(u_lobe / np.where(coat_probability > 0.0, coat_probability, 1.0), 0.0,
+                         np.nextafter(1.0, 0.0))
+        u_lobe = np.clip((u_lobe - coat_probability) / np.where(coat_probability < 1.0, 1.0 - coat_probability, 1.0),
+                         0.0, np.nextafter(1.0, 0.0))
     pick_specular = u_lobe < probability
     u_swap = np.where(
         pick_specular,
@@ -567,23 +644,40 @@ def sample_bsdf(
         (u_lobe - probability) / np.where(probability < 1.0, 1.0 - probability, 1.0),
     )
     u_swap = np.clip(u_swap, 0.0, np.nextafter(1.0, 0.0))
-    alpha = _rough_alpha(params)
-    m = sample_vcavity_visible_normal(wo, alpha, u1, u2, u_swap)
-    m = np.where((alpha > 0.0)[..., None], m, _normal_like(m))
-    wi_specular = 2.0 * np.sum(wo * m, axis=-1, keepdims=True) * m - wo
+    alpha = _rough_alpha(params.roughness)
+    wi_specular = _reflect(wo, sample_vcavity_visible_normal(wo, alpha, u1, u2, u_swap), alpha)
     wi = np.where(pick_specular[..., None], wi_specular, sample_cosine_hemisphere(u1, u2))
+    if coat_probability is not None:
+        coat_alpha = _rough_alpha(params.coat_roughness)
+        wi_coat = _reflect(wo, sample_vcavity_visible_normal(wo, coat_alpha, u1, u2, u_coat), coat_alpha)
+        wi = np.where(pick_coat[..., None], wi_coat, wi)
 
     pair = _pair(params, wo, wi)
-    pdf = _pdf(wo, probability, pair)
-    f_cos = _eval(params, wo, wi, cos_o, out.fresnel_o, pair) * np.maximum(pair.cos_i, 0.0)
+    pdf = _pdf(wo, probability, pair, coat_probability)
+    f_cos = _eval(params, wo, wi, cos_o, out.fresnel_o, pair, out.coat_fresnel_o) * np.maximum(pair.cos_i, 0.0)
     weight = np.where(pdf > 0.0, f_cos / np.where(pdf > 0.0, pdf, 1.0), 0.0)
 
     is_delta = pick_specular & (alpha == 0.0) & (cos_o > 0.0)
     mirror_fresnel = specular_fresnel(params, cos_o) if params._has_metal else out.fresnel_o
-    mirror_weight = mirror_fresnel / np.where(probability > 0.0, probability, 1.0)
-    return BsdfSample(
-        wi=wi,
-        weight=np.where(is_delta, mirror_weight, weight),
-        pdf=np.where(is_delta, probability, pdf),
-        is_delta=is_delta,
-    )
+    if coat_probability is None:
+        mirror_weight = mirror_fresnel / np.where(probability > 0.0, probability, 1.0)
+        return BsdfSample(wi=wi, weight=np.where(is_delta, mirror_weight, weight),
+                          pdf=np.where(is_delta, probability, pdf), is_delta=is_delta)
+    # Under a coat the base's mirror is seen through it twice, (1 − c F_c(θ_o))²; the coat's own mirror
+    # reflects c F_c(θ_o). Each delta lobe's weight is its reflectance over the probability of picking it.
+    base_share = 1.0 - coat_probability
+    through = 1.0 - params.coat * out.coat_fresnel_o
+    base_mirror = ~pick_coat & is_delta
+    base_pick = base_share * probability
+    coat_mirror = pick_coat & (coat_alpha == 0.0) & (cos_o > 0.0)
+    coat_pick = np.where(coat_probability > 0.0, coat_probability, 1.0)
+    weight = np.where(base_mirror, through * through * mirror_fresnel / np.where(base_pick > 0.0, base_pick, 1.0),
+                      np.where(coat_mirror, params.coat * out.coat_fresnel_o / coat_pick, weight))
+    pdf = np.where(base_mirror, base_pick, np.where(coat_mirror, coat_probability, pdf))
+    return BsdfSample(wi=wi, weight=weight, pdf=pdf, is_delta=base_mirror | coat_mirror)
+
+
+def _reflect(wo: FloatArray, m: FloatArray, alpha: FloatArray) -> FloatArray:
+    """ω_o reflected about the sampled microfacet normal m, or about the normal where α = 0 (a mirror)."""
+    m = np.where((alpha > 0.0)[..., None], m, _normal_like(m))
+    return 2.0 * np.sum(wo * m, axis=-1, keepdims=True) * m - wo

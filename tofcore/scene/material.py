@@ -13,6 +13,8 @@ name                unit    default       meaning
 ``ior``             1       1.52          η: dielectric index of refraction (≥ 1), conductor real part
                                           (metals may have η < 1, e.g. silver ≈ 0.15 in the near IR)
 ``extinction``      1       0.0           k: conductor absorption coefficient (metals only)
+``coat``            1       0.0           weight of a clear coat (η = 1.5) over the surface; 0 = none
+``coat_roughness``  rad     0.05          σ of the coat's microfacets (Beckmann α = √2 σ); 0 = mirror
 ==================  ======  ============  =====================================================
 
 Visible colour is not near-infrared reflectance: ``reflectance`` is the IR
@@ -118,6 +120,8 @@ PARAMETERS = (
     Parameter("metallic", "1", 0.0, 0.0, 1.0, True, "blend between dielectric (0) and conductor (1)"),
     Parameter("ior", "1", 1.52, 0.05, 10.0, False, "η: dielectric index (≥ 1), conductor real part"),
     Parameter("extinction", "1", 0.0, 0.0, 100.0, False, "k: conductor absorption coefficient (metals only)"),
+    Parameter("coat", "1", 0.0, 0.0, 1.0, False, "weight of a clear coat (η 1.5) over the surface; 0 = none"),
+    Parameter("coat_roughness", "rad", 0.05, 0.0, np.pi / 2, False, "σ of the coat's microfacets; 0 = mirror"),
 )
 """The material parameters, one row each: the one table the rest derives from — :class:`Material`'s
 fields and checks, :data:`PARAMETER_NAMES` (the order of the tracers' per-point records: the NumPy
@@ -145,6 +149,8 @@ class Material:
     metallic: float = PARAMETERS[2].default
     ior: float = PARAMETERS[3].default
     extinction: float = PARAMETERS[4].default
+    coat: float = PARAMETERS[5].default
+    coat_roughness: float = PARAMETERS[6].default
     reflectance_texture: Texture | None = field(default=None)
     roughness_texture: Texture | None = field(default=None)
     metallic_texture: Texture | None = field(default=None)

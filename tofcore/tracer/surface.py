@@ -255,7 +255,8 @@ def surface_at(scene: Scene, table: MaterialTable, prim: np.ndarray, u: np.ndarr
     tangent, bitangent = orthonormal_basis(ns)
     params = SurfaceParams(
         reflectance=np.clip(values["reflectance"], 0.0, 1.0), roughness=np.maximum(values["roughness"], 0.0),
-        metallic=np.clip(values["metallic"], 0.0, 1.0), ior=values["ior"], extinction=values["extinction"])
+        metallic=np.clip(values["metallic"], 0.0, 1.0), ior=values["ior"], extinction=values["extinction"],
+        coat=values["coat"], coat_roughness=values["coat_roughness"])
     return Surface(position=position, geometric_normal=ng, tangent=tangent, bitangent=bitangent,
                    shading_normal=ns, params=params)
 
