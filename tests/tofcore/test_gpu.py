@@ -342,11 +342,15 @@ def test_compiled_gpu_constant_ambient_light_equals_cpu(monkeypatch):
 @pytest.mark.gpu
 @numba_cuda_only
 def test_compiled_gpu_textures_sky_map_harmonic_channel_and_transient_equal_cpu(monkeypatch):
-    """The textured room open to its sky map, a harmonic correlation channel and a transient histogram on
-    the wavefront: the CPU reference's sums and bins within the device tolerance."""
+    """The textured room open to its sky map, its materials under clear coats, a harmonic correlation channel
+    and a transient histogram on the wavefront: the CPU reference's sums and bins within the device tolerance."""
     from tofcore.sensor.modulation import harmonic
 
-    scene = tofcore.demo_scene("textured_room", detail=2)
+    room = tofcore.demo_scene("textured_room", detail=2)
+    coated = [dataclasses.replace(m, coat=c, coat_roughness=r) for m, c, r in
+              zip(room.materials, (0.0, 0.5, 1.0, 0.3), (0.0, 0.0, 0.1, 0.3))]  # a mirror coat, rough ones
+    scene = tofcore.Scene.from_arrays(room.vertices, room.triangles, room.material_ids, coated, uvs=room.uvs,
+                                      metadata=room.metadata)
     kwargs = dict(world_from_sensor=tofcore.suggested_pose(scene), spp=4, max_depth=4, seed=4, progressive=False,
                   correlations=phasor_correlations([80e6]) + [harmonic(16e6, (0.5, 0.3, 0.05), (0.1, 0.02))],
                   ambient=tofcore.demo_ambient("textured_room"), transient_bin_m=0.05, transient_max_m=12.0)
