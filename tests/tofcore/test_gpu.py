@@ -272,31 +272,34 @@ def test_traversal_kernels_equal_numpy_traversal(scene_name):
 
 
 @pytest.mark.gpu
-@cuda_only
-def test_kinect_frame_stays_within_the_gpu_memory_budget():
-    """A 512 × 424 frame at 64 spp: peak device memory ≤ one chunk's budget + the accumulators."""
+@numba_cuda_only
+def test_kinect_frame_stays_within_the_gpu_memory_budget(monkeypatch):
+    """A 512 × 424 frame at 64 spp on the wavefront (the GPU's one tracer): peak device memory within
+    :data:`KINECT_FRAME_PEAK_BYTES`."""
     import cupy as cp
 
-    from tofcore.tracer import parallel
-
+    monkeypatch.setenv("TOFCORE_TRACER", "compiled")
     pool = cp.get_default_memory_pool()
     pool.free_all_blocks()
     sensor = load_preset("kinect_v2")
-    n_pix = sensor.camera.width * sensor.camera.height
-    chunk = 1 << 21
     peak = 0
 
     def track(_row):
         nonlocal peak
         peak = max(peak, pool.total_bytes())
 
-    render(tofcore.demo_scene("room"), sensor, spp=64, device="gpu", chunk_size=chunk, progress=track)
+    frame = render(tofcore.demo_scene("room"), sensor, spp=64, device="gpu", progress=track)
+    assert frame.stats["transport"]["tracer"] == "compiled"
     peak = max(peak, pool.total_bytes())
-    n_corr = 12
-    accumulators = 8 * n_pix * (5 * (n_corr + 1) + n_corr + 4)
-    budget = chunk * parallel.GPU_BYTES_PER_PATH + accumulators + 64 * n_pix * 8
-    print(f"peak pool bytes {peak / 2**20:.0f} MiB, budget {budget / 2**20:.0f} MiB")
-    assert peak <= budget
+    print(f"peak pool bytes {peak / 2**20:.0f} MiB, budget {KINECT_FRAME_PEAK_BYTES / 2**20:.0f} MiB")
+    assert peak <= KINECT_FRAME_PEAK_BYTES
+
+
+KINECT_FRAME_PEAK_BYTES = 2560 << 20
+"""A regression bound, measured: the Kinect v2 room at 64 spp peaked at 2,215 MiB of CuPy's pool on the H200
+(2026-11-28: one group of path state, cuda.GROUP_BYTES = 512 MiB, the frame's and a pass's sums, the
+post-trace arrays); issue 33 aims at 2 GiB. (The CuPy array tracer's chunk budget this test held before is
+gone with that tracer.)"""
 
 
 # ------------------------------------------------------------------ the compiled tracer on the GPU (numba.cuda)

@@ -19,20 +19,30 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..errors import ConfigError
-from ..tracer.parallel import Execution, ReferenceTracer, chunks, collect
-from ..tracer.setup import TraceSetup
+from ..tracer.parallel import Execution, HostTracer, ReferenceTracer, chunks, collect
+from ..tracer.setup import TraceSetup, on_host
 from ..tracer.transport import TraceStats, Transport
 from . import child_compile, setup
 from . import TRACER_ENV, TRACERS, cuda_unavailable, numba_version, thread_count
 
 
-def choose(trace_setup: TraceSetup, execution: Execution) -> CompiledTracer | ReferenceTracer:
+def choose(trace_setup: TraceSetup, execution: Execution) -> CompiledTracer | ReferenceTracer | HostTracer:
     """The tracer for a trace: the compiled one wherever it can run the set-up, else the NumPy reference
-    saying why (``ReferenceTracer.reason``). ``TOFCORE_TRACER=compiled`` makes the fall-back an error."""
+    saying why (``ReferenceTracer.reason``). ``TOFCORE_TRACER=compiled`` makes the fall-back an error.
+
+    On the GPU only the compiled wavefront traces paths: where it cannot (no numba-cuda, a correlation
+    channel given as Python code, ``TOFCORE_TRACER=numpy``) the CPU's tracer — compiled where numba runs it,
+    else the reference — traces them and its sums are copied to the device (:class:`HostTracer`)."""
     choice = _choice(trace_setup)
-    if choice.packed is None:
+    if choice.packed is not None:
+        return CompiledTracer(choice, execution)
+    if not trace_setup.device.is_gpu:
         return ReferenceTracer(trace_setup, execution, reason=choice.reason)
-    return CompiledTracer(choice, execution)
+    host_setup = on_host(trace_setup)
+    host_choice = _choice(host_setup)
+    inner = (CompiledTracer(host_choice, execution) if host_choice.packed is not None
+             else ReferenceTracer(host_setup, execution, reason=host_choice.reason))
+    return HostTracer(inner, trace_setup, why=choice.reason)
 
 
 class CompiledTracer:

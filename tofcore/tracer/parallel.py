@@ -1,12 +1,16 @@
-"""Parallel execution of a trace: the NumPy reference tracer's chunks, worker processes, GPU chunk sizes.
+"""Parallel execution of a trace: the NumPy reference tracer's chunks and worker processes.
 
 :class:`ReferenceTracer` runs the passes that :mod:`tofcore.tracer.trace` decides. A pass's samples are cut
 into chunks of whole pixels (:func:`chunks`), about ``chunk_size`` paths each and at least 4 per worker;
 each chunk is traced by :func:`~tofcore.tracer.integrator.trace_chunk` on a worker process
 (:mod:`tofcore.tracer.workers`: the set-up and the accumulators live once in shared memory), on a thread
 where no process can start, or in this process. Chunks own disjoint pixels and sum their samples in order,
-so the frame is the same bit for bit whatever the split or the worker count. On the GPU one chunk is as
-large as the free device memory allows (:func:`gpu_chunk_paths`).
+so the frame is the same bit for bit whatever the split or the worker count.
+
+On the GPU only the compiled wavefront traces paths (:mod:`tofcore.compiled.tracer`); where it cannot, the
+reference traces a GPU render's paths on the CPU and copies its sums to the device after each pass
+(:class:`HostTracer`, :func:`reference`). The CuPy array program is retired as a tracer: CuPy keeps the
+frame's arrays, the first hits and everything after the trace.
 """
 
 from __future__ import annotations
@@ -16,7 +20,7 @@ import pickle
 import uuid
 from collections.abc import Callable, Iterable
 from concurrent.futures import ThreadPoolExecutor
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -24,7 +28,7 @@ from .. import backend
 from ..errors import Cancelled
 from . import workers
 from .integrator import trace_chunk
-from .setup import TraceSetup
+from .setup import TraceSetup, on_host
 from .transport import TraceStats, Transport
 from .workers import process_support
 
@@ -135,7 +139,7 @@ class ReferenceTracer:
 
     def start(self, stats: TraceStats) -> None:
         """Before the first hits: start the worker processes, which boot and import tofcore meanwhile."""
-        if self.execution.workers > 1 and not self.setup.device.is_gpu:
+        if self.execution.workers > 1:
             self._why_not = start_workers(self.execution.workers)
 
     def attach(self, transport: Transport) -> str:
@@ -172,6 +176,54 @@ class ReferenceTracer:
         if self._shared is not None:
             shared, self._shared = self._shared, None
             unshare(shared, self._transport)
+
+
+def reference(setup: TraceSetup, execution: Execution, reason: str = "") -> ReferenceTracer | HostTracer:
+    """The NumPy reference for a trace (the default choice of ``trace_progressive``). On the GPU only the
+    compiled wavefront traces paths: a GPU render's paths are traced here on the CPU (:class:`HostTracer`)."""
+    if not setup.device.is_gpu:
+        return ReferenceTracer(setup, execution, reason)
+    return HostTracer(ReferenceTracer(on_host(setup), execution, reason), setup, why=reason)
+
+
+SUMS = ("signal_sum", "correlation_sum", "replicate_sum", "ambient_sum", "transient_sum")
+"""The sums of a :class:`~tofcore.tracer.transport.Transport` a tracer adds its paths to."""
+
+
+class HostTracer:
+    """A CPU tracer (``inner``, on :func:`~tofcore.tracer.setup.on_host`'s set-up) tracing a GPU render's paths
+    where the compiled wavefront cannot (no numba-cuda, a correlation channel given as Python code,
+    ``TOFCORE_TRACER=numpy``): its sums are the CPU's, copied into the device frame after every pass, so the
+    first hits and everything after the trace stay on the GPU. A :class:`~tofcore.tracer.trace.Tracer`."""
+
+    def __init__(self, inner, device_setup: TraceSetup, why: str = ""):
+        self.inner = inner
+        self.name = inner.name
+        self.reason = f"{why}: the paths traced on the CPU" if why else "the paths traced on the CPU"
+        self._xp = device_setup.xp
+        self._device: Transport | None = None
+        self._host: Transport | None = None
+
+    def start(self, stats: TraceStats) -> None:
+        self.inner.start(stats)
+
+    def attach(self, transport: Transport) -> str:
+        """The device frame exists: the CPU tracer gets host sums of the same shapes."""
+        self._device = transport
+        host = {name: np.zeros(getattr(transport, name).shape) for name in SUMS if getattr(transport, name) is not None}
+        self._host = replace(transport, sample_count=np.zeros(transport.sample_count.shape, np.int64), first_hit=None,
+                             **host)  # the first hits stay on the device: the paths do not read them
+        return f"{self.inner.attach(self._host)}, on the CPU; sums copied to the GPU after each pass"
+
+    def run(self, done: np.ndarray, counts: np.ndarray) -> None:
+        self.inner.run(done, counts)
+        for name in SUMS:
+            target = getattr(self._device, name)
+            if target is not None:
+                target[...] = self._xp.asarray(getattr(self._host, name))
+
+    def close(self) -> None:
+        self.inner.close()
 
 
 def collect(results: Iterable[TraceStats | None], n_chunks: int, stats: TraceStats) -> None:
@@ -218,24 +270,3 @@ def chunks(counts: np.ndarray, chunk_size: int) -> list[tuple[int, int]]:
 CPU_CHUNK_PATHS = 1 << 16
 """Paths per chunk on the CPU: the per-bounce temporaries of 65,536 paths stay in L2/L3."""
 
-GPU_BYTES_PER_PATH = 2048
-"""Peak device memory per path in flight (all path state and per-bounce temporaries, 12 correlation
-channels), measured with CuPy's memory pool on the GPU benchmark frame (docs/benchmarks.md)."""
-
-GPU_MEMORY_FRACTION = 0.5
-"""Share of the free device memory one chunk may take (the rest: CuPy's pool slack, other processes)."""
-
-GPU_MAX_CHUNK_PATHS = 1 << 23
-"""At most 8.4 M paths per chunk: a whole 512 × 424 × 16 spp pass fits; more adds nothing but memory."""
-
-
-def gpu_chunk_paths(xp, n_correlations: int) -> int:
-    """Paths per chunk on the GPU: as many as fit in ``GPU_MEMORY_FRACTION`` of the free device memory.
-
-    Memory per path grows with the correlation channels (8 bytes each, per-path totals and per-bounce
-    sums); ``GPU_BYTES_PER_PATH`` holds 12. The chunk never drops below ``CPU_CHUNK_PATHS``, so a
-    nearly full GPU fails with a clear out-of-memory error rather than crawling.
-    """
-    free = backend.free_device_bytes(xp) or 0
-    per_path = GPU_BYTES_PER_PATH + 24 * max(0, n_correlations - 12)
-    return int(min(GPU_MAX_CHUNK_PATHS, max(CPU_CHUNK_PATHS, free * GPU_MEMORY_FRACTION // per_path)))

@@ -9,7 +9,7 @@ sampler and the ray offset. Every stage takes the set-up explicitly; nothing in 
 from __future__ import annotations
 
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -122,6 +122,17 @@ def make_setup(scene: Scene, camera: Camera, leds: Sequence[LED], settings: Trac
         light_paths=bool(settings.light_paths) and max_depth >= 2 and led_probabilities(leds).sum() > 0,
         led_probability=led_probabilities(leds),
         transient_bins=bins, transient_bin_m=settings.transient_bin_m)
+
+
+def on_host(setup: TraceSetup) -> TraceSetup:
+    """The same set-up with its arrays on the host (NumPy): what a GPU render's paths are traced from where the
+    compiled wavefront cannot trace them (:class:`tofcore.tracer.parallel.HostTracer`)."""
+    if not setup.device.is_gpu:
+        return setup
+    host = backend.select_device("cpu")
+    return replace(setup, device=host, table=MaterialTable(setup.scene, np), rotation=backend.to_host(setup.rotation),
+                   lens_center=backend.to_host(setup.lens_center), led_positions=backend.to_host(setup.led_positions),
+                   led_axis=backend.to_host(setup.led_axis))
 
 
 def _check_inputs(scene, camera, leds, settings: TraceSettings) -> None:

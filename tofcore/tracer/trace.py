@@ -1,7 +1,7 @@
 """Tracing a frame: :func:`trace` and :func:`trace_progressive`, passes of samples over the whole frame.
 
 A trace checks its settings into a :class:`~tofcore.tracer.setup.TraceSetup`, has its :class:`Tracer` chosen
-(the NumPy :class:`~tofcore.tracer.parallel.ReferenceTracer` unless the caller hands in another choice, as
+(the NumPy reference, :func:`~tofcore.tracer.parallel.reference`, unless the caller hands in another choice, as
 :func:`tofcore.trace` and :func:`tofcore.render` hand in :func:`tofcore.compiled.tracer.choose`), traces the
 noise-free first hits (:func:`~tofcore.tracer.stages.first_hit`), then runs passes of samples and yields the
 accumulated :class:`~tofcore.tracer.transport.Transport` after every pass.
@@ -33,7 +33,7 @@ from ..scene.scene import Scene
 from . import parallel, qmc
 from .budget import TimeBudget
 from .estimator import allocate_samples, rms_error
-from .parallel import Execution, ReferenceTracer
+from .parallel import Execution, reference
 from .setup import Correlation, TraceSettings, TraceSetup, make_setup
 from .stages import first_hit
 from .transport import FirstHit, TraceStats, Transport
@@ -42,8 +42,9 @@ from .transport import FirstHit, TraceStats, Transport
 class Tracer(Protocol):
     """What runs the passes of one trace; the pass loop (:func:`trace_progressive`) calls its methods in order.
 
-    Two implement it: :class:`~tofcore.tracer.parallel.ReferenceTracer` (NumPy, the frame's definition) and
-    :class:`tofcore.compiled.tracer.CompiledTracer`. A *tracer choice* (:data:`TracerChoice`) makes one for a
+    :class:`~tofcore.tracer.parallel.ReferenceTracer` (NumPy, the frame's definition) and
+    :class:`tofcore.compiled.tracer.CompiledTracer` implement it, and :class:`~tofcore.tracer.parallel.HostTracer`
+    runs either on the CPU for a GPU render the wavefront cannot trace. A *tracer choice* (:data:`TracerChoice`) makes one for a
     trace's checked set-up and :class:`~tofcore.tracer.parallel.Execution`.
     """
 
@@ -143,7 +144,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       sampler: str = "sobol", light_paths: bool = True, policy: PassPolicy | None = None,
                       allocate: Callable[[Transport, int], np.ndarray | None] | None = None,
                       pass_size: Callable[[Transport, int], int] | None = None,
-                      tracer: TracerChoice = ReferenceTracer) -> Passes:
+                      tracer: TracerChoice = reference) -> Passes:
     """Trace in progressive passes, yielding the accumulated :class:`Transport` after each.
 
     Parameters
@@ -155,10 +156,10 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     ambient : background radiance; ``None`` or black skips all ambient work.
     spp : samples per pixel in total (default 16); max_depth : surface vertices per path (1 = direct only).
     seed : non-negative int; the same seed gives the same frame for any ``chunk_size``.
-    chunk_size : paths in flight per chunk; bounds memory. Default: 65,536 on the CPU (temporaries
-        stay in cache); on the GPU as many as :func:`~.parallel.gpu_chunk_paths` allows in free device memory.
+    chunk_size : paths in flight per chunk of the CPU's tracers; bounds memory. Default: 65,536 (temporaries
+        stay in cache). The GPU's wavefront traces a pass at once, in groups sized by its free memory.
     workers : processes tracing chunks at once on the CPU (default: the usable CPUs, affinity and cgroup
-        quota respected, :func:`tofcore.limits.usable_cpus`; the GPU uses one). They share the scene,
+        quota respected, :func:`tofcore.limits.usable_cpus`; the GPU's wavefront ignores it). They share the scene,
         BVH and accumulators (:mod:`tofcore.tracer.workers`); passes too small to be worth it (fewer than
         two chunks) run in this process. Where no worker process can be started (a Blender without its
         Python interpreter) the chunks run on threads instead, and ``stats.parallel`` says which.
@@ -185,6 +186,8 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
     device : ``"cpu"`` (NumPy), ``"gpu"`` (CuPy) or ``"auto", or a resolved :class:`tofcore.backend.Device`.
         On the GPU the accumulators of the yielded :class:`Transport` are CuPy arrays (``first_hit`` is
         always NumPy); the same seed gives the same sums within float rounding (``tests/tofcore/test_gpu.py``).
+        The GPU traces paths with the compiled wavefront only; the reference (and the compiled tracer where
+        numba-cuda is missing) traces a GPU render's paths on the CPU (:class:`~.parallel.HostTracer`).
     tracer : picks the :class:`Tracer` that runs the passes (:data:`TracerChoice`): the NumPy reference here;
         :func:`tofcore.trace_progressive` passes :func:`tofcore.compiled.tracer.choose`, the compiled tracer
         wherever it can run the trace.
@@ -350,19 +353,16 @@ _clock = time.perf_counter  # the time budget's clock (seconds); tests replace i
 
 
 def _execution(settings: TraceSettings, setup: TraceSetup) -> Execution:
-    """How the chunks run, checked; the GPU traces one stream of large chunks."""
+    """How the chunks of the CPU's tracers run, checked (the GPU's wavefront traces a pass at once)."""
     chunk_size, workers = settings.chunk_size, settings.workers
     if chunk_size is None:
-        chunk_size = (parallel.gpu_chunk_paths(setup.xp, setup.n_channels) if setup.device.is_gpu
-                      else parallel.CPU_CHUNK_PATHS)
+        chunk_size = parallel.CPU_CHUNK_PATHS
     if not isinstance(chunk_size, (int, np.integer)) or chunk_size < 1:
         raise ConfigError(f"trace: chunk_size must be an integer >= 1, got {chunk_size!r}")
     workers = usable_cpus() if workers is None else workers
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ConfigError(f"trace: workers must be an integer >= 1, got {workers!r}")
     limits.MAX_WORKERS.check(int(workers), "trace", "workers")
-    if setup.device.is_gpu:
-        workers = 1  # one stream of large wavefronts; threads would only serialise on it
     return Execution(chunk_size=chunk_size, workers=workers, cancel=settings.cancel)
 
 
