@@ -736,12 +736,15 @@ def _texture_for(pixels: np.ndarray, role: str, socket_name: str, image_name: st
         single = None
     else:
         single = pixels[..., 0]
+    # A colour linked to a number input is its luminance in Blender's shading (the implicit colour → float
+    # conversion), so a tinted roughness or metallic map counts every channel, not its red one.
+    grey = single if single is not None else (mapping.luminance(pixels[..., :3]) if role != "normal" else None)
     if role == "base_color":
-        data = np.clip(single if single is not None else mapping.luminance(pixels[..., :3]), 0.0, 1.0)
+        data = np.clip(grey, 0.0, 1.0)
     elif role == "roughness":
-        data = mapping.sigma_from_blender_roughness(single if single is not None else pixels[..., 0])
+        data = mapping.sigma_from_blender_roughness(grey)
     elif role == "metallic":
-        data = np.clip(single if single is not None else pixels[..., 0], 0.0, 1.0)
+        data = np.clip(grey, 0.0, 1.0)
     else:   # normal map: tangent-space RGB in [0, 1]
         data = pixels[..., :3] if channels >= 3 else np.repeat(pixels[..., :1], 3, axis=2)
     return tofcore.Texture(np.asarray(data, dtype=np.float32), name=f"{image_name} ({role})")

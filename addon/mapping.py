@@ -22,9 +22,10 @@ Base Color (linear RGB)      ``reflectance``            luminance Y = 0.2126 R +
 Base Color image texture     ``reflectance_texture``    the same luminance per texel (8-bit sRGB images decoded
                                                         to linear first)
 Roughness r ∈ [0, 1]         ``roughness`` (radians)    σ = r² / √2 (see below)
-Roughness image texture      ``roughness_texture``      the same per texel
+Roughness image texture      ``roughness_texture``      the same per texel, of its luminance (a colour linked to a
+                                                        number input, as Blender's shading converts it)
 Metallic                     ``metallic``               unchanged
-Metallic image texture       ``metallic_texture``       unchanged per texel
+Metallic image texture       ``metallic_texture``       its luminance per texel
 IOR                          ``ior``                    unchanged, clipped to [1, 10]; also the conductor's real
                                                         part η
 Base Color (metals only)     ``extinction``             k from F0 = Y with η = IOR:

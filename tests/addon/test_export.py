@@ -456,6 +456,19 @@ def test_roughness_and_normal_map_textures(clean_bpy):
     assert not warnings
 
 
+def test_a_coloured_map_on_roughness_or_metallic_counts_its_luminance(clean_bpy):
+    """Blender converts a colour linked to a number input by its luminance: a red-only roughness or metallic
+    map is 0.2126 of its red, not its red (the exporter took the red channel before)."""
+    material = new_material("Tinted")
+    red = new_image("red", np.tile(np.float32([0.8, 0.0, 0.0]), (2, 2, 1)), colorspace="Non-Color")
+    link_image(material, red, "Roughness")
+    link_image(material, red, "Metallic")
+    m = export.material_from_blender(material)
+    grey = 0.2126 * 0.8
+    np.testing.assert_allclose(m.roughness_texture.data, grey**2 / math.sqrt(2), rtol=1e-5)
+    np.testing.assert_allclose(m.metallic_texture.data, grey, rtol=1e-5)
+
+
 def test_missing_texture_file_warns_with_its_path(clean_bpy):
     plane = add_plane()
     material = new_material("Wall")
