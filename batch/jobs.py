@@ -64,6 +64,7 @@ class Job:
     set_seed: int
     formats: tuple[str, ...]
     output: dict = field(default_factory=dict)   # [output] options: exr_half, exr_channels, transient_bin_m/max_m
+    randomize: dict | None = None                # batch.randomize spec of a randomized view (its draws: at render)
 
     @property
     def label(self) -> str:
@@ -86,6 +87,7 @@ class ViewTask:
     render_threads: int | None = None  # tofcore tracer threads; None: its default (CPU count)
     device: str = "cpu"               # tofcore.render's device: "cpu", "gpu" or "auto" (batch.devices)
     fallback_reason: str | None = None  # "auto" that the runner already resolved to the CPU, and why
+    randomize: dict | None = None     # batch.randomize spec: the worker draws the view's scene and pose
 
     @property
     def label(self) -> str:
@@ -252,13 +254,17 @@ def _blend_views(scene: SceneSpec, info: BlendInfo, set_path: str,
 
 def make_job(*, scene: str, source: dict, view: dict, world_from_sensor, preset: str, sensor: dict,
              resolution_scale: float, quality: dict, ambient_w_m2_sr: float | None, set_seed: int,
-             formats: tuple[str, ...], output: dict | None = None) -> Job:
+             formats: tuple[str, ...], output: dict | None = None, randomize: dict | None = None) -> Job:
     """A job with its id and derived seed (the one place where ids are made)."""
     import tofcore
 
     pose = None if world_from_sensor is None else np.asarray(world_from_sensor, dtype=np.float64).tolist()
-    view_identity = ({"camera": view["camera"], "frame": view["frame"]} if pose is None
-                     else {"world_from_sensor": pose, "frame": view.get("frame")})
+    if randomize is not None:  # the pose is drawn by the worker from the view's seed
+        view_identity = {"randomized": view["pose_index"], "randomize_seed": view["randomize_seed"]}
+    elif pose is None:
+        view_identity = {"camera": view["camera"], "frame": view["frame"]}
+    else:
+        view_identity = {"world_from_sensor": pose, "frame": view.get("frame")}
     # Not in the definition: labels, and the render device. CPU and GPU give the same frame from the same
     # seed (within float32 rounding, tests/tofcore/test_gpu.py), so they are the same job: a dataset can
     # be resumed on another device, and the record says which device rendered each frame.
@@ -267,11 +273,26 @@ def make_job(*, scene: str, source: dict, view: dict, world_from_sensor, preset:
                   "set_seed": set_seed, "formats": sorted(formats)}
     if output:  # only when given: the ids of sets without output options stay as they were
         definition["output"] = output
+    if randomize is not None:
+        from .randomize import identity
+
+        definition["randomize"] = identity(randomize)
     job_id = short_hash(definition)
     return Job(job_id=job_id, scene=scene, source=source, view=view, world_from_sensor=pose, preset=preset,
                sensor=sensor, resolution_scale=resolution_scale, quality=quality, ambient_w_m2_sr=ambient_w_m2_sr,
                seed=derive_seed(set_seed, job_id), set_seed=set_seed, formats=tuple(formats),
-               output=dict(output or {}))
+               output=dict(output or {}), randomize=randomize)
+
+
+def randomized_views(scene: SceneSpec, set_seed: int) -> list[tuple[dict, None]]:
+    """The views of a scene's ``[scenes.randomize]``: label ``random<k>``, each with its own seed
+    (:func:`derive_seed` of the set seed and a hash of the randomize table and k); poses drawn at render."""
+    from .randomize import identity
+
+    spec = identity(scene.randomize)
+    return [({"label": f"random{k}", "pose_kind": "randomized", "pose_index": k,
+              "randomize_seed": derive_seed(set_seed, short_hash({"randomize": spec, "index": k}))}, None)
+            for k in range(scene.randomize["count"])]
 
 
 def expand(spec: SetSpec, inspect_blend: Callable[[str], BlendInfo] = inspect_blend_subprocess) -> Expansion:
@@ -294,13 +315,16 @@ def expand(spec: SetSpec, inspect_blend: Callable[[str], BlendInfo] = inspect_bl
         else:
             views = [({"label": f"pose{k}", "pose_kind": kind, "pose_index": k}, matrix)
                      for k, (kind, matrix) in enumerate(_poses(scene, set_path))]
+        if scene.randomize is not None:
+            views += randomized_views(scene, spec.seed)
         for view, matrix in views:
             for preset in scene.presets:
                 job = make_job(scene=scene.name, source=source, view=view, world_from_sensor=matrix,
                                preset=preset.label, sensor=preset.sensor.to_dict(),
                                resolution_scale=preset.resolution_scale, quality=scene.quality.as_dict(),
                                ambient_w_m2_sr=scene.ambient_w_m2_sr, set_seed=spec.seed, formats=spec.formats,
-                               output=spec.output)
+                               output=spec.output,
+                               randomize=scene.randomize if view.get("pose_kind") == "randomized" else None)
                 if job.job_id in seen:
                     notes.append(f"{job.label}: the same frame as an earlier entry (job {job.job_id}); rendered once")
                     continue
@@ -323,5 +347,5 @@ def group_by_view(jobs: list[Job], dataset: str = "", render_threads: int | None
     return [ViewTask(view_id=key, scene=group[0].scene, source=group[0].source, view=group[0].view,
                      world_from_sensor=group[0].world_from_sensor, ambient_w_m2_sr=group[0].ambient_w_m2_sr,
                      jobs=tuple(group), dataset=dataset, render_threads=render_threads, device=device,
-                     fallback_reason=fallback_reason)
+                     fallback_reason=fallback_reason, randomize=group[0].randomize)
             for key, group in tasks.items()]

@@ -92,6 +92,9 @@ reproducible bit for bit (spp and target error are).
                                                                          time-resolved histogram over optical
                                                                          path length, bins of this width
 ``transient_max_m``  number > 0, m   none                                its longest path length (with the bin)
+``labels``           bool            false                               also write labels.npz: multipath error,
+                                                                         direct-only depth, normals, material and
+                                                                         object ids (:mod:`batch.labels`)
 ===================  ==============  ==================================  ========================================
 
 ``[[scenes]]``
@@ -111,6 +114,10 @@ reproducible bit for bit (spp and target error are).
 ``frames``           see above       current frame    blend: animation frames
 ``[scenes.quality]`` table           set's quality    overrides
 ``[[scenes.poses]]`` array           suggested        views (demo/npz; for a blend they replace the cameras)
+``[scenes.randomize]`` table         none             randomized views: objects, materials, ambient light,
+                                                      camera and sensor unit drawn per frame
+                                                      (:mod:`batch.randomize`); with it the suggested
+                                                      pose is not added unless poses are given
 ===================  ==============  ===============  ====================================================
 
 Pose entries (``[[scenes.poses]]``), the kind given by the keys present:
@@ -160,9 +167,9 @@ DEFAULT_MAX_DEPTH = 5
 
 _TOP_KEYS = ("description", "seed", "presets", "resolution_scale", "quality", "output", "scenes")
 _QUALITY_KEYS = ("spp", "max_depth", "time_budget_s", "target_error_m")
-_OUTPUT_KEYS = ("formats", "exr_half", "exr_channels", "transient_bin_m", "transient_max_m")
+_OUTPUT_KEYS = ("formats", "exr_half", "exr_channels", "transient_bin_m", "transient_max_m", "labels")
 _SCENE_KEYS = ("name", "demo", "npz", "blend", "mesh", "presets", "ambient_w_m2_sr", "cameras", "frames", "quality",
-               "poses")
+               "poses", "randomize")
 _PRESET_KEYS = ("preset", "label", "overrides", "resolution_scale")
 _POSE_KEYS = {
     "suggested": ("suggested",),
@@ -233,6 +240,7 @@ class SceneSpec:
     frames: tuple[int, ...] | None = None
     ambient_w_m2_sr: float | None = None
     where: str = ""
+    randomize: dict | None = None   # [scenes.randomize], parsed (batch.randomize): randomized views
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -415,7 +423,8 @@ def _count_frames(scenes: Sequence[SceneSpec]) -> int:
     """Frames the scenes expand to (a lower bound for a .blend whose cameras are not named)."""
     total = 0
     for scene in scenes:
-        views = sum(p.count for p in scene.poses) if scene.poses else len(scene.cameras or ()) or 1
+        views = (sum(p.count for p in scene.poses) if scene.poses else 0 if scene.randomize
+                 else len(scene.cameras or ()) or 1) + (scene.randomize["count"] if scene.randomize else 0)
         total += len(scene.frames or (None,)) * views * len(scene.presets)
     return total
 
@@ -654,10 +663,18 @@ def _scene(ctx: _Context, value: object, path: list, *, presets, quality: Qualit
             raise ctx.error(path + ["poses"], "a blend scene takes either cameras or poses, not both")
         if kind == "blend" and any(p.kind == "suggested" for p in poses):
             raise ctx.error(path + ["poses"], "a blend scene has no suggested pose; name cameras instead")
-    elif kind != "blend":
+    elif kind != "blend" and "randomize" not in table:
         poses = (PoseSpec(kind="suggested", where=_dotted(path + ["poses"])),)
+    randomize = None
+    if "randomize" in table:
+        from .randomize import parse_randomize
+
+        if kind == "blend":
+            raise ctx.error(path + ["randomize"], "a blend scene cannot be randomized yet (demo, npz or mesh)")
+        randomize = parse_randomize(ctx, table["randomize"], path + ["randomize"], scene_presets)
     return SceneSpec(name=name, kind=kind, source=source, presets=scene_presets, quality=scene_quality,
-                     poses=poses, cameras=cameras, frames=frames, ambient_w_m2_sr=ambient, where=_dotted(path))
+                     poses=poses, cameras=cameras, frames=frames, ambient_w_m2_sr=ambient, where=_dotted(path),
+                     randomize=randomize)
 
 
 def parse_set(data: Mapping[str, Any], path: Path | None = None, text: str | None = None) -> SetSpec:
@@ -740,6 +757,10 @@ def _output_options(ctx: _Context, output: dict) -> dict:
         if not isinstance(value, list) or not value or not all(isinstance(c, str) and c for c in value):
             raise ctx.fail(["output", "exr_channels"], "a non-empty list of frame.exr channel names", value)
         options["exr_channels"] = list(dict.fromkeys(value))
+    if "labels" in output:
+        if not isinstance(output["labels"], bool):
+            raise ctx.fail(["output", "labels"], "true or false (write labels.npz: batch.labels)", output["labels"])
+        options["labels"] = output["labels"]
     for key in ("transient_bin_m", "transient_max_m"):
         if key in output:
             options[key] = _positive(ctx, output[key], ["output", key], "m")

@@ -58,6 +58,7 @@ import threading
 import time
 import traceback
 from datetime import datetime, timezone
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -321,14 +322,20 @@ def _render(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient):
 
 
 def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warnings: list[str],
-               timing: dict | None = None) -> dict:
+               timing: dict | None = None, drawn: dict | None = None) -> dict:
     """Render and write one job; return its record (never raises for the job's own failure).
 
     ``timing``: the record's ``timing`` so far (``worker_started``, ``task_started``, ``load_s``); the
-    render and write phases are added here.
+    render and write phases are added here. ``drawn``: what a randomized view drew (:mod:`batch.randomize`);
+    the job's sensor unit is drawn here, and both go into the record and ``frame.json`` (``randomization``).
     """
     import tofcore
 
+    if drawn is not None and job.randomize and job.randomize.get("sensor"):
+        from .randomize import vary_sensor
+
+        sensor, unit = vary_sensor(job.sensor, job.randomize["sensor"], job.seed)
+        job, drawn = replace(job, sensor=sensor), {**drawn, "sensor": unit}
     record = _base_record(job, task)
     timing = dict(timing or {"worker_started": _WORKER_STARTED, "task_started": time.time(), "load_s": 0.0})
     record["timing"] = timing
@@ -344,10 +351,19 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
         frame.metadata["batch"] = {"job_id": job.job_id, "scene": job.scene, "view": job.view,
                                    "preset": job.preset, "seed": job.seed, "set_seed": job.set_seed,
                                    "source": job.source, "export_warnings": warnings}
+        if drawn is not None:
+            frame.metadata["randomization"] = drawn
         partial.mkdir(parents=True)
         formats = (*job.formats, "transient") if "transient_bin_m" in job.output else job.formats
         written = tofcore.write_frame(frame, partial, formats=formats, exr_half=job.output.get("exr_half", False),
                                       exr_channels=job.output.get("exr_channels"))
+        if job.output.get("labels"):
+            from .labels import material_table, write_labels
+
+            written["labels"] = write_labels(frame, partial)
+            record["materials"] = material_table(scene)
+        if drawn is not None:
+            record["randomization"] = drawn
         stats = frame.stats
         convergence = stats.get("convergence", [])
         record.update({
@@ -426,15 +442,21 @@ def run_view(task: ViewTask) -> list[dict]:
     started = time.perf_counter()
     _BUSY.set()
     try:
+        drawn = None
         try:
             scene, pose, ambient, warnings = _load_scene(task)
+            if task.randomize is not None:
+                from .randomize import build_view
+
+                scene, pose, drawn_ambient, drawn = build_view(scene, task.randomize, task.view["randomize_seed"])
+                ambient = drawn_ambient or ambient
         except Exception as exc:
             return [failed_record(job, task, exc, time.perf_counter() - started) for job in task.jobs]
         load_s = time.perf_counter() - started
         records = []
         for job in task.jobs:
             timing = {"worker_started": _WORKER_STARTED, "task_started": task_started, "load_s": load_s}
-            records.append(render_job(job, task, scene, pose, ambient, warnings, timing))
+            records.append(render_job(job, task, scene, pose, ambient, warnings, timing, drawn))
             load_s = 0.0
             if _STOP.is_set():  # finished frames are published (their record.json is read back next run)
                 _exit_stopped()

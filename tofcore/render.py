@@ -601,6 +601,7 @@ def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int
         gt_depth=np.asarray(as_depth(gt), np.float32), distance_per_k=per_k,
         direct_distance=None if per_k is None else per_k[0],
         ray_directions=directions, object_id=transport.first_hit.object_id, depth_output=sensor.depth_output,
+        material_id=transport.first_hit.material_id, normal=transport.first_hit.normal,
         world_from_sensor=np.asarray(pose, dtype=np.float64),
         metadata={"sensor": sensor.to_dict(), "world_from_sensor": np.asarray(pose).tolist(),
                   "intrinsics": {"width": cam.width, "height": cam.height, "fx": cam.fx, "fy": cam.fy,

@@ -30,6 +30,10 @@ field                  unit            meaning
                                        before its final pass: K decodes a display does not show)
 ``ray_directions``     1               (H, W, 3) unit pixel-centre ray directions, sensor frame
 ``object_id``          –               (H, W) int32 first-hit object, −1 where none
+``material_id``        –               (H, W) int32 first-hit material (index into the scene's materials),
+                                       −1 where none; None in frames made before it existed
+``normal``             1               (H, W, 3) float32 first-hit geometric normal, world frame, facing
+                                       the camera; NaN where none; None in frames made before it existed
 ``render_error``       m               (H, W) estimated Monte Carlo standard error of ``depth`` (the
                                        render's own noise, before sensor noise), NaN where unknown
 ``samples``            –               (H, W) int samples traced per pixel (adaptive sampling varies it)
@@ -76,6 +80,8 @@ class Frame:
     samples: np.ndarray | None = None
     transient: np.ndarray | None = None
     transient_bin_m: float | None = None
+    material_id: np.ndarray | None = None
+    normal: np.ndarray | None = None
     stats: dict = field(default_factory=dict)
     metadata: dict = field(default_factory=dict)
 
