@@ -96,6 +96,7 @@ from tofcore.output.dataset import FRAMES, INDEX, RECORD, STATUSES, read_regular
 from tofcore.output.dataset import differing_keys as reader_differing_keys
 
 CARD = "README.md"
+CARD_FIGURES = "card"   # the card's pictures (batch/card_figures.py)
 LOCK = ".lock"
 REJECTED = INDEX + ".rejected"
 #: A job id (``batch.jobs.JOB_ID_HEX`` hex digits); also what makes ``frames/<job_id>`` a safe path.
@@ -117,7 +118,7 @@ class UnsafeDataset(RuntimeError):
 
 #: What a run creates or writes in the dataset folder; each must be what it seems, never a symbolic link
 #: (the lock file has its own check: :func:`_open_lock_file`).
-WRITTEN = {FRAMES: "folder", INDEX: "file", CARD: "file", REJECTED: "file"}
+WRITTEN = {FRAMES: "folder", INDEX: "file", CARD: "file", REJECTED: "file", CARD_FIGURES: "folder"}
 
 
 def _open_lock_file(path: Path):

@@ -524,7 +524,8 @@ def apply_unit(sensor: dict, key: str, how: str, value) -> dict:
 
 
 def vary_sensor(sensor: dict, unit: dict, seed: int) -> tuple[dict, dict]:
-    """(the sensor dict of this unit, the draws by key) for a frame's render ``seed``; keys in sorted order."""
+    """(the sensor dict of this unit, ``{key: {"apply", "draw"}}``) for a frame's render ``seed``; keys drawn in
+    sorted order (``leds.position_m``: three draws, x y z)."""
     rng = np.random.default_rng(np.random.SeedSequence([seed, 0x5E45]))
     draws = {}
     for key in sorted(unit):
@@ -532,7 +533,7 @@ def vary_sensor(sensor: dict, unit: dict, seed: int) -> tuple[dict, dict]:
         dist = dists.from_dict({k: v for k, v in spec.items() if k != "apply"})
         value = [dist.sample(rng) for _ in range(3)] if key == "leds.position_m" else dist.sample(rng)
         sensor = apply_unit(sensor, key, spec["apply"], value)
-        draws[key] = value
+        draws[key] = {"apply": spec["apply"], "draw": value}
     return sensor, draws
 
 
@@ -559,7 +560,8 @@ def scalar_draws(randomization: dict) -> dict[str, list[float]]:
     ambient = randomization.get("ambient") or {}
     add("ambient.radiance_w_m2_sr", ambient.get("radiance_w_m2_sr"))
     add("ambient.environment_strength", ambient.get("environment_strength"))
-    for key, value in (randomization.get("sensor") or {}).items():
+    for key, entry in (randomization.get("sensor") or {}).items():
+        value = entry.get("draw")
         for v in (value if isinstance(value, list) else [value]):
-            add(f"sensor.{key}", v)
+            add(f"sensor.{key} ({entry.get('apply')})", v)
     return out

@@ -63,6 +63,7 @@ from tofcore.limits import usable_cpus
 from tofcore.tracer.workers import sigint_held
 
 from .card import dataset_card
+from .card_figures import diversity_section
 from .dataset import FRAMES, RECORD, Dataset, differing_keys
 from .devices import VISIBLE_ENV, plan_devices
 from .jobs import Job, ViewTask, group_by_view
@@ -694,8 +695,9 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
                 result.failures = [r for r in set_records if r.get("status") == "failed"]
                 result.failed = len(result.failures)
                 result.pending = len(jobs) - len(set_records)
-                data.write_card(dataset_card(ordered, set_file=set_file, description=description,
-                                             jobs_in_set=len(jobs)))
+                card = dataset_card(ordered, set_file=set_file, description=description, jobs_in_set=len(jobs))
+                figures = diversity_section(ordered, data.root)
+                data.write_card(card + "".join(line + "\n" for line in figures))
                 result.seconds = time.monotonic() - started
             if caught and result.interrupted is None:
                 result.interrupted = Interrupted(caught[0])

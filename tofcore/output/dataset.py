@@ -67,7 +67,14 @@ name                   shape        unit        content
 ``distance_per_k``     (K, H, W)    m           decoded distance using bounces ≤ k, k = 1..K
 ``ray_directions``     (H, W, 3)    1           unit pixel-centre ray directions, sensor frame (from the
                                                 intrinsics: radial distance × direction = point)
+``multipath_error``    (H, W)       m           measured depth − ground-truth depth, NaN where invalid (labels)
+``direct_depth``       (H, W)       m           depth decoded from direct light only (labels)
+``normal``             (H, W, 3)    1           first-hit normal, sensor frame, facing the camera (labels)
+``material_id``        (H, W)       index       first-hit material, −1 none; names: :attr:`FrameRef.materials`
 =====================  ===========  ==========  ================================================================
+
+The last four come from ``labels.npz`` (``batch/labels.py``), written when the set's ``[output]`` has
+``labels = true``; ``material_id`` is int32 there, the others float32.
 
 Every array is float32 exactly as stored in ``frame.exr`` (:func:`tofcore.read_exr`):
 ``valid``, ``reason`` and ``object_id`` too, and invalid pixels stay NaN.
@@ -119,8 +126,11 @@ IMAGE_CHANNELS = ("depth", "distance", "amplitude", "intensity", "offset", "conf
                   "gt_distance", "gt_depth", "direct_distance", "object_id", "render_error", "samples")
 #: Channels built from several EXR channels or from frame.json.
 STACKED_CHANNELS = ("raw", "distance_per_k", "ray_directions")
+#: Channels of ``labels.npz`` (training labels, when the set asked for them).
+LABEL_CHANNELS = ("multipath_error", "direct_depth", "normal", "material_id")
+LABELS_FILE = "labels.npz"
 #: Every name :meth:`FrameRef.load` accepts (``raw_labels`` comes with ``raw``).
-CHANNELS = IMAGE_CHANNELS + STACKED_CHANNELS
+CHANNELS = IMAGE_CHANNELS + STACKED_CHANNELS + LABEL_CHANNELS
 #: Values of a record's ``status``.
 STATUSES = ("ok", "failed")
 #: What a frame's files are checked against when opened: ``"sha256"`` (size always, hash at first open) or ``"size"``.
@@ -305,6 +315,18 @@ class FrameRef:
                 for entry in table}
 
     @property
+    def materials(self) -> dict[int, str]:
+        """What the ``material_id`` label's values mean: ``{id: material name}`` (−1 is no surface); empty
+        for frames written without labels."""
+        return {int(entry["id"]): entry["name"] for entry in self.record.get("materials") or []}
+
+    @property
+    def randomization(self) -> dict:
+        """What a randomized view drew (objects, materials, ambient, camera, sensor unit; ``batch/randomize.py``),
+        from the index record; empty for frames of fixed views."""
+        return dict(self.record.get("randomization") or {})
+
+    @property
     def transient(self) -> tuple[np.ndarray, float]:
         """The transient histogram ``(H, W, B)`` float32 and its bin width in metres (``transient.npy``;
         bin b centred at (b + ½)·width). DatasetError when the frame has none."""
@@ -355,18 +377,25 @@ class FrameRef:
         >>> error_m = (arrays["depth"] - arrays["gt_depth"])[arrays["valid"] > 0.5]
         """
         names = _check_channels(channels, f"frame {self.id}")
-        exr = self._file(FRAME_EXR)
-        from .writers import read_exr
+        has_labels = any(e.get("name") == LABELS_FILE for e in self.record.get("files") or [] if isinstance(e, dict))
+        stored: dict[str, np.ndarray] = {}
+        if names is None or any(n not in LABEL_CHANNELS for n in names):
+            exr = self._file(FRAME_EXR)
+            from .writers import read_exr
 
-        try:
-            stored = read_exr(exr)
-        except (OSError, ValueError) as exc:  # tofcore.output.exr: a damaged or truncated file is a ValueError
-            raise DatasetError(f"{exr}: cannot be read as EXR ({type(exc).__name__}: {exc})") from None
+            try:
+                stored = read_exr(exr)
+            except (OSError, ValueError) as exc:  # tofcore.output.exr: a damaged or truncated file is a ValueError
+                raise DatasetError(f"{exr}: cannot be read as EXR ({type(exc).__name__}: {exc})") from None
         if names is None:
-            names = [n for n in IMAGE_CHANNELS if n in stored] + ["raw", "distance_per_k"]
+            names = [n for n in IMAGE_CHANNELS if n in stored] + ["raw", "distance_per_k"] + (
+                list(LABEL_CHANNELS) if has_labels else [])
+        labels = self._labels(has_labels) if any(n in LABEL_CHANNELS for n in names) else {}
         out: dict[str, Any] = {}
         for name in names:
-            if name == "raw":
+            if name in LABEL_CHANNELS:
+                out[name] = labels[name]
+            elif name == "raw":
                 labels = self.raw_labels or tuple(sorted(k[4:] for k in stored if k.startswith("raw.")))
                 out["raw"] = _stack(stored, [f"raw.{label}" for label in labels], exr)
                 out["raw_labels"] = labels
@@ -380,6 +409,17 @@ class FrameRef:
             else:
                 out[name] = _channel(stored, name, exr)
         return out
+
+    def _labels(self, has_labels: bool) -> dict[str, np.ndarray]:
+        """The arrays of ``labels.npz``; DatasetError when the frame was written without labels."""
+        if not has_labels:
+            raise DatasetError(f"frame {self.id}: no {LABELS_FILE} (the set's [output] did not ask for labels = true)")
+        path = self._file(LABELS_FILE)
+        try:
+            with np.load(path, allow_pickle=False) as data:
+                return {name: data[name] for name in data.files}
+        except (OSError, ValueError, KeyError) as exc:
+            raise DatasetError(f"{path}: cannot be read ({type(exc).__name__}: {exc})") from None
 
     def sample(self, channels: Iterable[str] | str = ("depth", "gt_depth", "valid")) -> dict[str, Any]:
         """The frame as a training sample of NumPy arrays (what :class:`tofcore.output.torch_dataset.TorchDataset` gives).
@@ -402,6 +442,10 @@ class FrameRef:
             ``raw``                (R, H, W)      float32   raw images (e⁻), order of ``raw_labels``
             ``distance_per_k``     (K, H, W)      float32   per-bounce distances (m)
             ``ray_directions``     (3, H, W)      float32   unit ray directions, sensor frame
+            ``normal``             (3, H, W)      float32   first-hit normal, sensor frame (labels)
+            ``material_id``        (1, H, W)      int32     first-hit material, −1 none (labels)
+            ``multipath_error``,   (1, H, W)      float32   labels: depth − gt_depth, direct-light depth (m)
+            ``direct_depth``
             ``intrinsics``         (3, 3)         float32   camera matrix [[fx, 0, cx], [0, fy, cy], [0, 0, 1]]
             ``distortion``         (5,)           float32   OpenCV k1, k2, p1, p2, k3
             ``world_from_sensor``  (4, 4)         float32   pose, metres
@@ -418,13 +462,13 @@ class FrameRef:
                 continue
             if name in ("raw", "distance_per_k"):
                 sample[name] = np.ascontiguousarray(value, dtype=np.float32)
-            elif name == "ray_directions":
+            elif name in ("ray_directions", "normal"):
                 sample[name] = np.ascontiguousarray(np.moveaxis(value, -1, 0), dtype=np.float32)
             elif name == "valid":
                 sample[name] = (value > 0.5)[None]
             elif name == "reason":
                 sample[name] = value.astype(np.uint8)[None]
-            elif name == "object_id":
+            elif name in ("object_id", "material_id"):
                 sample[name] = value.astype(np.int32)[None]
             else:
                 sample[name] = value[None]

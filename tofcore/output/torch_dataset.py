@@ -19,6 +19,12 @@ image channel asked)                              ``valid``); metres, electrons 
 ``raw``                (R, H, W)      float32     raw images (e⁻), in the order of the frame's ``raw_labels``
 ``distance_per_k``     (K, H, W)      float32     decoded distance using bounces ≤ k (m)
 ``ray_directions``     (3, H, W)      float32     unit pixel-centre ray directions, sensor frame
+``multipath_error``    (1, H, W)      float32     labels (``[output] labels = true``): measured depth − ground
+                                                  truth (m), NaN where invalid
+``direct_depth``       (1, H, W)      float32     labels: depth from direct light only (m)
+``normal``             (3, H, W)      float32     labels: first-hit normal, sensor frame
+``material_id``        (1, H, W)      int32       labels: first-hit material, −1 none (names:
+                                                  ``dataset.refs[i].materials``)
 ``intrinsics``         (3, 3)         float32     [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] (px)
 ``distortion``         (5,)           float32     OpenCV k1, k2, p1, p2, k3
 ``world_from_sensor``  (4, 4)         float32     sensor (OpenCV axes) → world pose, metres
