@@ -117,8 +117,9 @@ def test_the_example_sets_are_listed_printed_and_copied(tmp_path):
     assert shown.returncode == 0 and 'description = "Demo scenes' in shown.stdout
     proc = batch("examples", "--copy", str(tmp_path / "sets"))
     assert proc.returncode == 0, proc.stderr
-    assert sorted(os.listdir(tmp_path / "sets")) == ["demo_set.toml", "kinect_room.toml"]
+    assert sorted(os.listdir(tmp_path / "sets")) == ["demo_set.toml", "kinect_room.toml", "randomized_room.toml"]
     assert "ok —" in batch("validate", str(tmp_path / "sets" / "demo_set.toml")).stdout
+    assert "1000 frame(s)" in batch("validate", str(tmp_path / "sets" / "randomized_room.toml")).stdout
     schema = batch("examples", "--schema").stdout
     assert "[output]" in schema and "``" not in schema and ".. code-block" not in schema
     bad = batch("examples", "--show", "nope")
