@@ -25,7 +25,7 @@ Example
     match = ["walls", "floor"]                     # glob patterns (default: the class name)
     reflectance = { dist = "uniform", low = 0.1, high = 0.9 }     # near-IR albedo
     roughness = { dist = "normal", mean = 0.4, std = 0.15 }       # truncated to [0, π/2]
-    textures = "textures/"                         # reflectance images (.npy, .exr, .png), mean = draw
+    textures = "textures/"                         # reflectance images (.npy, .exr, .png) about the draw
     texture_probability = 0.5
     [scenes.randomize.materials.objects]
     match = ["box", "cylinder", "sphere", "cone"]
@@ -385,13 +385,22 @@ def _randomized_material(material, cls: dict, rng: np.random.Generator, images: 
         if path not in images:
             images[path] = read_grey(Path(path))
         image = images[path]
-        reflectance = values.get("reflectance", material.reflectance)
-        mean = float(image.mean())
-        scaled = image * (reflectance / mean) if mean > 0 else np.full_like(image, reflectance)
-        changes["reflectance_texture"] = Texture(np.clip(scaled, 0.0, 1.0), name=name)
+        changes["reflectance_texture"] = Texture(texture_about(image, values.get("reflectance", material.reflectance)),
+                                                 name=name)
         texture = name
     drawn["texture"] = texture
     return dataclasses.replace(material, **changes), drawn
+
+
+def texture_about(image: np.ndarray, reflectance: float) -> np.ndarray:
+    """The image's pattern about ``reflectance``: :math:`t = \\rho + c\\,(I - \\bar I)`, mean exactly ρ,
+    contrast :math:`c = \\min(1, \\rho / (\\bar I - I_{min}), (1 - \\rho) / (I_{max} - \\bar I))`, so every texel
+    stays a valid albedo in [0, 1] (an image brighter or darker than the draw keeps its shape, not its level)."""
+    image = np.asarray(image, np.float64)
+    mean = float(image.mean())
+    below, above = mean - float(image.min()), float(image.max()) - mean
+    contrast = min(1.0, reflectance / below if below > 0 else 1.0, (1.0 - reflectance) / above if above > 0 else 1.0)
+    return np.clip(reflectance + contrast * (image - mean), 0.0, 1.0).astype(np.float32)  # clip: rounding only
 
 
 def _box_uvs(scene) -> np.ndarray:

@@ -256,3 +256,62 @@ def test_the_card_shows_histograms_of_the_draws(rendered):
     for picture in pictures:
         assert (rendered / picture).read_bytes().startswith(b"\x89PNG")
     assert "| camera.distance_m | 2 |" in card
+
+
+# --------------------------------------------------------------------------- folders: textures, maps, meshes
+
+_TETRAHEDRON_OBJ = """o tetra
+v 0 0 0
+v 1 0 0
+v 0 0 -1
+v 0 1 0
+f 1 3 2
+f 1 2 4
+f 1 4 3
+f 2 3 4
+"""
+
+
+def test_textures_environment_maps_and_library_meshes_come_from_folders(tmp_path):
+    import tofcore
+
+    (tmp_path / "textures").mkdir()
+    stripes = np.tile(np.array([0.2, 0.8], np.float32), (8, 4))
+    np.save(tmp_path / "textures" / "stripes.npy", stripes)
+    (tmp_path / "sky").mkdir()
+    np.save(tmp_path / "sky" / "flat.npy", np.full((4, 8), 0.05, np.float32))
+    (tmp_path / "meshes").mkdir()
+    (tmp_path / "meshes" / "tetra.obj").write_text(_TETRAHEDRON_OBJ)
+    body = RANDOM_SET.replace('shapes = ["box", "cylinder", "sphere"]', 'library = "meshes"').replace(
+        'match = ["walls", "floor"]', 'match = ["walls", "floor"]\ntextures = "textures"\ntexture_probability = 1.0'
+    ).replace('radiance_w_m2_sr = { dist = "loguniform", low = 0.001, high = 0.1 }',
+              'environments = "sky"\nenvironment_strength = { dist = "uniform", low = 0.5, high = 2.0 }')
+    spec = load_set(write_set(tmp_path, body)).scenes[0].randomize
+    assert spec["objects"]["library"]["files"][0][0] == "tetra.obj"
+    scene, pose, ambient, drawn = build_view(tofcore.demo_scene("room"), spec, 77)
+    frame = tofcore.render(scene, tofcore.load_preset("kinect_v2").scaled(0.0625), pose, spp=1, max_depth=1,
+                           ambient=ambient, seed=1)
+    assert frame.valid.mean() > 0.5 and frame.material_id is not None
+    walls = next(m for m in scene.materials if m.name == "walls")
+    record = next(d for d in drawn["materials"] if d["material"] == "walls")
+    assert record["texture"] == "stripes.npy" and walls.reflectance_texture is not None
+    # The stripes about the walls' reflectance (their own 0.7: the class draws no reflectance), in [0, 1]:
+    # 0.2/0.8 about 0.5 → contrast min(1, 0.7/0.3, 0.3/0.3) = 1 → 0.4/1.0.
+    assert walls.reflectance_texture.data.mean() == pytest.approx(0.7, rel=1e-6)
+    assert np.allclose(np.unique(walls.reflectance_texture.data), [0.4, 1.0])
+    assert scene.uvs is not None and scene.uvs.shape == (len(scene.vertices), 2)  # box-projected for the room
+    assert drawn["ambient"]["environment"] == "flat.npy" and 0.5 <= drawn["ambient"]["environment_strength"] <= 2.0
+    assert ambient.environment is not None and ambient.environment_strength == drawn["ambient"]["environment_strength"]
+    assert {o["mesh"] for o in drawn["objects"]["list"]} == {"tetra.obj"}
+    assert all(name.startswith("tetra.obj #") for name in scene.object_names[len(tofcore.demo_scene("room")
+                                                                                  .object_names):])
+
+
+@pytest.mark.parametrize("folder, message", [
+    ('library = "nowhere"', r"randomize\.objects\.library: folder not found: .*nowhere"),
+    ('library = "empty"', r"randomize\.objects\.library: .*empty holds no mesh files"),
+])
+def test_missing_or_empty_folders_are_named(tmp_path, folder, message):
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(SetFileError, match=message):
+        load_set(write_set(tmp_path, RANDOM_SET.replace('shapes = ["box", "cylinder", "sphere"]', folder)))
