@@ -327,12 +327,17 @@ def parse_randomize(ctx, value, path: list, presets) -> dict:
 
 
 def identity(spec: dict) -> dict:
-    """The spec without folder paths (files count by name and content): what enters job ids."""
-    if isinstance(spec, dict):
-        return {k: identity(v) for k, v in spec.items() if k != "folder"}
-    if isinstance(spec, list):
-        return [identity(v) for v in spec]
-    return spec
+    """What of the spec enters job ids and view seeds: all but folder paths (files count by name and
+    content) and the number of views, so a set grown from 100 to 1,000 views keeps its first 100 frames."""
+    return _without_folders({k: v for k, v in spec.items() if k != "count"})
+
+
+def _without_folders(value):
+    if isinstance(value, dict):
+        return {k: _without_folders(v) for k, v in value.items() if k != "folder"}
+    if isinstance(value, list):
+        return [_without_folders(v) for v in value]
+    return value
 
 
 # --------------------------------------------------------------------------- drawing a view

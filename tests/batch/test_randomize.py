@@ -171,6 +171,13 @@ def test_job_ids_and_view_seeds_do_not_depend_on_the_run(random_set):
     assert len(set(seeds)) == 2
     tasks = group_by_view(first)
     assert len(tasks) == 2 and all(t.randomize is not None for t in tasks)
+    # More views keep the first ones (their ids and seeds); another table draws other frames.
+    grown = expand(load_set(write_set(random_set.parent, RANDOM_SET.replace("count = 2\n", "count = 3\n", 1),
+                                      "grown.toml"))).jobs
+    assert [j.job_id for j in grown[:2]] == [j.job_id for j in first] and len(grown) == 3
+    other = expand(load_set(write_set(random_set.parent, RANDOM_SET.replace("high = 2.0 }", "high = 2.1 }"),
+                                      "other.toml"))).jobs
+    assert not {j.job_id for j in other} & {j.job_id for j in first}
 
 
 def test_the_sensor_unit_is_drawn_from_the_frame_seed(random_set):
