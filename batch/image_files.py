@@ -25,11 +25,6 @@ SUFFIXES = (".npy", ".exr", ".png", ".jpg", ".jpeg")
 _LUMINANCE = np.array([0.2126, 0.7152, 0.0722])
 
 
-def image_files(folder: Path) -> list[Path]:
-    """The readable images of ``folder`` (not its sub-folders), sorted by name."""
-    return sorted(p for p in Path(folder).iterdir() if p.is_file() and p.suffix.lower() in SUFFIXES)
-
-
 def read_grey(path: Path) -> np.ndarray:
     """(H, W) float32 image of ``path``; ConfigError naming the file when it cannot be read."""
     path = Path(path)

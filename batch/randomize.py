@@ -96,7 +96,8 @@ import numpy as np
 from tofcore.errors import TofError, is_number
 
 from . import distributions as dists
-from .image_files import image_files, read_grey
+from .image_files import SUFFIXES as IMAGE_SUFFIXES
+from .image_files import read_grey
 
 TOP_KEYS = ("count", "materials", "objects", "camera", "ambient", "sensor")
 MATERIAL_KEYS = ("match", "reflectance", "roughness", "metallic", "ior", "extinction", "coat", "coat_roughness",
@@ -165,8 +166,8 @@ def _materials(ctx, value, path) -> list[dict]:
             raise ctx.fail(where + ["match"], "a list of material-name glob patterns", match)
         params = {key: _dist(ctx, table[key], where + [key], ranges[key][:2], ranges[key][2])
                   for key in ranges if key in table}
-        textures = (_folder(ctx, table["textures"], where + ["textures"], (".npy", ".exr", ".png", ".jpg", ".jpeg"),
-                            "images") if "textures" in table else None)
+        textures = (_folder(ctx, table["textures"], where + ["textures"], IMAGE_SUFFIXES, "images")
+                    if "textures" in table else None)
         probability = 1.0
         if "texture_probability" in table:
             probability = table["texture_probability"]
