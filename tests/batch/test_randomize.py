@@ -322,3 +322,10 @@ def test_missing_or_empty_folders_are_named(tmp_path, folder, message):
     (tmp_path / "empty").mkdir()
     with pytest.raises(SetFileError, match=message):
         load_set(write_set(tmp_path, RANDOM_SET.replace('shapes = ["box", "cylinder", "sphere"]', folder)))
+
+
+def test_a_dataset_without_randomized_frames_gets_no_pictures(tmp_path):
+    from batch.card_figures import diversity_section
+
+    assert diversity_section([{"status": "ok", "valid_fraction": 0.9}], tmp_path) == []
+    assert not (tmp_path / "card").exists()
