@@ -33,7 +33,7 @@ Example
     [scenes.randomize.objects]
     shapes = ["box", "cylinder", "sphere", "cone"] # primitives made in code (tofcore.scene.primitives)
     library = "objects/"                           # and/or mesh files: .obj .ply .gltf .glb .stl .npz
-    count = { dist = "uniform", low = 1, high = 6 }   # rounded to an integer
+    count = { dist = "uniform", low = 0.5, high = 6.5 }   # rounded: 1 … 6 objects, equally often
     size_m = { dist = "loguniform", low = 0.1, high = 0.5 }
     [scenes.randomize.camera]
     look_at = "object"                             # or "scene" (the bounding box centre)
@@ -58,7 +58,8 @@ key                                type            default                      
 ``….texture_probability``          [0, 1]          1 (with textures)               share of draws with a texture
 ``objects.shapes``                 list            none                            box, cylinder, sphere, cone
 ``objects.library``                folder          none                            mesh files (one object each)
-``objects.count``                  distribution    –                               objects per view (rounded)
+``objects.count``                  distribution    –                               objects per view, rounded to
+                                                                                   the nearest integer
 ``objects.size_m``                 distribution    0.1 … 0.5 uniform               largest bounding-box side, m
 ``objects.yaw_deg``                distribution    0 … 360 uniform                 turn about Z
 ``objects.tilt_deg``               distribution    0                               tilt about X before the turn
