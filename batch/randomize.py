@@ -68,6 +68,8 @@ key                                type            default                      
 ``camera.distance_m``              distribution    range-based (above)             eye to target, m
 ``camera.azimuth_deg``             distribution    0 … 360 uniform                 from +X towards +Y
 ``camera.elevation_deg``           distribution    5 … 45 uniform                  above the horizontal
+``camera.clearance_m``             number >= 0     0.1                             no surface this close to the eye
+                                                                                   (the LEDs sit beside the lens)
 ``camera.max_attempts``            int >= 1        100                             draws until the target is seen
 ``ambient.radiance_w_m2_sr``       distribution    the scene's                     constant ambient radiance
 ``ambient.environments``           folder          none                            equirectangular maps (W/m²/sr)
@@ -104,7 +106,7 @@ TOP_KEYS = ("count", "materials", "objects", "camera", "ambient", "sensor")
 MATERIAL_KEYS = ("match", "reflectance", "roughness", "metallic", "ior", "extinction", "coat", "coat_roughness",
                  "textures", "texture_probability")
 OBJECT_KEYS = ("shapes", "library", "count", "size_m", "yaw_deg", "tilt_deg", "max_attempts")
-CAMERA_KEYS = ("look_at", "distance_m", "azimuth_deg", "elevation_deg", "max_attempts")
+CAMERA_KEYS = ("look_at", "distance_m", "azimuth_deg", "elevation_deg", "clearance_m", "max_attempts")
 AMBIENT_KEYS = ("radiance_w_m2_sr", "environments", "environment_strength")
 APPLY = ("scale", "offset", "value")
 LIBRARY_SUFFIXES = (".obj", ".ply", ".gltf", ".glb", ".stl", ".npz")
@@ -236,7 +238,12 @@ def _camera(ctx, value, path, presets, has_objects: bool) -> dict:
             raise ctx.error(path, f"the presets' ranges leave no default camera distance (1.2 x {near:g} m to "
                                   f"0.6 x {far:g} m); give distance_m")
         distance = {"dist": "uniform", "low": low, "high": high}
-    return {"look_at": look, "distance_m": distance,
+    clearance = 0.1
+    if "clearance_m" in table:
+        clearance = table["clearance_m"]
+        if not (is_number(clearance) and 0 <= clearance <= 10):
+            raise ctx.fail(path + ["clearance_m"], "a number in [0, 10] (m)", clearance)
+    return {"look_at": look, "distance_m": distance, "clearance_m": float(clearance),
             "azimuth_deg": _dist(ctx, table.get("azimuth_deg", {"dist": "uniform", "low": 0.0, "high": 360.0}),
                                  path + ["azimuth_deg"], (-360.0, 720.0), "degrees"),
             "elevation_deg": _dist(ctx, table.get("elevation_deg", {"dist": "uniform", "low": 5.0, "high": 45.0}),
@@ -435,7 +442,7 @@ def _with_materials(scene, materials: list, needs_uvs: bool):
 def _camera_view(scene, camera: dict, placed: list, first_object: int, rng: np.random.Generator):
     """(world_from_sensor, what was drawn) of a camera that sees its target; RandomizeError after the attempts."""
     from tofcore.scene.pose import look_at
-    from tofcore.scene.viewpoint import orbit_eye, sees
+    from tofcore.scene.viewpoint import clear, orbit_eye, sees
 
     lo, hi = scene.bounds
     centre = 0.5 * (lo.astype(np.float64) + hi) + np.asarray(scene.origin_m)
@@ -449,11 +456,12 @@ def _camera_view(scene, camera: dict, placed: list, first_object: int, rng: np.r
         distance = _draw(camera["distance_m"], rng)
         azimuth, elevation = _draw(camera["azimuth_deg"], rng), _draw(camera["elevation_deg"], rng)
         eye = orbit_eye(target, distance, math.radians(azimuth), math.radians(elevation))
-        if sees(scene, eye, target, object_id):
+        if sees(scene, eye, target, object_id) and clear(scene, eye, camera["clearance_m"]):
             return look_at(eye, target), {
                 "target_m": target.tolist(), "target_object": name, "eye_m": eye.tolist(), "distance_m": distance,
                 "azimuth_deg": azimuth, "elevation_deg": elevation, "attempts": attempt}
-    raise RandomizeError(f"randomize.camera: no view in {camera['max_attempts']} attempts sees its target "
+    raise RandomizeError(f"randomize.camera: no view in {camera['max_attempts']} attempts sees its target from "
+                         f"{camera['clearance_m']:g} m clear of every surface "
                          f"(look_at {camera['look_at']!r}, distance {camera['distance_m']}); widen the distance or "
                          f"elevation, or raise max_attempts")
 

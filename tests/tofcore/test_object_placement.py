@@ -137,3 +137,19 @@ def test_an_orbit_view_sees_its_target_unless_something_is_in_the_way():
     assert not sees(ROOM, [0.0, 0.6, 0.4], target)          # under the table: the top is in the way
     assert not sees(ROOM, [0.0, -3.0, 1.0], target)         # outside the room: its wall seen from behind
     assert not sees(ROOM, [2.0, 1.7, 1.0], target)          # inside the cabinet
+
+
+def test_an_eye_near_a_wall_is_not_clear():
+    from tofcore.scene.viewpoint import clear
+
+    assert clear(ROOM, [0.0, 0.0, 1.5], 0.1)
+    assert not clear(ROOM, [2.45, 0.0, 1.5], 0.1)           # 5 cm from the wall x = 2.5
+    assert not clear(ROOM, [0.0, 0.0, 2.62], 0.1)           # 8 cm below the ceiling
+    # A plane 0.8 × clearance away at the worst angle between the test directions is still found.
+    n = np.array([0.591, 0.0, 0.807])
+    n /= np.linalg.norm(n)
+    u = np.cross(n, [0.0, 1.0, 0.0])
+    plane = tofcore.Scene.from_arrays(np.array([0.079 * n + 5 * (a * u + b * np.array([0, 1, 0]))
+                                                for a, b in ((-1, -1), (1, -1), (1, 1), (-1, 1))]),
+                                      [[0, 1, 2], [0, 2, 3]])
+    assert not clear(plane, [0.0, 0.0, 0.0], 0.1)
