@@ -552,14 +552,14 @@ def test_verify_names_a_frame_exr_replaced_by_another_frames_and_a_symlinked_fra
     assert f"frames/{first['job_id']}: the frame folder is a symbolic link" in proc.stdout, proc.stdout
 
 
-@pytest.mark.parametrize("name", ["frames", "index.jsonl", "README.md", "index.jsonl.rejected"])
+@pytest.mark.parametrize("name", ["frames", "index.jsonl", "README.md", "index.jsonl.rejected", "card"])
 def test_a_path_of_the_dataset_planted_as_a_symlink_is_refused_and_nothing_written_through_it(tmp_path, name):
     """DATASET/frames (or the index, the card) pointing elsewhere: one line, exit 2, the elsewhere untouched."""
     set_file = write_set(tmp_path, SETS["corner-2-presets"])
     dataset = tmp_path / "dataset"
     dataset.mkdir()
     elsewhere = tmp_path / "elsewhere"
-    if name == "frames":
+    if name in ("frames", "card"):
         elsewhere.mkdir()
     else:
         elsewhere.write_text("precious\n")
@@ -568,7 +568,7 @@ def test_a_path_of_the_dataset_planted_as_a_symlink_is_refused_and_nothing_writt
     assert proc.returncode == 2, proc.stderr
     assert f"{dataset.resolve() / name}: a symbolic link; a run writes only inside the dataset folder" in proc.stderr
     assert "Traceback" not in proc.stderr
-    if name == "frames":
+    if name in ("frames", "card"):
         assert list(elsewhere.iterdir()) == []
     else:
         assert elsewhere.read_text() == "precious\n"
