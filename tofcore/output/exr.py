@@ -115,6 +115,8 @@ def write(path: str | os.PathLike, channels: Mapping[str, np.ndarray], *,
     attributes : extra header attributes (table in the module docstring); not a standard name.
     compression : ``"zip"`` (default), ``"zips"`` or ``"none"``.
 
+    Notes
+    -----
     On any failure the temp file is removed and ``path`` is left as it was.
     """
     data = encode(channels, attributes=attributes, compression=compression)
