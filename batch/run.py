@@ -67,7 +67,7 @@ from .dataset import FRAMES, RECORD, Dataset, differing_keys
 from .devices import VISIBLE_ENV, plan_devices
 from .jobs import Job, ViewTask, group_by_view
 from .timing import timing_lines, worker_timing
-from .worker import WorkerDied, failed_record, init_worker, run_view
+from .worker import WorkerDied, failed_record, finish_writes, init_worker, run_view, start_view
 
 
 class Interrupted(BaseException):
@@ -138,13 +138,15 @@ class InlineExecutor:
 
 @dataclass
 class _Slot:
-    """One worker process of the local pool: its own one-process pool, its GPU, the view it renders."""
+    """One worker process of the local pool: its own one-process pool, its GPU, the view it renders, and
+    the jobs it was handed whose records it has not reported yet (rendering, or held by its writer)."""
 
     gpu: str | None
     pool: cf.ProcessPoolExecutor
     future: cf.Future | None = None
     task: ViewTask | None = None
     process: multiprocessing.Process | None = None
+    unreported: dict[str, tuple[ViewTask, Job]] = field(default_factory=dict)
 
 
 class LocalExecutor:
@@ -155,10 +157,15 @@ class LocalExecutor:
     the last views go to whichever worker is free first. With ``gpus`` (``CUDA_VISIBLE_DEVICES`` ids)
     there is one slot per GPU, pinned to it by the initializer (:func:`batch.worker.init_worker`).
 
-    A worker that dies (``kill -9``, the out-of-memory killer) breaks only its own slot: its view's
-    frames fail with one line (:class:`WorkerDied`; ``--retry-failed`` renders them again; frames it
-    had published are indexed as published), the slot gets a new process on the same GPU, and the
-    other workers carry on.
+    A worker renders a view and hands its frames to its writer thread (:func:`batch.worker.start_view`):
+    it reports a view as soon as it is rendered, with the records of the frames written so far, and
+    renders the next view while the last one is written. A slot keeps the jobs it has not reported;
+    when no view is left, it asks for the rest (:func:`batch.worker.finish_writes`).
+
+    A worker that dies (``kill -9``, the out-of-memory killer) breaks only its own slot: every frame it
+    had not reported (its view's, and those its writer held) fails with one line (:class:`WorkerDied`;
+    ``--retry-failed`` renders them again; frames it had published are indexed as published), the slot
+    gets a new process on the same GPU, and the other workers carry on.
     """
 
     def __init__(self, workers: int, gpus: tuple[str, ...] = ()):
@@ -177,16 +184,56 @@ class LocalExecutor:
         return _Slot(gpu, cf.ProcessPoolExecutor(max_workers=1, mp_context=context, initializer=init_worker,
                                                  initargs=(os.getpid(), gpu, time.time())))
 
-    def _submit(self, slot: _Slot, task: ViewTask) -> None:
+    def _submit(self, slot: _Slot, task: ViewTask | None) -> None:
+        """Hand ``task`` to the slot's worker (:func:`start_view`), or with None ask it for the records of the
+        frames its writer still holds (:func:`finish_writes`)."""
+        call = (start_view, task) if task is not None else (finish_writes,)
         with sigint_held():  # the first submit starts the slot's worker process
             try:
-                slot.future = slot.pool.submit(run_view, task)
+                slot.future = slot.pool.submit(*call)
             except BrokenProcessPool:  # the worker died between two views: a new one takes this view
-                self._replace(slot)
-                slot.future = slot.pool.submit(run_view, task)
+                self._replace(slot)  # (its unreported jobs were failed when its future broke)
+                slot.future = slot.pool.submit(*call)
         slot.task = task
+        if task is not None:
+            slot.unreported.update((job.job_id, (task, job)) for job in task.jobs)
         if slot.process is None:
             slot.process = next(iter((getattr(slot.pool, "_processes", None) or {}).values()), None)
+
+    def _next(self, slot: _Slot, pending: deque) -> None:
+        """Give a free slot the next view, or, with none left, ask it for the frames it still writes."""
+        if slot.future is not None:
+            return
+        if pending:
+            self._submit(slot, pending.popleft())
+        elif slot.unreported:
+            self._submit(slot, None)
+
+    def _reported(self, slot: _Slot, task: ViewTask | None, outcome) -> tuple[ViewTask, list[dict] | BaseException]:
+        """What a slot's finished call gives the run: its records, the slot's unreported jobs updated.
+
+        A worker that died fails every job it had not reported; a call that raised fails its view's jobs;
+        after :func:`finish_writes` nothing is held any more, so jobs still unreported (none, unless a
+        record was lost) fail too, rather than wait for ever.
+        """
+        if isinstance(outcome, WorkerDied) or (task is None and not isinstance(outcome, BaseException)):
+            records = [] if isinstance(outcome, BaseException) else outcome
+            for record in records:
+                slot.unreported.pop(record.get("job_id"), None)
+            lost = outcome if isinstance(outcome, BaseException) else WorkerDied(
+                "the worker reported no record for this frame after writing its frames; --retry-failed renders "
+                "it again", pid=slot.process.pid if slot.process is not None else None, gpu=slot.gpu)
+            records = records + [failed_record(job, job_task, lost) for job_task, job in slot.unreported.values()]
+            first = next(iter(slot.unreported.values()))[0] if slot.unreported else task
+            slot.unreported.clear()
+            return (task or first), records
+        if isinstance(outcome, BaseException):
+            for job in task.jobs:
+                slot.unreported.pop(job.job_id, None)
+            return task, outcome
+        for record in outcome:
+            slot.unreported.pop(record.get("job_id"), None)
+        return task, outcome
 
     def _replace(self, slot: _Slot) -> None:
         """A new worker process (pool) for a slot whose process died, pinned to the same GPU."""
@@ -207,7 +254,7 @@ class LocalExecutor:
             except ValueError:
                 how = f"killed by signal {-code}"
         pid = f" (pid {process.pid})" if process is not None else ""
-        return WorkerDied(f"the worker process{where}{pid} died while rendering this view ({how}); the other "
+        return WorkerDied(f"the worker process{where}{pid} died while rendering or writing this frame ({how}); the other "
                           f"workers went on; --retry-failed renders its frames again",
                           pid=process.pid if process is not None else None, gpu=slot.gpu)
 
@@ -216,8 +263,7 @@ class LocalExecutor:
         self.slots = [self._new_slot(gpu) for gpu in (self.gpus or [None] * self.workers)]
         while True:
             for slot in self.slots:  # every free worker takes the next view first: none waits for the parent
-                if slot.future is None and pending:
-                    self._submit(slot, pending.popleft())
+                self._next(slot, pending)
             busy = [slot.future for slot in self.slots if slot.future is not None]
             if not busy:
                 return
@@ -238,10 +284,9 @@ class LocalExecutor:
                     self._replace(slot)
                 except Exception as exc:
                     outcome = exc
-                finished.append((task, outcome))
+                finished.append(self._reported(slot, task, outcome))
             for slot in self.slots:  # refill before the parent indexes what came back
-                if slot.future is None and pending:
-                    self._submit(slot, pending.popleft())
+                self._next(slot, pending)
             yield from finished
 
     def close(self, kill: bool = False) -> None:
