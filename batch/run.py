@@ -209,31 +209,34 @@ class LocalExecutor:
         elif slot.unreported:
             self._submit(slot, None)
 
-    def _reported(self, slot: _Slot, task: ViewTask | None, outcome) -> tuple[ViewTask, list[dict] | BaseException]:
+    def _reported(self, slot: _Slot, task: ViewTask | None, outcome) -> tuple[ViewTask | None, list[dict] | BaseException]:
         """What a slot's finished call gives the run: its records, the slot's unreported jobs updated.
 
-        A worker that died fails every job it had not reported; a call that raised fails its view's jobs;
-        after :func:`finish_writes` nothing is held any more, so jobs still unreported (none, unless a
-        record was lost) fail too, rather than wait for ever.
+        A worker that died fails every job it had not reported; a view whose call raised fails its jobs;
+        after :func:`finish_writes` (``task`` None) the worker holds nothing any more, so a job still
+        unreported fails rather than wait for ever (none is, unless a record was lost).
         """
-        if isinstance(outcome, WorkerDied) or (task is None and not isinstance(outcome, BaseException)):
-            records = [] if isinstance(outcome, BaseException) else outcome
-            for record in records:
-                slot.unreported.pop(record.get("job_id"), None)
-            lost = outcome if isinstance(outcome, BaseException) else WorkerDied(
-                "the worker reported no record for this frame after writing its frames; --retry-failed renders "
-                "it again", pid=slot.process.pid if slot.process is not None else None, gpu=slot.gpu)
-            records = records + [failed_record(job, job_task, lost) for job_task, job in slot.unreported.values()]
-            first = next(iter(slot.unreported.values()))[0] if slot.unreported else task
-            slot.unreported.clear()
-            return (task or first), records
-        if isinstance(outcome, BaseException):
-            for job in task.jobs:
-                slot.unreported.pop(job.job_id, None)
+        if task is not None and not isinstance(outcome, WorkerDied):
+            if isinstance(outcome, BaseException):
+                for job in task.jobs:
+                    slot.unreported.pop(job.job_id, None)
+            else:
+                for record in outcome:
+                    slot.unreported.pop(record.get("job_id"), None)
             return task, outcome
-        for record in outcome:
+        if isinstance(outcome, BaseException):
+            records, lost = [], outcome
+        else:
+            records = outcome
+            lost = WorkerDied("the worker wrote its frames but reported no record for this one; --retry-failed "
+                              "renders it again", pid=slot.process.pid if slot.process is not None else None,
+                              gpu=slot.gpu)
+        for record in records:
             slot.unreported.pop(record.get("job_id"), None)
-        return task, outcome
+        held = list(slot.unreported.values())
+        slot.unreported.clear()
+        return task or (held[0][0] if held else None), records + [failed_record(job, job_task, lost)
+                                                                  for job_task, job in held]
 
     def _replace(self, slot: _Slot) -> None:
         """A new worker process (pool) for a slot whose process died, pinned to the same GPU."""

@@ -570,6 +570,8 @@ def run_view(task: ViewTask) -> list[dict]:
         failed = _render_view(task, writer)
         records = failed + writer.drain()
         sys.stdout.flush()
+        if _STOP.is_set():  # stopped while the last frames were written: they are published
+            _exit_stopped()
         return records
     finally:
         writer.close()
@@ -591,6 +593,8 @@ def start_view(task: ViewTask) -> list[dict]:
             _WRITER = FrameWriter()
         failed = _render_view(task, _WRITER)
         sys.stdout.flush()
+        if _STOP.is_set():  # stopped after the view's last render: its frames are written first
+            _exit_stopped()
         return failed + _WRITER.take()
     finally:
         _BUSY.clear()
