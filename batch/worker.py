@@ -553,6 +553,7 @@ def _render_view(task: ViewTask, writer: FrameWriter) -> list[dict]:
                           functools.partial(_write_failed, job, task, record))
             del frame  # the writer holds the only reference: its arrays go when it is written
         if _STOP.is_set():  # the frames handed over are written first (their record.json is read back next run)
+            writer.drain(timeout=_STOP_WRITER_WAIT_S)
             _exit_stopped()
     return failed
 
@@ -570,8 +571,8 @@ def run_view(task: ViewTask) -> list[dict]:
         failed = _render_view(task, writer)
         records = failed + writer.drain()
         sys.stdout.flush()
-        if _STOP.is_set():  # stopped while the last frames were written: they are published
-            _exit_stopped()
+        if _STOP.is_set():  # stopped while the last frames were written: they are published, the parent
+            _exit_stopped()  # or the next run reads them back
         return records
     finally:
         writer.close()
