@@ -64,7 +64,7 @@ from tofcore.tracer.workers import sigint_held
 
 from .card import dataset_card
 from .dataset import FRAMES, RECORD, Dataset, differing_keys
-from .devices import VISIBLE_ENV, plan_devices
+from .devices import VISIBLE_ENV, cpu_frames_and_threads, plan_devices
 from .jobs import Job, ViewTask, group_by_view
 from .timing import timing_lines, worker_timing
 from .worker import WorkerDied, failed_record, init_worker, run_view
@@ -586,8 +586,9 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
     ----------
     jobs : from :func:`batch.jobs.expand`, in set order.
     dataset : the dataset folder (created if needed).
-    workers : local worker processes, or LocalCluster workers with ``dask_local`` (default: 1; with a
-        GPU plan one per GPU, and never more).
+    workers : local worker processes, or LocalCluster workers with ``dask_local`` (default on the CPU:
+        :func:`batch.devices.cpu_frames_and_threads` of the usable CPUs and the frames to render, with
+        that many tracer threads each; with a GPU plan one per GPU, and never more).
     threads_per_worker : tracer worker processes per render (threads inside a Dask worker, which may not
         start processes; default: usable CPUs / workers, at least 1, so frames × tracer workers never
         exceed the CPUs; on a remote cluster: each worker machine's CPU count).
@@ -604,7 +605,7 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
     where = ("inline" if inline else "cluster" if executor is not None or scheduler is not None
              else "dask-local" if dask_local else "local")
     devices = plan_devices(device, executor=where, workers=workers)
-    workers = devices.workers
+    workers_given, workers = workers, devices.workers
     for note in devices.notes:
         log(note)
     result = RunResult(jobs=len(jobs))
@@ -618,6 +619,11 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
             log(f"removed {removed} half-written frame folder(s) left by an interrupted run")
         todo = plan(jobs, data, records, retry_failed=retry_failed, verify=verify, result=result, log=log)
         data.rewrite_index(_ordered(records, jobs))
+        if (workers_given is None and threads_per_worker is None and not devices.gpus
+                and where in ("local", "dask-local") and todo):
+            workers, threads_per_worker = cpu_frames_and_threads(usable_cpus(), len(todo))
+            log(f"{workers} frame(s) at once × {threads_per_worker} tracer thread(s) each, for "
+                f"{usable_cpus()} CPUs (--workers and --threads-per-worker set them)")
         if threads_per_worker is None and scheduler is None:
             threads_per_worker = max(1, usable_cpus() // max(1, workers if not inline else 1))
         tasks = group_by_view(todo, dataset=str(data.root), render_threads=threads_per_worker,
