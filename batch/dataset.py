@@ -196,6 +196,22 @@ def sha256_of(path: Path) -> str:
         return hashlib.file_digest(fh, "sha256").hexdigest()
 
 
+def exr_defect(path: Path) -> str | None:
+    """Why tofcore's EXR codec cannot read ``path`` (header, declared sizes, offset table, chunk headers:
+    :func:`tofcore.output.exr.check`, no pixels inflated), or None. A file whose checksum was made to
+    match the record is still found."""
+    from tofcore.errors import ExrError
+    from tofcore.output import exr
+
+    try:
+        exr.check(path)
+    except ExrError as exc:
+        return str(exc).removeprefix(f"{path}: ")
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    return None
+
+
 def file_entry(kind: str, path: Path) -> dict:
     """``{kind, name, bytes, sha256}`` of a written file."""
     path = Path(path)
@@ -515,7 +531,8 @@ class Dataset:
         """None when the record's frame is complete on disk, else why not.
 
         ``mode``: ``"sha256"`` checks sizes and checksums of ``record.json`` and of every file,
-        ``"size"`` only sizes (fast). A record without ``record_file`` (an index line written before
+        ``"size"`` only sizes (fast); with ``"sha256"`` an EXR file must also be one the codec can read
+        (:func:`exr_defect`). A record without ``record_file`` (an index line written before
         ``record.json`` was checksummed) must equal the folder's ``record.json``.
         """
         if record.get("status") != "ok":
@@ -553,6 +570,10 @@ class Dataset:
                 return f"{entry['name']} has {size} bytes, the record says {entry['bytes']}"
             if mode == "sha256" and sha256_of(path) != entry["sha256"]:
                 return f"{entry['name']} checksum differs from the record"
+            if mode == "sha256" and path.suffix == ".exr":
+                defect = exr_defect(path)
+                if defect is not None:
+                    return f"{entry['name']}: {defect}"
         return None
 
     def discard(self, job_id: str) -> bool:

@@ -32,7 +32,7 @@ if _sys.argv[:1] == ["-m"] and "tofcore" in _sys.orig_argv[1:] \
 from . import limits
 from .constants import SPEED_OF_LIGHT_M_S
 from .output import exr
-from .errors import Cancelled, ConfigError, LimitError, SceneError, TofError
+from .errors import Cancelled, ConfigError, ExrError, LimitError, SceneError, TofError
 from .output.frame import Frame, Reason
 from .output.writers import read_exr, write_frame
 from .render import render, render_progressive, trace, trace_progressive
@@ -50,7 +50,7 @@ from .sensor.presets import list_presets, load_preset
 from .tracer.transport import FirstHit, Transport
 
 __all__ = [
-    "Ambient", "Camera", "Cancelled", "ConfigError", "FirstHit", "Frame", "LED", "LimitError", "Material", "Modulation",
+    "Ambient", "Camera", "Cancelled", "ConfigError", "ExrError", "FirstHit", "Frame", "LED", "LimitError", "Material", "Modulation",
     "Reason", "SPEED_OF_LIGHT_M_S", "Scene", "SceneError", "Sensor", "Texture", "TofError", "Transport", "demo_ambient", "demo_scene",
     "from_blender_matrix_world", "list_presets", "load_mesh", "load_preset", "look_at", "read_exr", "render",
     "render_progressive",

@@ -20,6 +20,9 @@ limit                      environment variable         default              wha
 :data:`MAX_SCENE_BYTES`    ``TOFCORE_MAX_SCENE_BYTES``  4 GiB                uncompressed size of the arrays of a scene
                                                                              file (.npz), read from the zip directory
                                                                              and the .npy headers
+:data:`MAX_EXR_BYTES`      ``TOFCORE_MAX_EXR_BYTES``    4 GiB                size of an EXR file read, and the pixel
+                                                                             bytes its header declares (checked
+                                                                             before anything is allocated or inflated)
 :data:`MAX_SET_FRAMES`     ``TOFCORE_MAX_SET_FRAMES``   100,000              frames of one scene set (poses × frames ×
                                                                              cameras × presets), and any one pose count
                                                                              or frame range
@@ -135,6 +138,10 @@ MAX_RENDER_BYTES = Limit(
 MAX_SCENE_BYTES = Limit(
     "max_scene_bytes", "TOFCORE_MAX_SCENE_BYTES", 4 << 30, "bytes",
     "a small .npz can decompress to gigabytes (a zip bomb); 4 GiB is ~100 M triangles")
+MAX_EXR_BYTES = Limit(
+    "max_exr_bytes", "TOFCORE_MAX_EXR_BYTES", 4 << 30, "bytes",
+    "a 200-byte header can declare 320 GiB of pixels; tofcore's largest frame.exr (4096 x 4096, every "
+    "channel) is about 3 GiB")
 MAX_SET_FRAMES = Limit(
     "max_set_frames", "TOFCORE_MAX_SET_FRAMES", 100_000, "frames",
     "jobs are expanded in memory (a few kB each) before rendering starts")

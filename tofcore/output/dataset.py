@@ -106,7 +106,7 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, ExrError
 
 INDEX = "index.jsonl"
 FRAMES = "frames"
@@ -360,8 +360,10 @@ class FrameRef:
 
         try:
             stored = read_exr(exr)
-        except (OSError, ValueError) as exc:  # tofcore.output.exr: a damaged or truncated file is a ValueError
-            raise DatasetError(f"{exr}: cannot be read as EXR ({type(exc).__name__}: {exc})") from None
+        except ExrError as exc:  # tofcore.output.exr: "{path}: {defect}", one line
+            raise DatasetError(f"{exr}: cannot be read as EXR: {str(exc).removeprefix(f'{exr}: ')}") from None
+        except OSError as exc:
+            raise DatasetError(f"{exr}: cannot be read as EXR ({exc.strerror or exc})") from None
         if names is None:
             names = [n for n in IMAGE_CHANNELS if n in stored] + ["raw", "distance_per_k"]
         out: dict[str, Any] = {}
