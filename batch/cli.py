@@ -419,12 +419,16 @@ def main(argv: list[str] | None = None) -> int:
     on return.
     """
     previous = hold_signals()
-    from tofcore.console import use_safe_output
+    import warnings
+
+    from tofcore.console import note_line, use_safe_output
 
     use_safe_output()  # any locale: what the terminal cannot show is spelled in ASCII
+    format_before, warnings.formatwarning = warnings.formatwarning, note_line  # a warning is one line
     try:
         return _command(build_parser().parse_args(argv))
     finally:
+        warnings.formatwarning = format_before
         if argv is None:
             hold_signals(_exit_quietly)
         else:

@@ -17,6 +17,7 @@ import math
 import os
 import signal
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from . import limits
-from .console import say, use_safe_output
+from .console import note_line, say, use_safe_output
 from .errors import ConfigError, TofError
 from .progress import PassProgress
 from .units import BARE_LENGTH_UNIT, implausible_error_warning, parse_length_m
@@ -297,7 +298,9 @@ def _say_setup(args: argparse.Namespace, scene, sensor, ambient, device) -> None
         from . import compiled
 
         if compiled.cpu_kernels_cached() is False:  # the first pass would otherwise seem to hang for ~40 s
-            print("compiled tracer: compiling its kernels once for this install (about 40 s on 2 cores; later "
+            print("compiled tracer: compiling its kernels for this process only (about 40 s on 2 cores; their "
+                  "cache cannot be used, see the note)" if compiled.cache_problem() else
+                  "compiled tracer: compiling its kernels once for this install (about 40 s on 2 cores; later "
                   "renders load them in about a second; `tofcore warmup` compiles them ahead)", file=sys.stderr)
 
 
@@ -409,7 +412,12 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     frame = render(demo_scene("corner"), sensor, spp=1, device=args.device)
     transport, device = frame.stats["transport"], frame.stats["device"]["name"]
-    where = f"; kernels cached in {compiled.cache_location()}" if transport["tracer"] == "compiled" else ""
+    where = ""
+    if transport["tracer"] == "compiled" and device == "cpu":
+        where = (f"; kernels cached in {compiled.cache_location()}" if compiled.cpu_kernels_cached() else
+                 "; kernels not cached: every process compiles them again (see the note)")
+    elif transport["tracer"] == "compiled":
+        where = f"; kernels cached in {compiled.cache_location()}"
     why = f" ({transport['tracer_reason']})" if transport.get("tracer_reason") else ""
     say(f"{transport['tracer']} tracer on the {device.upper()}{why}: ready in {time.perf_counter() - start:.1f} s"
         f"{where}")
@@ -513,6 +521,7 @@ def main(argv: list[str] | None = None) -> int:
     use_safe_output()
     previous = {signal.SIGINT: signal.signal(signal.SIGINT, signal.default_int_handler),
                 signal.SIGTERM: signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))}
+    format_before, warnings.formatwarning = warnings.formatwarning, note_line  # a warning is one line
     try:
         args = build_parser().parse_args(argv)
         return args.func(args)
@@ -524,6 +533,7 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         if argv is not None:
+            warnings.formatwarning = format_before
             for sig, handler in previous.items():
                 if handler is not None:  # None: a handler not set from Python, which cannot be put back
                     signal.signal(sig, handler)
