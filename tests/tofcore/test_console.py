@@ -178,3 +178,16 @@ def test_use_safe_output_leaves_a_stream_that_cannot_be_reconfigured_alone(monke
     monkeypatch.setattr(sys, "stdout", Plain())
     use_safe_output()
     assert sys.stdout.errors == "strict"
+
+
+@pytest.mark.parametrize("threads", ["abc", "0"])
+def test_a_malformed_numba_thread_count_is_one_note_and_the_frame_renders(tmp_path, threads):
+    """NUMBA_NUM_THREADS=abc: numba's parse traceback before; =0: a ValueError traceback from its thread pool."""
+    proc = _tofcore("render", "--scene", "plane", "--preset", str(tiny_preset(tmp_path)), "--out",
+                    str(tmp_path / "out"), "--spp", "1", "--max-depth", "1", "--formats", "json",
+                    env={"NUMBA_NUM_THREADS": threads, "TOFCORE_TRACER": None}, text=True)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if "NUMBA_NUM_THREADS" in line]
+    assert lines == [f"note: environment: NUMBA_NUM_THREADS must be a positive integer, got {threads!r}: ignored "
+                     f"(numba then uses its default, one thread per CPU)"], proc.stderr
+    assert (tmp_path / "out" / "frame.json").is_file()

@@ -63,8 +63,8 @@ def _check_thread_variable() -> None:
     if text is None or (text.strip().isdigit() and int(text) > 0):
         return
     del os.environ["NUMBA_NUM_THREADS"]
-    note(f"environment: NUMBA_NUM_THREADS must be a positive integer, got {text!r}: ignored (numba uses all "
-         f"{os.cpu_count()} CPUs)")
+    note(f"environment: NUMBA_NUM_THREADS must be a positive integer, got {text!r}: ignored (numba then uses its "
+         f"default, one thread per CPU)")
 
 
 def thread_count(workers: int) -> int:
