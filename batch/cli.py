@@ -173,8 +173,10 @@ def cmd_verify(args: argparse.Namespace) -> int:
               f"rendered again, the index rebuilt from the frame folders): tofcore-batch run SET.toml --out "
               f"{args.dataset}")
         return EXIT_FAILED
-    print("ok: the index describes every frame folder and every file matches its checksum"
-          if args.checksum == "sha256" else "ok: the index describes every frame folder and every size matches")
+    print(("ok: the index describes every frame folder and every file matches its checksum"
+           if args.checksum == "sha256" else "ok: the index describes every frame folder and every size matches")
+          + (f" ({counts['outside_set']} frame(s) not in the last run's set: see the note)"
+             if counts["outside_set"] else ""))
     return EXIT_OK
 
 

@@ -478,6 +478,7 @@ class RunResult:
     recovered: int = 0                # index line lost, taken from the frame's record.json
     duplicates: int = 0               # results of a job indexed already in this run (dropped)
     pending: int = 0                  # not rendered (interrupted)
+    outside_set: int = 0              # indexed frames not in this set (an earlier version of it, another set): kept
     seconds: float = 0.0
     interrupted: Interrupted | None = None
     failures: list[dict] = field(default_factory=list)
@@ -517,6 +518,22 @@ def report_index(data: Dataset, info: dict, log, shown: int = 10) -> None:
     if info["duplicates"]:
         log(f"note: {data.index_path}: {info['duplicates']} record(s) superseded by a later line of the same "
             f"frame dropped")
+
+
+def report_outside_set(records: dict[str, dict], jobs: list[Job], set_file: str | None, result: RunResult,
+                       log) -> None:
+    """Warn, once, how many indexed frames are not in this set: an edited set file gives its frames new job ids,
+    and the frames of the earlier version stay in the index and in ``frames/`` (counted in ``result``)."""
+    in_set = {job.job_id for job in jobs}
+    outside = [r for job_id, r in records.items() if job_id not in in_set]
+    result.outside_set = len(outside)
+    if outside:
+        first = outside[0]  # a record (Dataset.read_index): scene, view label and preset are there
+        log(f"warning: {len(outside)} indexed frame(s) are not in {set_file or 'this set'} (e.g. {first['job_id']} "
+            f"{first['scene']}/{first['view']['label']}/{first['preset']}): frames of an earlier version of the set "
+            f"file or of "
+            f"another set, kept in the index and frames/; `tofcore-batch verify` lists them, "
+            f"Dataset(root, current_set=True) reads only this set's frames")
 
 
 def plan(jobs: list[Job], data: Dataset, records: dict[str, dict], *, retry_failed: bool, verify: str,
@@ -614,6 +631,8 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
     with data.locked():
         records, info = data.read_index()
         report_index(data, info, log)
+        report_outside_set(records, jobs, set_file, result, log)
+        data.write_current_set(set_file, [job.job_id for job in jobs])
         removed = data.clean_partials()
         if removed:
             log(f"removed {removed} half-written frame folder(s) left by an interrupted run")
@@ -728,6 +747,8 @@ def summary(result: RunResult, dataset: str | os.PathLike) -> str:
         lines.append("  retry them with --retry-failed once the cause is fixed")
     if result.interrupted is not None:
         lines.append(result.interrupted.message())
+    if result.outside_set:
+        lines.append(f"  the index also holds {result.outside_set} frame(s) not in this set (see the warning above)")
     lines += timing_lines(result.workers)
     lines.append(f"dataset: {os.fspath(dataset)} (index.jsonl, README.md, frames/)")
     return "\n".join(lines)
