@@ -25,9 +25,15 @@ import sys as _sys
 
 if _sys.argv[:1] == ["-m"] and "tofcore" in _sys.orig_argv[1:] \
         and _sys.orig_argv[_sys.orig_argv.index("tofcore") - 1] == "-m":  # `python -m tofcore`: Ctrl-C is one line
-    from ._interrupt import hold_until_the_command_starts
+    try:
+        from ._interrupt import hold_until_the_command_starts
 
-    hold_until_the_command_starts()
+        hold_until_the_command_starts()
+    except KeyboardInterrupt:  # Ctrl-C while that small module loads: no handler of ours yet
+        import os as _os
+
+        _os.write(2, b"\ninterrupted (SIGINT): nothing was written\n")
+        _os._exit(130)
 
 from . import limits
 from .constants import SPEED_OF_LIGHT_M_S
