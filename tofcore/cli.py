@@ -118,8 +118,9 @@ class OneLineParser(argparse.ArgumentParser):
 
 
 def formats_type(text: str) -> tuple[str, ...]:
-    """``"exr,png"`` → ("exr", "png"): a non-empty comma list of known output formats."""
-    FORMATS = ("exr", "png", "ply", "json")   # transient.npy comes with --transient-bin
+    """``"exr,png"`` → ("exr", "png"): a non-empty comma list of known output formats (``transient``, the
+    transient.npy histogram, needs ``--transient-bin``: :func:`_checked_render_settings`)."""
+    from .output.writers import FORMATS
 
     names = [f.strip() for f in text.split(",")]
     unknown = [f for f in names if f and f not in FORMATS]
@@ -205,19 +206,22 @@ def _blend_scene(path: Path):
     return scene, pose, ambient
 
 
-def _sensor(args: argparse.Namespace):
-    """The preset, resized by ``--resolution-scale`` or ``--width``/``--height``."""
+def _preset(args: argparse.Namespace):
+    """The preset as loaded (``--no-noise`` applied), not resized yet."""
     from .sensor.presets import load_preset
 
     sensor = load_preset(args.preset)
-    if args.no_noise:
-        sensor = sensor.replace(**{"noise.model": "none"})
+    return sensor.replace(**{"noise.model": "none"}) if args.no_noise else sensor
+
+
+def _size(args: argparse.Namespace, preset) -> tuple[int, int]:
+    """The image size ``--resolution-scale`` or ``--width``/``--height`` ask for (:meth:`Sensor.resized` checks it)."""
+    cam = preset.camera
     if args.width is not None or args.height is not None:
-        cam = sensor.camera
         width = args.width if args.width is not None else max(1, round(cam.width * args.height / cam.height))
         height = args.height if args.height is not None else max(1, round(cam.height * args.width / cam.width))
-        return sensor.resized(width, height)
-    return sensor.scaled(args.resolution_scale)
+        return width, height
+    return preset.scaled_size(args.resolution_scale)
 
 
 def _convergence_table(log: list[dict]) -> str:
@@ -238,6 +242,9 @@ def _convergence_table(log: list[dict]) -> str:
 def _checked_render_settings(args: argparse.Namespace):
     """The render's formats, sensor and transient range, every flag checked before the scene is loaded."""
     formats = args.formats
+    if "transient" in formats and args.transient_bin is None:
+        raise ConfigError("--formats transient: the histogram needs the width of its bins: add --transient-bin "
+                          "LENGTH (e.g. 5cm)")
     if args.transient_bin is not None and "transient" not in formats:
         formats = (*formats, "transient")
     if args.resolution is not None:
@@ -252,18 +259,22 @@ def _checked_render_settings(args: argparse.Namespace):
         warning = implausible_error_warning(args.target_error, "--target-error")
         if warning:
             print(warning, file=sys.stderr)
-    sensor = _sensor(args)
+    preset = _preset(args)
     transient_max = None
     if args.transient_bin is not None:
-        transient_max = args.transient_max if args.transient_max is not None else 4 * sensor.range_m[1]
+        transient_max = args.transient_max if args.transient_max is not None else 4 * preset.range_m[1]
         if transient_max <= args.transient_bin:
             raise ConfigError(f"--transient-max must be longer than --transient-bin, got {transient_max:g} m "
                               f"and {args.transient_bin:g} m")
     from .render import transient_bins
 
-    limits.check_render(sensor, max_depth=args.max_depth, spp=args.spp,
-                        where=f"--preset {args.preset} with --max-depth {args.max_depth}",
-                        transient_bins=transient_bins(args.transient_bin, transient_max))
+    # The budget at the size asked, before the camera of that size is made (its distortion check builds
+    # per-pixel tables: 3.5 GB and about a minute at 4096 x 4096).
+    width, height = _size(args, preset)
+    limits.check_render_size(width, height, preset.modulation.raw_count, max_depth=args.max_depth, spp=args.spp,
+                             where=f"--preset {args.preset} with --max-depth {args.max_depth}",
+                             transient_bins=transient_bins(args.transient_bin, transient_max))
+    sensor = preset.resized(width, height)
     if args.exr_channels is not None:
         from .output.writers import exr_channel_names
 
@@ -475,7 +486,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sensor position, world metres (with --target; default: the scene's suggested view)")
     r.add_argument("--target", type=vector3_type, default=None, metavar="X,Y,Z", help="point looked at (with --eye)")
     r.add_argument("--formats", type=formats_type, default="exr,png,ply,json",
-                   help="comma list of exr (frame.exr + depth.exr), png, ply, json (+ camera YAML files), transient")
+                   help="comma list of exr (frame.exr + depth.exr), png, ply, json (+ camera YAML files), transient "
+                        "(transient.npy; needs --transient-bin, which adds it)")
     r.add_argument("--exr-half", action="store_true",
                    help="EXR channels as 16-bit half floats (about 4 mm steps at 4 m)")
     r.add_argument("--exr-channels", type=lambda text: tuple(c.strip() for c in text.split(",") if c.strip()),
