@@ -96,3 +96,21 @@ def test_compare_takes_a_mesh_file(tmp_path):
     (record,) = read_index(out)
     assert record["source"]["kind"] == "mesh" and record["objects"] == [
         {"id": 0, "name": "wall.stl", "materials": ["default"]}]
+
+
+def test_all_nan_frame_data_gives_the_image_and_rows_without_a_numpy_warning():
+    """A frame whose channels are all NaN (reason too): a RuntimeWarning about casting NaN before (issue 35)."""
+    import warnings
+
+    from batch.compare import table_rows
+
+    nan = np.full((6, 8), np.nan, np.float32)
+    channels = {name: nan.copy() for name in ("depth", "gt_depth", "valid", "reason")}
+    record = {"preset": "kinect_v2", "settings": {"width": 8, "height": 6}, "job_id": "0" * 16, "dir": "frames/x",
+              "valid_fraction": 0.0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        image, limits = comparison_image([("kinect_v2", channels), ("o3d303", channels)])
+        [row] = table_rows([record], [channels])
+    assert image.ndim == 3 and limits["depth_m"] == [0.0, 1.0]
+    assert row["invalid_by_reason"] == {} and row["invalid_fraction"] == 1.0
