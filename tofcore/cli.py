@@ -117,19 +117,24 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def formats_type(text: str) -> tuple[str, ...]:
-    """``"exr,png"`` → ("exr", "png"): a non-empty comma list of known output formats (``transient``, the
-    transient.npy histogram, needs ``--transient-bin``: :func:`_checked_render_settings`)."""
-    from .output.writers import FORMATS
+def formats_type_of(known: tuple[str, ...]) -> Callable[[str], tuple[str, ...]]:
+    """An argparse type: ``"exr,png"`` → ("exr", "png"), a non-empty comma list of the formats ``known``."""
+    def formats(text: str) -> tuple[str, ...]:
+        names = [f.strip() for f in text.split(",")]
+        unknown = [f for f in names if f and f not in known]
+        chosen = tuple(dict.fromkeys(f for f in names if f))
+        if unknown or not chosen:
+            why = f" (unknown: {', '.join(map(repr, unknown))})" if unknown else " (none given)"
+            raise argparse.ArgumentTypeError(f"must be a comma list of one or more of {', '.join(known)}, "
+                                             f"got {text!r}{why}")
+        return chosen
 
-    names = [f.strip() for f in text.split(",")]
-    unknown = [f for f in names if f and f not in FORMATS]
-    chosen = tuple(dict.fromkeys(f for f in names if f))
-    if unknown or not chosen:
-        why = f" (unknown: {', '.join(map(repr, unknown))})" if unknown else " (none given)"
-        raise argparse.ArgumentTypeError(f"must be a comma list of one or more of {', '.join(FORMATS)}, "
-                                         f"got {text!r}{why}")
-    return chosen
+    return formats
+
+
+#: ``tofcore render --formats``: every format of :func:`tofcore.write_frame` (``transient``, the transient.npy
+#: histogram, needs ``--transient-bin``: :func:`_checked_render_settings`).
+formats_type = formats_type_of(("exr", "png", "ply", "json", "transient"))
 
 
 def check_output_folder(path: Path, flag: str = "--out") -> None:
