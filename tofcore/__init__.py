@@ -56,7 +56,8 @@ from .sensor.presets import list_presets, load_preset
 from .tracer.transport import FirstHit, Transport
 
 __all__ = [
-    "Ambient", "Camera", "Cancelled", "ConfigError", "ExrError", "FirstHit", "Frame", "LED", "LimitError", "Material", "Modulation",
+    "Ambient", "Camera", "Cancelled", "ConfigError", "ExrError", "FirstHit", "Frame", "LED", "LimitError", "Material",
+    "Modulation",
     "Reason", "SPEED_OF_LIGHT_M_S", "Scene", "SceneError", "Sensor", "Texture", "TofError", "Transport", "demo_ambient", "demo_scene",
     "from_blender_matrix_world", "list_presets", "load_mesh", "load_preset", "look_at", "read_exr", "render",
     "render_progressive",

@@ -368,7 +368,8 @@ def _mutations(good: bytes, rng: np.random.Generator):
             return _rebuild(good, {"compression": ("compression", bytes([int(rng.integers(12))]))})
         return patched(4, "<i", int32())
     if kind == 4:  # an offset
-        offsets[int(rng.integers(count))] = [0, len(good), 2**64 - 1, int(rng.integers(len(good)))][int(rng.integers(4))]
+        choices = [0, len(good), 2**64 - 1, int(rng.integers(len(good)))]
+        offsets[int(rng.integers(count))] = choices[int(rng.integers(4))]
         return good[:end] + offsets.astype("<u8").tobytes() + good[end + 8 * count:]
     if kind == 5:  # a chunk's line or size
         at = int(offsets[int(rng.integers(count))]) + int(rng.integers(2)) * 4

@@ -346,8 +346,8 @@ def _read_file(path: str | os.PathLike, where: str) -> bytes:
     try:
         info = os.fstat(fd)
         if not stat.S_ISREG(info.st_mode):
-            raise ExrError(f"{where}: not an OpenEXR file (a {'folder' if stat.S_ISDIR(info.st_mode) else 'special file'}"
-                           f", not a regular file)")
+            kind = "folder" if stat.S_ISDIR(info.st_mode) else "special file"
+            raise ExrError(f"{where}: not an OpenEXR file (a {kind}, not a regular file)")
         if limits.MAX_EXR_BYTES.exceeded(info.st_size):
             raise ExrError(f"{where}: an EXR file must be {limits.MAX_EXR_BYTES.describe()}, got "
                            f"{info.st_size:,} bytes")
