@@ -143,7 +143,10 @@ def cmd_validate(args: argparse.Namespace) -> int:
         done = sum(1 for job in jobs if job.job_id in records and records[job.job_id].get("status") == "ok"
                    and data.verify(records[job.job_id], "size") is None)
         failed = sum(1 for job in jobs if records.get(job.job_id, {}).get("status") == "failed")
-        print(f"  {args.out}: {done} done, {failed} failed, {len(jobs) - done - failed} to render")
+        outside = len(records.keys() - {job.job_id for job in jobs})
+        print(f"  {args.out}: {done} done, {failed} failed, {len(jobs) - done - failed} to render"
+              + (f"; {outside} indexed frame(s) not in this set (an earlier version of it or another set: kept)"
+                 if outside else ""))
     if args.list:
         for job in jobs:
             print(f"{job.job_id}  {job.label}  seed {job.seed}")

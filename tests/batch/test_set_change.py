@@ -45,6 +45,10 @@ def test_an_edited_set_says_which_indexed_frames_are_not_in_it(tmp_path):
     [current] = [r["job_id"] for r in records if r["job_id"] not in before]
     assert json.loads((out / "set.json").read_text())["jobs"] == [current]
 
+    proc = batch("validate", str(set_file), "--out", str(out))
+    assert proc.returncode == 0 and f"{out}: 1 done, 0 failed, 0 to render; 2 indexed frame(s) not in this set" \
+        in proc.stdout, proc.stdout + proc.stderr
+
     proc = batch("verify", str(out))
     assert proc.returncode == 0, proc.stdout + proc.stderr
     notes = [line for line in proc.stdout.splitlines() if "not in the set of the last run" in line]
