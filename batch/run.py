@@ -64,7 +64,7 @@ from tofcore.tracer.workers import sigint_held
 
 from .card import dataset_card
 from .dataset import FRAMES, RECORD, Dataset, differing_keys
-from .devices import VISIBLE_ENV, plan_devices
+from .devices import VISIBLE_ENV, cpu_frames_and_threads, plan_devices
 from .jobs import Job, ViewTask, group_by_view
 from .timing import timing_lines, worker_timing
 from .worker import WorkerDied, failed_record, finish_writes, init_worker, run_view, start_view
@@ -526,6 +526,7 @@ class RunResult:
     recovered: int = 0                # index line lost, taken from the frame's record.json
     duplicates: int = 0               # results of a job indexed already in this run (dropped)
     pending: int = 0                  # not rendered (interrupted)
+    outside_set: int = 0              # indexed frames not in this set (an earlier version of it, another set): kept
     seconds: float = 0.0
     interrupted: Interrupted | None = None
     failures: list[dict] = field(default_factory=list)
@@ -565,6 +566,22 @@ def report_index(data: Dataset, info: dict, log, shown: int = 10) -> None:
     if info["duplicates"]:
         log(f"note: {data.index_path}: {info['duplicates']} record(s) superseded by a later line of the same "
             f"frame dropped")
+
+
+def report_outside_set(records: dict[str, dict], jobs: list[Job], set_file: str | None, result: RunResult,
+                       log) -> None:
+    """Warn, once, how many indexed frames are not in this set: an edited set file gives its frames new job ids,
+    and the frames of the earlier version stay in the index and in ``frames/`` (counted in ``result``)."""
+    in_set = {job.job_id for job in jobs}
+    outside = [r for job_id, r in records.items() if job_id not in in_set]
+    result.outside_set = len(outside)
+    if outside:
+        first = outside[0]  # a record (Dataset.read_index): scene, view label and preset are there
+        log(f"warning: {len(outside)} indexed frame(s) are not in {set_file or 'this set'} (e.g. {first['job_id']} "
+            f"{first['scene']}/{first['view']['label']}/{first['preset']}): frames of an earlier version of the set "
+            f"file or of "
+            f"another set, kept in the index and frames/; `tofcore-batch verify` lists them, "
+            f"Dataset(root, current_set=True) reads only this set's frames")
 
 
 def plan(jobs: list[Job], data: Dataset, records: dict[str, dict], *, retry_failed: bool, verify: str,
@@ -634,8 +651,9 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
     ----------
     jobs : from :func:`batch.jobs.expand`, in set order.
     dataset : the dataset folder (created if needed).
-    workers : local worker processes, or LocalCluster workers with ``dask_local`` (default: 1; with a
-        GPU plan one per GPU, and never more).
+    workers : local worker processes, or LocalCluster workers with ``dask_local`` (default on the CPU:
+        :func:`batch.devices.cpu_frames_and_threads` of the usable CPUs and the frames to render, with
+        that many tracer threads each; with a GPU plan one per GPU, and never more).
     threads_per_worker : tracer worker processes per render (threads inside a Dask worker, which may not
         start processes; default: usable CPUs / workers, at least 1, so frames × tracer workers never
         exceed the CPUs; on a remote cluster: each worker machine's CPU count).
@@ -652,7 +670,7 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
     where = ("inline" if inline else "cluster" if executor is not None or scheduler is not None
              else "dask-local" if dask_local else "local")
     devices = plan_devices(device, executor=where, workers=workers)
-    workers = devices.workers
+    workers_given, workers = workers, devices.workers
     for note in devices.notes:
         log(note)
     result = RunResult(jobs=len(jobs))
@@ -661,11 +679,18 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
     with data.locked():
         records, info = data.read_index()
         report_index(data, info, log)
+        report_outside_set(records, jobs, set_file, result, log)
+        data.write_current_set(set_file, [job.job_id for job in jobs])
         removed = data.clean_partials()
         if removed:
             log(f"removed {removed} half-written frame folder(s) left by an interrupted run")
         todo = plan(jobs, data, records, retry_failed=retry_failed, verify=verify, result=result, log=log)
         data.rewrite_index(_ordered(records, jobs))
+        if (workers_given is None and threads_per_worker is None and not devices.gpus
+                and where in ("local", "dask-local") and todo):
+            workers, threads_per_worker = cpu_frames_and_threads(usable_cpus(), len(todo))
+            log(f"{workers} frame(s) at once × {threads_per_worker} tracer thread(s) each, for "
+                f"{usable_cpus()} CPUs (--workers and --threads-per-worker set them)")
         if threads_per_worker is None and scheduler is None:
             threads_per_worker = max(1, usable_cpus() // max(1, workers if not inline else 1))
         tasks = group_by_view(todo, dataset=str(data.root), render_threads=threads_per_worker,
@@ -770,6 +795,8 @@ def summary(result: RunResult, dataset: str | os.PathLike) -> str:
         lines.append("  retry them with --retry-failed once the cause is fixed")
     if result.interrupted is not None:
         lines.append(result.interrupted.message())
+    if result.outside_set:
+        lines.append(f"  the index also holds {result.outside_set} frame(s) not in this set (see the warning above)")
     lines += timing_lines(result.workers)
     lines.append(f"dataset: {os.fspath(dataset)} (index.jsonl, README.md, frames/)")
     return "\n".join(lines)

@@ -492,15 +492,18 @@ def _collapse(left, right, area):
     return np.concatenate(levels), len(levels)
 
 
-def _leaf_records(corners, order, start, count, leaf_size: int) -> np.ndarray:
+def _leaf_records(corner_rows, order, start, count, leaf_size: int) -> np.ndarray:
     """(L, _LEAF_ROWS, leaf_size) int32 leaf records: v0, v1, v2 per axis (float32 bits, NaN padding), then
-    the triangle index (−1 padding); leaf i holds triangles order[start[i]:start[i] + count[i]]."""
+    the triangle index (−1 padding); leaf i holds triangles order[start[i]:start[i] + count[i]].
+    ``corner_rows`` is (9, M) float32: v0 x, y, z, v1 x, y, z, v2 x, y, z of each triangle."""
     k = np.arange(leaf_size)
     valid = k[None, :] < count[:, None]
-    prim = np.where(valid, order[np.minimum(start[:, None] + k, len(corners) - 1)], -1)
-    pv = np.where(valid[..., None, None], corners[np.maximum(prim, 0)], np.float32(np.nan))
+    prim = np.where(valid, order[np.minimum(start[:, None] + k, corner_rows.shape[1] - 1)], -1)
     leaf_rec = np.empty((len(start), _LEAF_ROWS, leaf_size), np.int32)
-    leaf_rec[:, :_PRIM_ROW].view(np.float32)[...] = pv.reshape(len(start), leaf_size, 9).transpose(0, 2, 1)
+    rows = leaf_rec[:, :_PRIM_ROW].view(np.float32)
+    safe = np.maximum(prim, 0)
+    for r in range(_PRIM_ROW):  # row by row: one (L, leaf_size) gather each
+        rows[:, r] = np.where(valid, corner_rows[r][safe], np.float32(np.nan))
     leaf_rec[:, _PRIM_ROW] = prim
     return leaf_rec
 
@@ -572,13 +575,15 @@ class BVH:
         if v.ndim != 2 or v.shape[1] != 3 or tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0:
             raise SceneError(f"BVH.build: vertices and triangles must be (N, 3) and (M >= 1, 3), "
                              f"got {v.shape} and {tri.shape}")
-        corners = v[tri]  # (M, 3 vertices, 3 axes)
-        v0, v1, v2 = (np.ascontiguousarray(corners[:, k].T) for k in range(3))  # (3, M) each
-        lo = np.minimum(np.minimum(v0, v1), v2)  # elementwise: far faster than a reduction over axis 1
+        axes = np.ascontiguousarray(v.T)  # (3, N)
+        corner_rows = np.concatenate([axes[:, tri[:, j]] for j in range(3)])  # (9, M): v0 xyz, v1 xyz, v2 xyz
+        v0, v1, v2 = corner_rows[0:3], corner_rows[3:6], corner_rows[6:9]
+        lo = np.minimum(np.minimum(v0, v1), v2)  # elementwise: far faster than a reduction over the corners
         hi = np.maximum(np.maximum(v0, v1), v2)
         order, b_lo, b_hi, left, right, start, count = _build_binary(lo, hi, leaf_size, N_BINS)
-        pad = BOX_PAD * (np.maximum(np.abs(b_lo), np.abs(b_hi)).max(axis=1)
-                         + (b_hi - b_lo).max(axis=1))
+        magnitude, extent = np.maximum(np.abs(b_lo), np.abs(b_hi)), b_hi - b_lo
+        pad = BOX_PAD * (np.maximum(np.maximum(magnitude[:, 0], magnitude[:, 1]), magnitude[:, 2])
+                         + np.maximum(np.maximum(extent[:, 0], extent[:, 1]), extent[:, 2]))
         b_lo = b_lo - pad[:, None]
         b_hi = b_hi + pad[:, None]
         slots, depth = _collapse(left, right, _half_area(b_lo.T, b_hi.T))
@@ -600,7 +605,7 @@ class BVH:
         nodes[:, _CHILD_ROW] = np.where(is_leaf[safe] & used[..., 0], ~(leaf_id[safe] * _LEAF_ROWS), to_node)
 
         leaves = np.flatnonzero(is_leaf)
-        leaf_rec = _leaf_records(corners, order, start[leaves], count[leaves], leaf_size)
+        leaf_rec = _leaf_records(corner_rows, order, start[leaves], count[leaves], leaf_size)
         sizes = count[leaves]
         stats = {
             "triangles": len(tri),
