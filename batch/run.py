@@ -278,7 +278,8 @@ class LocalExecutor:
 class DaskExecutor:
     """A Dask distributed cluster: an existing scheduler, or a LocalCluster of worker processes.
 
-    Every worker needs this repository's ``batch`` and ``tofcore`` importable and
+    On an existing cluster this package's code is shipped to the scheduler and the workers
+    (:mod:`batch.cluster`), which must have ``tofcore`` installed (checked: one line when not), and
     the dataset folder and scene files at the same paths (a shared file system).
     """
 
@@ -315,7 +316,15 @@ class DaskExecutor:
             if gpus:
                 self.name += f" (one per GPU: {VISIBLE_ENV} {', '.join(gpus)})"
         else:
+            from .cluster import check_imports, ship
+
             self.client = Client(address, timeout="30s")
+            try:
+                ship(self.client)  # the scheduler and workers unpickle tasks that name this package's modules
+                check_imports(self.client, address)
+            except BaseException:
+                self.client.close(timeout=10)
+                raise
             n = len(self.client.scheduler_info().get("workers", {}))
             self.name = f"Dask cluster at {address} ({n} workers now)"
 
