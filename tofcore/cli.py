@@ -27,7 +27,7 @@ import numpy as np
 from . import limits
 from .console import note_line, say, use_safe_output
 from .errors import ConfigError, TofError
-from .progress import PassProgress
+from .progress import COMPILE_TEXT, PassProgress
 from .units import BARE_LENGTH_UNIT, implausible_error_warning, parse_length_m
 
 
@@ -313,11 +313,11 @@ def _say_setup(args: argparse.Namespace, scene, sensor, ambient, device) -> None
     if not device.is_gpu and not args.quiet:
         from . import compiled
 
-        if compiled.cpu_kernels_cached() is False:  # the first pass would otherwise seem to hang for ~40 s
-            print("compiled tracer: compiling its kernels for this process only (about 40 s on 2 cores; their "
-                  "cache cannot be used, see the note)" if compiled.cache_problem() else
-                  "compiled tracer: compiling its kernels once for this install (about 40 s on 2 cores; later "
-                  "renders load them in about a second; `tofcore warmup` compiles them ahead)", file=sys.stderr)
+        if compiled.cpu_kernels_cached() is False:  # the progress bar shows the compile's seconds meanwhile
+            print("compiling the tracer for this process only (about 40 s on 2 cores; its cache cannot be used, "
+                  "see the note)" if compiled.cache_problem() else
+                  f"{COMPILE_TEXT}: about 40 s on 2 cores; later renders load the kernels in about a second "
+                  f"(`tofcore warmup` compiles them ahead)", file=sys.stderr)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -342,7 +342,7 @@ def cmd_render(args: argparse.Namespace) -> int:
                        progress=progress, device=device, sampler=args.sampler,
                        adaptive=args.adaptive, light_paths=args.light_paths,
                        transient_bin_m=args.transient_bin, transient_max_m=transient_max,
-                       preview_denoise=args.preview_denoise)
+                       preview_denoise=args.preview_denoise, activity=progress.activity)
     try:
         files = write_frame(frame, args.out, formats=formats, exr_half=args.exr_half,
                             exr_channels=args.exr_channels)
@@ -358,6 +358,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     elif fell_back(tracer) and not args.quiet:
         lines.append(f"note: traced by the NumPy reference, not the compiled tracer: {tracer['tracer_reason']} "
                      f"({FALL_BACK_COST})")
+    if tracer.get("compile") and not args.quiet:
+        lines.append(f"compiled tracer: {tracer['compile']} (once per install: later renders load the kernels)")
     if not args.quiet:
         lines += [_convergence_table(frame.stats["convergence"]), summary(frame),
                   f"wrote {len(files)} files to {args.out}/: {', '.join(sorted(p.name for p in files.values()))}"]

@@ -203,7 +203,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                        every_pass: bool = True, device: str | backend.Device = "cpu",
                        adaptive: bool = True, sampler: str = "sobol", light_paths: bool = True,
                        transient_bin_m: float | None = None, transient_max_m: float | None = None,
-                       preview_denoise: bool = False, preview_frames: bool = False) -> Iterator[Frame]:
+                       preview_denoise: bool = False, preview_frames: bool = False,
+                       activity: Callable[[dict], None] | None = None) -> Iterator[Frame]:
     """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
 
     The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
@@ -224,6 +225,12 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     ambient : unmodulated background light.
     reference_distance : (H, W) converged radial distance to log the RMS error against, per pass.
     progress : called after every pass with the convergence-log row (dict).
+    activity : called while a pass runs, in the rendering thread: ``{"stage": "compile", "seconds": s}``
+        about twice a second while the compiled tracer's kernels compile (once per install: later renders
+        load them in about a second), and ``{"stage": "trace", "pass": n, "spp": s, "spp_max": m}`` after
+        every block of pixels of a CPU pass, ``s`` the mean samples per pixel traced so far
+        (:class:`tofcore.tracer.trace.PassActivity`). ``frame.stats["transport"]["compile"]`` says how long
+        a compile took.
     cancel : polled between chunks of rays; when it returns True the render raises
         :class:`~tofcore.errors.Cancelled` within about a second.
     workers, chunk_size : passed to the tracer.
@@ -264,7 +271,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                               progress=progress, cancel=cancel, workers=workers, chunk_size=chunk_size,
                               every_pass=every_pass, adaptive=adaptive, sampler=sampler, light_paths=light_paths,
                               transient_bin_m=transient_bin_m, transient_max_m=transient_max_m,
-                              preview_denoise=preview_denoise, preview_frames=preview_frames)
+                              preview_denoise=preview_denoise, preview_frames=preview_frames, activity=activity)
     yield from _render_on(scene, sensor, pose, settings, dev)
 
 
@@ -310,6 +317,7 @@ class RenderSettings:
     transient_max_m: float | None
     preview_denoise: bool = False
     preview_frames: bool = False
+    activity: Callable[[dict], None] | None = None
 
 
 def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device: backend.Device) -> Iterator[Frame]:
@@ -334,7 +342,8 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
                                correlations=correlations, ambient=s.ambient if plan.ambient else None,
                                max_depth=s.max_depth, seed=s.seed, workers=s.workers, chunk_size=s.chunk_size,
                                cancel=s.cancel, device=device, sampler=s.sampler, light_paths=s.light_paths,
-                               transient_bin_m=s.transient_bin_m, transient_max_m=s.transient_max_m, policy=policy)
+                               transient_bin_m=s.transient_bin_m, transient_max_m=s.transient_max_m, policy=policy,
+                               activity=s.activity)
     try:
         for transport in passes:
             elapsed = _clock() - start
