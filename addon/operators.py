@@ -361,6 +361,16 @@ def device_report(frame, report) -> None:
         report({'WARNING'}, f"ToF render ran on CPU threads, not worker processes: {parallel[len('threads: '):]}")
 
 
+def coverage_report(frame, report) -> None:
+    """After a job: a frame with fewer than 10 % valid pixels is a WARNING naming the likely reason
+    (:func:`tofcore.output.coverage.low_coverage`: beyond the sensor's range, no LED return, …)."""
+    from tofcore.output.coverage import low_coverage
+
+    coverage = low_coverage(frame)
+    if coverage:
+        report({'WARNING'}, f"ToF render: {coverage}")
+
+
 def _begin_result(job: RenderJob) -> None:
     last_result.clear()
     last_result.update(camera=job.camera, kind=job.kind, state="running", spp=0, spp_max=job.settings["spp"],
@@ -512,6 +522,7 @@ the final frame is written to the output folder. Esc cancels"""
         last_result.update(state="done", files=len(written), out_dir=job.out_dir or "")
         _show_convergence(frame, written)
         device_report(frame, self.report)
+        coverage_report(frame, self.report)
         self.report({'INFO'}, _summary(frame, written, job))
         return {'FINISHED'}
 
@@ -562,6 +573,7 @@ the final frame is written to the output folder. Esc cancels"""
             last_result.update(state="done", files=len(written), out_dir=self._job.out_dir or "")
             _show_convergence(frame, written)
             device_report(frame, self.report)
+            coverage_report(frame, self.report)
             self.report({'INFO'}, _summary(frame, written, self._job))
             return {'FINISHED'}
         if kind == "cancelled":

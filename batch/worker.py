@@ -328,6 +328,7 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
     render and write phases are added here.
     """
     import tofcore
+    from tofcore.output.coverage import low_coverage
 
     record = _base_record(job, task)
     timing = dict(timing or {"worker_started": _WORKER_STARTED, "task_started": time.time(), "load_s": 0.0})
@@ -362,6 +363,7 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
                             for row in convergence],
             "rays_per_second": stats.get("transport", {}).get("rays_per_second"),
             **frame_metrics(frame),
+            "warning": low_coverage(frame),
             "objects": frame.metadata.get("objects", []),
             "export_warnings": warnings,
             "seconds": time.perf_counter() - started,

@@ -350,6 +350,11 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise TofError(f"--out {args.out}: the frame was rendered but could not be written "
                        f"({exc.strerror or exc}); files already in the folder are whole (each is written to a "
                        f"temp name and renamed), the others were not written") from None
+    from .output.coverage import low_coverage
+
+    coverage = low_coverage(frame)
+    if coverage:  # the figures below hold for a handful of pixels: say why so few, first
+        print(f"warning: {coverage}", file=sys.stderr)
     lines = []
     tracer = frame.stats["transport"]
     if args.verbose:
@@ -376,8 +381,10 @@ def summary(frame) -> str:
     stats = frame.stats
     seen = np.isfinite(frame.gt_depth)
     valid = frame.valid
-    err = (frame.depth - frame.gt_depth)[valid]
-    rms = f"{float(np.sqrt(np.mean(err ** 2))) * 1000:.1f} mm" if valid.any() else "– (no valid pixel)"
+    with_gt = valid & seen  # a valid pixel at an edge can have samples on a surface its centre misses: no truth
+    err = (frame.depth - frame.gt_depth)[with_gt]
+    rms = f"{float(np.sqrt(np.mean(err ** 2))) * 1000:.1f} mm" if with_gt.any() else \
+        "– (no valid pixel with a ground truth)"
     est = stats["convergence"][-1]["est_depth_error_m"] if stats.get("convergence") else None
     noise = (stats.get("plan") or {}).get("raw_noise") or (stats.get("plan") or {}).get("distance_noise")
     reasons = ", ".join(f"{r.name.lower().replace('_', ' ')} {100 * np.mean(frame.reason == r):.1f} %"

@@ -49,6 +49,7 @@ from .errors import ConfigError
 from .output.frame import Frame
 from .plan import Plan, make_plan
 from .scene.ambient import Ambient
+from .scene.demo import suggested_pose
 from .scene.scene import Scene
 from .sensor import decode as decoding
 from .sensor import denoise
@@ -325,8 +326,8 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
     if sensor.noise.model == "li" and sensor.modulation.kind == "pulsed":
         raise ConfigError(f"render: sensor {sensor.name!r}: noise model 'li' (eq. 2.43) needs a continuous-wave "
                           f"sensor, got modulation kind 'pulsed'; use noise model 'raw'")
-    if pose is None:
-        pose = np.asarray(scene.metadata.get("world_from_sensor", np.eye(4)), dtype=np.float64)
+    if pose is None:  # framed for this sensor where the scene stores its box (mesh files)
+        pose = suggested_pose(scene, sensor)
     s = settings
     plan = make_plan(scene, sensor, max_depth=s.max_depth, ambient=s.ambient)
     correlations = sensor.modulation.correlation_bank()
