@@ -138,7 +138,13 @@ formats_type = formats_type_of(("exr", "png", "ply", "json", "transient"))
 
 
 def check_output_folder(path: Path, flag: str = "--out") -> None:
-    """ConfigError unless ``path`` is a folder, or could be made as one, that this user may write (nothing is made)."""
+    """ConfigError unless ``path`` is a folder, or could be made as one, that this user may write (nothing is
+    left behind).
+
+    The permission bits do not tell it all (root passes ``os.access`` on ``/proc`` and on read-only
+    mounts): the nearest existing folder is tried with a temporary file (``path`` itself) or folder (an
+    ancestor), removed at once, so a render never ends in "could not be written".
+    """
     if path.exists() and not path.is_dir():
         raise ConfigError(f"{flag}: must be a folder, got the existing file {str(path)!r}")
     parent = path
@@ -149,6 +155,17 @@ def check_output_folder(path: Path, flag: str = "--out") -> None:
     if parent.exists() and (not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK)):
         raise ConfigError(f"{flag}: must be a folder this user can write, got {str(path)!r} "
                           f"({str(parent)!r} is {'not a folder' if not parent.is_dir() else 'not writable'})")
+    import tempfile
+
+    try:
+        if parent == path:
+            with tempfile.TemporaryFile(dir=path, prefix=".tofcore-probe-"):
+                pass
+        else:
+            os.rmdir(tempfile.mkdtemp(dir=parent, prefix=".tofcore-probe-"))
+    except OSError as exc:
+        raise ConfigError(f"{flag}: must be a folder this user can write, got {str(path)!r} (writing in "
+                          f"{str(parent)!r}: {exc.strerror or exc})") from None
 
 
 FALL_BACK_COST = ("the compiled tracer renders the same frame about 2x faster on 2 CPU cores and 4x faster on "

@@ -220,3 +220,21 @@ def test_a_render_the_compiled_tracer_could_not_run_says_why_and_what_it_costs(t
     assert code == 0
     assert "note: traced by the NumPy reference, not the compiled tracer: numba is not installed" in out
     assert "about 2x faster on 2 CPU cores" in out
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+@pytest.mark.parametrize("command", [[sys.executable, "-m", "tofcore", "render", "--scene", "corner",
+                                      "--resolution-scale", "0.0625", "--spp", "1"],
+                                     [sys.executable, "-m", "batch", "run", str(REPO / "batch" / "examples"
+                                                                                / "demo_set.toml")]])
+def test_an_unwritable_out_is_one_line_before_anything_renders(command, tmp_path):
+    """``/proc`` passes the permission bits for root (os.access), yet nothing can be made in it: the folder is
+    tried before the render, in both commands (issue 36: found after the render, with a raw [Errno 2])."""
+    env = dict(os.environ, PYTHONPATH=str(REPO), TOFCORE_TRACER="numpy")
+    proc = subprocess.run([*command, "--out", "/proc/tofcore-test/out"], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 2
+    lines = proc.stderr.splitlines()  # root: "(writing in '/proc': No such file …)"; others: "('/proc' is not …)"
+    assert len(lines) == 1 and lines[0].startswith("error: --out: must be a folder this user can write, got "
+                                                   "'/proc/tofcore-test/out' (")
+    assert proc.stdout == ""
