@@ -13,6 +13,7 @@ Every error is one line, ``tofcore render: error: …``, and exit code 2.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import os
 import signal
@@ -242,8 +243,27 @@ def _size(args: argparse.Namespace, preset) -> tuple[int, int]:
     if args.width is not None or args.height is not None:
         width = args.width if args.width is not None else max(1, round(cam.width * args.height / cam.height))
         height = args.height if args.height is not None else max(1, round(cam.height * args.width / cam.width))
+        _check_aspect(args, cam, width, height)
         return width, height
     return preset.scaled_size(args.resolution_scale)
+
+
+def _check_aspect(args: argparse.Namespace, cam, width: int, height: int) -> None:
+    """ConfigError when a width and height both given change the preset's aspect by more than a pixel's rounding.
+
+    The resized sensor is the preset's camera at another resolution (:meth:`tofcore.Sensor.resized`): another
+    aspect would stretch its pixels (fx ≠ fy for square ones: 100x100 of a Kinect gave fx 71.4, fy 86.2) or,
+    cropped instead, show another field of view than the preset's; neither is done silently. The line names
+    the sizes that keep the aspect.
+    """
+    true_height = cam.height * width / cam.width
+    if abs(height - true_height) <= 1.0:
+        return
+    flag = "--resolution" if args.resolution is not None else "--width/--height"
+    raise ConfigError(f"{flag}: must keep the preset's aspect {cam.width}x{cam.height} (it scales the camera; "
+                      f"another aspect would stretch its pixels), got {width}x{height}; give "
+                      f"{width}x{max(1, round(true_height))} or {max(1, round(cam.width * height / cam.height))}"
+                      f"x{height}, or --width or --height alone")
 
 
 def _convergence_table(log: list[dict]) -> str:
@@ -325,8 +345,10 @@ def _say_setup(args: argparse.Namespace, scene, sensor, ambient, device) -> None
         say(f"estimator: sampler {args.sampler} in {REPLICATES} replicates, light vertices "
             f"{'on' if args.light_paths and args.max_depth >= 2 else 'off'}, adaptive sampling "
             f"{'on after 16 spp' if args.adaptive else 'off'}")
-    elif device.fallback_reason and not args.quiet:
-        print(device_line, file=sys.stderr)  # --device auto fell back to the CPU: say which device ran and why
+    elif device.fallback_reason and not args.quiet and importlib.util.find_spec("cupy") is not None:
+        # --device auto fell back although CuPy is installed: say which device ran and why. Without CuPy
+        # a CPU render is what the user installed, not news (--verbose still says it).
+        print(device_line, file=sys.stderr)
     if not device.is_gpu and not args.quiet:
         from . import compiled
 
@@ -467,7 +489,13 @@ def cmd_warmup(args: argparse.Namespace) -> int:
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """Defaults in the option help; the description and the examples (epilog) as written."""
+    """Defaults in the option help; the description and the examples (epilog) as written. A switch
+    (``--no-adaptive``: store_true/store_false) says what it does, not "(default: True)"."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
+            return action.help or ""
+        return super()._get_help_string(action)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -500,7 +528,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--height", type=pixels_type, default=None, metavar="PX",
                    help="image height in pixels (the width follows the aspect unless --width is given)")
     r.add_argument("--resolution", type=resolution_type, default=None, metavar="WxH",
-                   help="image size in pixels, e.g. 128x106 (the same as --width 128 --height 106)")
+                   help="image size in pixels, e.g. 128x106 (the same as --width 128 --height 106); it keeps "
+                        "the preset's aspect within a pixel")
     r.add_argument("--time-budget", type=seconds_type, default=None, metavar="S",
                    help="render for about S seconds (set-up to final frame): the passes are sized to use it")
     r.add_argument("--target-error", type=length_type, default=None, metavar="LENGTH",
