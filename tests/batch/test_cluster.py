@@ -1,5 +1,6 @@
 """batch.cluster: ``python -m batch run --scheduler`` on a scheduler and workers started apart (``dask scheduler``,
-``dask worker``) from the venv, without PYTHONPATH, as a user starts them; a worker without tofcore is one line."""
+``dask worker``) from the venv, with no `batch` on their path, as a user starts them; a worker without tofcore is
+one line."""
 
 from __future__ import annotations
 
@@ -13,7 +14,7 @@ from pathlib import Path
 
 import pytest
 
-from batch_helpers import TINY, batch, has_module, read_index, write_set
+from batch_helpers import REPO, TINY, batch, has_module, read_index, write_set
 
 pytestmark = [pytest.mark.dask,
               pytest.mark.skipif(not has_module("distributed"), reason="needs dask[distributed]")]
@@ -44,10 +45,14 @@ def _wait_for_workers(address: str, n: int) -> None:
 @pytest.fixture
 def cluster(tmp_path):
     """A scheduler on a free loopback port and a function that starts workers; all stopped afterwards."""
-    env = {k: v for k, v in os.environ.items() if k != "PYTHONPATH"}
-    env.update(TOFCORE_TRACER="numpy", NUMBA_NUM_THREADS="1")  # no kernel compile in a test
     folder = tmp_path / "cluster"
     folder.mkdir()  # not the checkout: `batch` is not importable from the processes' folder
+    # The venv's tofcore, but this checkout's: a folder holding only a link to it (the venv's editable install
+    # may point at another checkout, a worktree's main); `batch` stays out of the processes' reach.
+    (folder / "path").mkdir()
+    (folder / "path" / "tofcore").symlink_to(REPO / "tofcore", target_is_directory=True)
+    env = dict(os.environ, PYTHONPATH=str(folder / "path"), TOFCORE_TRACER="numpy",  # no kernel compile here
+               NUMBA_NUM_THREADS="1")
     address = f"tcp://127.0.0.1:{_free_port()}"
     started = [_dask("scheduler", "--host", "127.0.0.1", "--port", address.rsplit(":", 1)[1], "--no-dashboard",
                      cwd=folder, env=env)]
@@ -85,7 +90,7 @@ def test_a_cluster_started_apart_renders_from_the_checkout_and_names_a_worker_wi
     broken = tmp_path / "broken"
     (broken / "tofcore").mkdir(parents=True)
     (broken / "tofcore" / "__init__.py").write_text("raise ImportError('tofcore is not installed here')\n")
-    add_worker({"PYTHONPATH": str(broken)})
+    add_worker({"PYTHONPATH": str(broken)})  # instead of the checkout's
     proc = batch("run", str(set_file), "--out", str(tmp_path / "e"), "--scheduler", address, "--quiet")
     assert proc.returncode == 2, proc.stderr
     lines = [line for line in proc.stderr.splitlines() if line.startswith("error:")]
