@@ -124,6 +124,9 @@ def test_the_status_says_the_background_compile_runs(monkeypatch):
 def test_the_status_bar_and_the_report_say_the_compile_and_the_pass_inside(capsys):
     """While the first render compiles, the status bar says so with its seconds (tofcore's ``activity``); the
     final report says how long it took; in background mode the same words are printed (issue 36)."""
+    from tofcore.progress import COMPILE_TEXT
+
+    assert compiled.COMPILE_TEXT == COMPILE_TEXT  # the add-on and the command line use the same words
     text = compiled.activity_status("Cam", {"stage": "compile", "seconds": 41.6})
     assert text.startswith("ToF render of 'Cam': compiling the tracer (once per install), 42 s…")
     assert compiled.activity_status("Cam", {"stage": "trace", "pass": 1, "spp": 6.25, "spp_max": 16}) \
