@@ -243,7 +243,6 @@ def _size(args: argparse.Namespace, preset) -> tuple[int, int]:
     if args.width is not None or args.height is not None:
         width = args.width if args.width is not None else max(1, round(cam.width * args.height / cam.height))
         height = args.height if args.height is not None else max(1, round(cam.height * args.width / cam.width))
-        _check_aspect(args, cam, width, height)
         return width, height
     return preset.scaled_size(args.resolution_scale)
 
@@ -316,6 +315,7 @@ def _checked_render_settings(args: argparse.Namespace):
     limits.check_render_size(width, height, preset.modulation.raw_count, max_depth=args.max_depth, spp=args.spp,
                              where=f"--preset {args.preset} with --max-depth {args.max_depth}",
                              transient_bins=transient_bins(args.transient_bin, transient_max))
+    _check_aspect(args, preset.camera, width, height)
     sensor = preset.resized(width, height)
     if args.exr_channels is not None:
         from .output.writers import exr_channel_names
