@@ -115,6 +115,7 @@ class RenderJob:
         self.messages: queue.Queue = queue.Queue()
         self.thread: threading.Thread | None = None
         self._cancel = threading.Event()
+        self.activity: dict | None = None  # what the running pass does (tofcore's ``activity``), for the status bar
 
     def cancel(self) -> None:
         """Ask the render to stop; tofcore raises Cancelled between ray chunks (within about a second)."""
@@ -124,8 +125,10 @@ class RenderJob:
     def cancelled(self) -> bool:
         return self._cancel.is_set()
 
-    def run(self, on_pass) -> tuple:
-        """Render in the calling thread, ``on_pass(frame)`` after every pass; write the final frame.
+    def run(self, on_pass, on_activity=None) -> tuple:
+        """Render in the calling thread, ``on_pass(frame)`` after every pass, ``on_activity(event)`` while a pass
+        runs (the tracer's compile, blocks of pixels: :func:`tofcore.render_progressive`'s ``activity``, also
+        kept in :attr:`activity`); write the final frame.
 
         The frames before the final one are preview frames (``preview_frames=True``): the images show no
         per-path-length distances, and skipping their K decodes saves ≈ 10 % of the render.
@@ -133,10 +136,17 @@ class RenderJob:
         Returns (final frame, ``{kind: path}`` written). Raises :class:`tofcore.Cancelled` when cancelled,
         also after the last pass: then nothing is written.
         """
+        def activity(event: dict) -> None:
+            self.activity = event
+            if on_activity is not None:
+                on_activity(event)
+
         frame = None
         for frame in tofcore.render_progressive(self.scene, self.sensor, self.pose, ambient=self.ambient,
                                                 cancel=self._cancel.is_set, workers=self.workers,
-                                                device=self.device, preview_frames=True, **self.settings):
+                                                device=self.device, preview_frames=True, activity=activity,
+                                                **self.settings):
+            self.activity = None
             on_pass(frame)
         if self.cancelled:
             raise tofcore.Cancelled("render cancelled after its last pass; nothing written")
@@ -351,6 +361,16 @@ def device_report(frame, report) -> None:
         report({'WARNING'}, f"ToF render ran on CPU threads, not worker processes: {parallel[len('threads: '):]}")
 
 
+def coverage_report(frame, report) -> None:
+    """After a job: a frame with fewer than 10 % valid pixels is a WARNING naming the likely reason
+    (:func:`tofcore.output.coverage.low_coverage`: beyond the sensor's range, no LED return, …)."""
+    from tofcore.output.coverage import low_coverage
+
+    coverage = low_coverage(frame)
+    if coverage:
+        report({'WARNING'}, f"ToF render: {coverage}")
+
+
 def _begin_result(job: RenderJob) -> None:
     last_result.clear()
     last_result.update(camera=job.camera, kind=job.kind, state="running", spp=0, spp_max=job.settings["spp"],
@@ -392,8 +412,10 @@ def _summary(frame, written: dict, job: RenderJob) -> str:
     device = (frame.stats.get("device") or {}).get("description")
     on = f" on {device}" if device else ""
     tracer = compiled.tracer_text(frame.stats.get("transport"))
+    compile_note = compiled.compile_text(frame.stats.get("transport"))
     return (f"ToF render of {job.camera!r}: {where}; {frame.stats['spp']} spp, "
-            f"est. depth error {error_text}, {frame.stats['seconds']:.1f} s{on}" + (f"; {tracer}" if tracer else ""))
+            f"est. depth error {error_text}, {frame.stats['seconds']:.1f} s{on}"
+            + (f"; {compile_note}" if compile_note else "") + (f"; {tracer}" if tracer else ""))
 
 
 def _redraw(context) -> None:
@@ -485,7 +507,7 @@ the final frame is written to the output folder. Esc cancels"""
             wm.progress_update(int(100 * progress_fraction(job)))
 
         try:
-            frame, written = job.run(on_pass)
+            frame, written = job.run(on_pass, compiled.ActivityLines(job.camera) if bpy.app.background else None)
         except tofcore.Cancelled:
             last_result["state"] = "cancelled"
             self.report({'WARNING'}, "ToF render cancelled: nothing written, the images keep the last pass")
@@ -500,6 +522,7 @@ the final frame is written to the output folder. Esc cancels"""
         last_result.update(state="done", files=len(written), out_dir=job.out_dir or "")
         _show_convergence(frame, written)
         device_report(frame, self.report)
+        coverage_report(frame, self.report)
         self.report({'INFO'}, _summary(frame, written, job))
         return {'FINISHED'}
 
@@ -529,6 +552,8 @@ the final frame is written to the output folder. Esc cancels"""
         if event.type != 'TIMER':  # any window timer: polling an empty queue costs nothing
             return {'PASS_THROUGH'}
         newest, end = job.poll()
+        if newest is None and job.activity is not None and not job.cancelled:
+            _set_status(context, compiled.activity_status(job.camera, job.activity))
         if newest is not None:
             _apply_pass(newest)
             _show_in_image_editors(context)
@@ -548,6 +573,7 @@ the final frame is written to the output folder. Esc cancels"""
             last_result.update(state="done", files=len(written), out_dir=self._job.out_dir or "")
             _show_convergence(frame, written)
             device_report(frame, self.report)
+            coverage_report(frame, self.report)
             self.report({'INFO'}, _summary(frame, written, self._job))
             return {'FINISHED'}
         if kind == "cancelled":

@@ -31,7 +31,9 @@ ambient_w_m2_sr, formats, width, height), ``dir`` and ``files`` (kind, name,
 bytes, sha256), ``render_seconds``, ``spp`` reached, ``passes``,
 ``est_depth_error_m`` and ``convergence`` (per pass: seconds, spp, estimated
 RMS depth error), ``rms_depth_error_m``, ``median_abs_depth_error_m``,
-``multipath_rms_m``, ``valid_fraction``, ``device`` (where the frame rendered:
+``multipath_rms_m``, ``valid_fraction``, ``warning`` (an ok frame with fewer
+than 10 % valid pixels: why, :func:`tofcore.output.coverage.low_coverage`;
+else null; ``status`` stays ``ok``, the resume key: its files are whole), ``device`` (where the frame rendered:
 ``name`` ``"cpu"``/``"gpu"``, ``description`` e.g. ``"GPU 0 (CUDA_VISIBLE_DEVICES=1):
 NVIDIA H100 … (CuPy 14.0)"``, ``requested`` ``"cpu"``/``"gpu"``/``"auto"``,
 ``fallback_reason`` why ``auto`` used the CPU; a failed frame has only what was

@@ -326,7 +326,8 @@ class LocalExecutor:
 class DaskExecutor:
     """A Dask distributed cluster: an existing scheduler, or a LocalCluster of worker processes.
 
-    Every worker needs this repository's ``batch`` and ``tofcore`` importable and
+    On an existing cluster this package's code is shipped to the scheduler and the workers
+    (:mod:`batch.cluster`), which must have ``tofcore`` installed (checked: one line when not), and
     the dataset folder and scene files at the same paths (a shared file system).
     """
 
@@ -363,7 +364,15 @@ class DaskExecutor:
             if gpus:
                 self.name += f" (one per GPU: {VISIBLE_ENV} {', '.join(gpus)})"
         else:
+            from .cluster import check_imports, ship
+
             self.client = Client(address, timeout="30s")
+            try:
+                ship(self.client)  # the scheduler and workers unpickle tasks that name this package's modules
+                check_imports(self.client, address)
+            except BaseException:
+                self.client.close(timeout=10)
+                raise
             n = len(self.client.scheduler_info().get("workers", {}))
             self.name = f"Dask cluster at {address} ({n} workers now)"
 
@@ -466,6 +475,9 @@ class Progress:
             if record["status"] != "ok":
                 self._write(f"FAILED {record['job_id']} {record['scene']}/{record['view']['label']}/"
                             f"{record['preset']}: {record['error']}")
+            elif record.get("warning"):
+                self._write(f"warning {record['job_id']} {record['scene']}/{record['view']['label']}/"
+                            f"{record['preset']}: {record['warning']}")
             self.draw(force=True, step=1)
             return
         label = f"{record['scene']}/{record['view']['label']}/{record['preset']}"
@@ -474,6 +486,8 @@ class Progress:
             detail = (f"{record.get('render_seconds', 0):.1f} s, {record.get('spp')} spp, RMS error "
                       f"{'–' if rms is None else f'{rms * 1000:.1f}'} mm{_device_tag(record)}")
             self.stream.write(f"[{self.done}/{self.total}] ok      {record['job_id']} {label} ({detail})\n")
+            if record.get("warning"):
+                self.stream.write(f"    warning: {record['warning']}\n")
         else:
             self.stream.write(f"[{self.done}/{self.total}] FAILED  {record['job_id']} {label}: {record['error']}\n")
         self.stream.flush()
@@ -530,6 +544,7 @@ class RunResult:
     seconds: float = 0.0
     interrupted: Interrupted | None = None
     failures: list[dict] = field(default_factory=list)
+    warned: list[dict] = field(default_factory=list)  # ok frames of the set with a warning (few valid pixels)
     executor: str = ""
     workers: list[dict] = field(default_factory=list)  # per worker process: where its time went (batch.timing)
 
@@ -765,6 +780,7 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
                 set_ids = {job.job_id for job in jobs}
                 set_records = [r for r in ordered if r["job_id"] in set_ids]
                 result.failures = [r for r in set_records if r.get("status") == "failed"]
+                result.warned = [r for r in set_records if r.get("status") == "ok" and r.get("warning")]
                 result.failed = len(result.failures)
                 result.pending = len(jobs) - len(set_records)
                 data.write_card(dataset_card(ordered, set_file=set_file, description=description,
@@ -793,6 +809,10 @@ def summary(result: RunResult, dataset: str | os.PathLike) -> str:
         lines.append(f"  … and {len(result.failures) - 10} more (see index.jsonl)")
     if result.failures:
         lines.append("  retry them with --retry-failed once the cause is fixed")
+    if result.warned:
+        first = result.warned[0]
+        lines.append(f"{len(result.warned)} frame(s) ok but with few valid pixels ('warning' in index.jsonl), e.g. "
+                     f"{first['scene']}/{first['view']['label']}/{first['preset']}: {first['warning']}")
     if result.interrupted is not None:
         lines.append(result.interrupted.message())
     if result.outside_set:

@@ -418,6 +418,7 @@ def write_frame(job: Job, task: ViewTask, frame, record: dict, warnings: list[st
     ``record.json``) and ``finished``.
     """
     import tofcore
+    from tofcore.output.coverage import low_coverage
 
     timing = record["timing"]
     timing["handoff_wait_s"] = handoff_wait_s
@@ -445,6 +446,7 @@ def write_frame(job: Job, task: ViewTask, frame, record: dict, warnings: list[st
                             for row in convergence],
             "rays_per_second": stats.get("transport", {}).get("rays_per_second"),
             **frame_metrics(frame),
+            "warning": low_coverage(frame),
             "objects": frame.metadata.get("objects", []),
             "export_warnings": warnings,
             # from the start of the render to record.json, waits for the writer included

@@ -13,6 +13,7 @@ Every error is one line, ``tofcore render: error: …``, and exit code 2.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import os
 import signal
@@ -27,7 +28,7 @@ import numpy as np
 from . import limits
 from .console import note_line, say, use_safe_output
 from .errors import ConfigError, TofError
-from .progress import PassProgress
+from .progress import COMPILE_TEXT, PassProgress
 from .units import BARE_LENGTH_UNIT, implausible_error_warning, parse_length_m
 
 
@@ -138,7 +139,13 @@ formats_type = formats_type_of(("exr", "png", "ply", "json", "transient"))
 
 
 def check_output_folder(path: Path, flag: str = "--out") -> None:
-    """ConfigError unless ``path`` is a folder, or could be made as one, that this user may write (nothing is made)."""
+    """ConfigError unless ``path`` is a folder, or could be made as one, that this user may write (nothing is
+    left behind).
+
+    The permission bits do not tell it all (root passes ``os.access`` on ``/proc`` and on read-only
+    mounts): the nearest existing folder is tried with a temporary file (``path`` itself) or folder (an
+    ancestor), removed at once, so a render never ends in "could not be written".
+    """
     if path.exists() and not path.is_dir():
         raise ConfigError(f"{flag}: must be a folder, got the existing file {str(path)!r}")
     parent = path
@@ -149,6 +156,17 @@ def check_output_folder(path: Path, flag: str = "--out") -> None:
     if parent.exists() and (not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK)):
         raise ConfigError(f"{flag}: must be a folder this user can write, got {str(path)!r} "
                           f"({str(parent)!r} is {'not a folder' if not parent.is_dir() else 'not writable'})")
+    import tempfile
+
+    try:
+        if parent == path:
+            with tempfile.TemporaryFile(dir=path, prefix=".tofcore-probe-"):
+                pass
+        else:
+            os.rmdir(tempfile.mkdtemp(dir=parent, prefix=".tofcore-probe-"))
+    except OSError as exc:
+        raise ConfigError(f"{flag}: must be a folder this user can write, got {str(path)!r} (writing in "
+                          f"{str(parent)!r}: {exc.strerror or exc})") from None
 
 
 FALL_BACK_COST = ("the compiled tracer renders the same frame about 2x faster on 2 CPU cores and 4x faster on "
@@ -229,6 +247,24 @@ def _size(args: argparse.Namespace, preset) -> tuple[int, int]:
     return preset.scaled_size(args.resolution_scale)
 
 
+def _check_aspect(args: argparse.Namespace, cam, width: int, height: int) -> None:
+    """ConfigError when a width and height both given change the preset's aspect by more than a pixel's rounding.
+
+    The resized sensor is the preset's camera at another resolution (:meth:`tofcore.Sensor.resized`): another
+    aspect would stretch its pixels (fx ≠ fy for square ones: 100x100 of a Kinect gave fx 71.4, fy 86.2) or,
+    cropped instead, show another field of view than the preset's; neither is done silently. The line names
+    the sizes that keep the aspect.
+    """
+    true_height = cam.height * width / cam.width
+    if abs(height - true_height) <= 1.0:
+        return
+    flag = "--resolution" if args.resolution is not None else "--width/--height"
+    raise ConfigError(f"{flag}: must keep the preset's aspect {cam.width}x{cam.height} (it scales the camera; "
+                      f"another aspect would stretch its pixels), got {width}x{height}; give "
+                      f"{width}x{max(1, round(true_height))} or {max(1, round(cam.width * height / cam.height))}"
+                      f"x{height}, or --width or --height alone")
+
+
 def _convergence_table(log: list[dict]) -> str:
     has_ref = any("rms_error_m" in r for r in log)
     head = "| pass | spp | seconds | est. depth error mm |" + (" RMS error vs reference mm |" if has_ref else "")
@@ -279,6 +315,7 @@ def _checked_render_settings(args: argparse.Namespace):
     limits.check_render_size(width, height, preset.modulation.raw_count, max_depth=args.max_depth, spp=args.spp,
                              where=f"--preset {args.preset} with --max-depth {args.max_depth}",
                              transient_bins=transient_bins(args.transient_bin, transient_max))
+    _check_aspect(args, preset.camera, width, height)
     sensor = preset.resized(width, height)
     if args.exr_channels is not None:
         from .output.writers import exr_channel_names
@@ -308,16 +345,18 @@ def _say_setup(args: argparse.Namespace, scene, sensor, ambient, device) -> None
         say(f"estimator: sampler {args.sampler} in {REPLICATES} replicates, light vertices "
             f"{'on' if args.light_paths and args.max_depth >= 2 else 'off'}, adaptive sampling "
             f"{'on after 16 spp' if args.adaptive else 'off'}")
-    elif device.fallback_reason and not args.quiet:
-        print(device_line, file=sys.stderr)  # --device auto fell back to the CPU: say which device ran and why
+    elif device.fallback_reason and not args.quiet and importlib.util.find_spec("cupy") is not None:
+        # --device auto fell back although CuPy is installed: say which device ran and why. Without CuPy
+        # a CPU render is what the user installed, not news (--verbose still says it).
+        print(device_line, file=sys.stderr)
     if not device.is_gpu and not args.quiet:
         from . import compiled
 
-        if compiled.cpu_kernels_cached() is False:  # the first pass would otherwise seem to hang for ~40 s
-            print("compiled tracer: compiling its kernels for this process only (about 40 s on 2 cores; their "
-                  "cache cannot be used, see the note)" if compiled.cache_problem() else
-                  "compiled tracer: compiling its kernels once for this install (about 40 s on 2 cores; later "
-                  "renders load them in about a second; `tofcore warmup` compiles them ahead)", file=sys.stderr)
+        if compiled.cpu_kernels_cached() is False:  # the progress bar shows the compile's seconds meanwhile
+            print("compiling the tracer for this process only (about 40 s on 2 cores; its cache cannot be used, "
+                  "see the note)" if compiled.cache_problem() else
+                  f"{COMPILE_TEXT}: about 40 s on 2 cores; later renders load the kernels in about a second "
+                  f"(`tofcore warmup` compiles them ahead)", file=sys.stderr)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -342,7 +381,7 @@ def cmd_render(args: argparse.Namespace) -> int:
                        progress=progress, device=device, sampler=args.sampler,
                        adaptive=args.adaptive, light_paths=args.light_paths,
                        transient_bin_m=args.transient_bin, transient_max_m=transient_max,
-                       preview_denoise=args.preview_denoise)
+                       preview_denoise=args.preview_denoise, activity=progress.activity)
     try:
         files = write_frame(frame, args.out, formats=formats, exr_half=args.exr_half,
                             exr_channels=args.exr_channels)
@@ -350,6 +389,11 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise TofError(f"--out {args.out}: the frame was rendered but could not be written "
                        f"({exc.strerror or exc}); files already in the folder are whole (each is written to a "
                        f"temp name and renamed), the others were not written") from None
+    from .output.coverage import low_coverage
+
+    coverage = low_coverage(frame)
+    if coverage:  # the figures below hold for a handful of pixels: say why so few, first
+        print(f"warning: {coverage}", file=sys.stderr)
     lines = []
     tracer = frame.stats["transport"]
     if args.verbose:
@@ -358,6 +402,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     elif fell_back(tracer) and not args.quiet:
         lines.append(f"note: traced by the NumPy reference, not the compiled tracer: {tracer['tracer_reason']} "
                      f"({FALL_BACK_COST})")
+    if tracer.get("compile") and not args.quiet:
+        lines.append(f"compiled tracer: {tracer['compile']} (once per install: later renders load the kernels)")
     if not args.quiet:
         lines += [_convergence_table(frame.stats["convergence"]), summary(frame),
                   f"wrote {len(files)} files to {args.out}/: {', '.join(sorted(p.name for p in files.values()))}"]
@@ -374,8 +420,10 @@ def summary(frame) -> str:
     stats = frame.stats
     seen = np.isfinite(frame.gt_depth)
     valid = frame.valid
-    err = (frame.depth - frame.gt_depth)[valid]
-    rms = f"{float(np.sqrt(np.mean(err ** 2))) * 1000:.1f} mm" if valid.any() else "– (no valid pixel)"
+    with_gt = valid & seen  # a valid pixel at an edge can have samples on a surface its centre misses: no truth
+    err = (frame.depth - frame.gt_depth)[with_gt]
+    rms = f"{float(np.sqrt(np.mean(err ** 2))) * 1000:.1f} mm" if with_gt.any() else \
+        "– (no valid pixel with a ground truth)"
     est = stats["convergence"][-1]["est_depth_error_m"] if stats.get("convergence") else None
     noise = (stats.get("plan") or {}).get("raw_noise") or (stats.get("plan") or {}).get("distance_noise")
     reasons = ", ".join(f"{r.name.lower().replace('_', ' ')} {100 * np.mean(frame.reason == r):.1f} %"
@@ -441,7 +489,13 @@ def cmd_warmup(args: argparse.Namespace) -> int:
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """Defaults in the option help; the description and the examples (epilog) as written."""
+    """Defaults in the option help; the description and the examples (epilog) as written. A switch
+    (``--no-adaptive``: store_true/store_false) says what it does, not "(default: True)"."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
+            return action.help or ""
+        return super()._get_help_string(action)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -474,7 +528,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--height", type=pixels_type, default=None, metavar="PX",
                    help="image height in pixels (the width follows the aspect unless --width is given)")
     r.add_argument("--resolution", type=resolution_type, default=None, metavar="WxH",
-                   help="image size in pixels, e.g. 128x106 (the same as --width 128 --height 106)")
+                   help="image size in pixels, e.g. 128x106 (the same as --width 128 --height 106); it keeps "
+                        "the preset's aspect within a pixel")
     r.add_argument("--time-budget", type=seconds_type, default=None, metavar="S",
                    help="render for about S seconds (set-up to final frame): the passes are sized to use it")
     r.add_argument("--target-error", type=length_type, default=None, metavar="LENGTH",

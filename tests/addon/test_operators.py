@@ -347,6 +347,20 @@ def test_worker_thread_render_and_cancel(tof, tmp_path):
     assert not (tmp_path / "cancelled").exists()
 
 
+def test_a_job_keeps_what_the_running_pass_does_for_the_status_bar(tof, tmp_path):
+    """tofcore's ``activity`` reaches the job (the modal's status bar reads ``job.activity``; background mode
+    prints it); it is cleared when the pass ends (issue 36)."""
+    add_plane_and_cube()
+    add_tof_camera("o3d303", spp=2, output_dir=str(tmp_path))
+    job = operators.prepare_render(bpy.context, Reports())
+    job.settings["chunk_size"] = 64
+    events, during = [], []
+    job.run(lambda frame: during.append(job.activity), events.append)
+    assert events and {e["stage"] for e in events} <= {"compile", "trace"}
+    assert [e["spp"] for e in events if e["stage"] == "trace"][-1] == 2
+    assert during and all(a is None for a in during)
+
+
 # --------------------------------------------------------------------------- reports
 
 def test_error_no_active_camera(tof):

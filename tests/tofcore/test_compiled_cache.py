@@ -220,3 +220,48 @@ def test_a_cache_on_a_full_disk_never_stops_the_compile(filled_cache, tmp_path):
         assert len(notes) == 1 and f"{disk}/tofcore-" in notes[0] and "No space left on device" in notes[0], out.stderr
     finally:
         subprocess.run(["umount", "-l", str(disk)], capture_output=True)
+
+
+def test_the_cache_folder_is_in_the_users_cache_and_named_after_the_source_too(tmp_path, monkeypatch):
+    numba = pytest.importorskip("numba")
+    monkeypatch.setattr(numba.config, "CACHE_DIR", "")
+    monkeypatch.setenv("XDG_CACHE_HOME", str(tmp_path / "cache"))
+    assert _target.cache_folder(__file__, "0123456789abcdef") == str(tmp_path / "cache" / "tofcore"
+                                                                      / "numba-0123456789abcdef")
+    source = tmp_path / "m.py"
+    source.write_text("A = 1\n")
+    namespace = {"__file__": str(source), "A": 1}
+    fingerprint = _target.content_fingerprint(namespace)
+    source.write_text("A = 1  # edited\n")
+    assert _target.content_fingerprint(namespace) != fingerprint, "another source shares the cached code"
+
+
+REINSTALL_PROBE = """
+import json
+import numpy as np
+from tofcore.compiled import kernels as k
+k.uniform(np.uint64(1), 2, 3, 4)
+print(json.dumps({"hits": sum(k.uniform.stats.cache_hits.values()), "file": k.__file__}))
+"""
+
+
+@needs_numba
+def test_compiled_kernels_outlive_a_reinstall_of_the_same_version(tmp_path):
+    """A Blender extension's zip installed again replaces tofcore's folder (new files, new times): the kernels
+    compiled before are loaded from the user's cache, not compiled again."""
+    import shutil
+
+    site = tmp_path / "site-packages"
+    env = {k: v for k, v in os.environ.items() if k not in ("NUMBA_CACHE_DIR", "PYTHONPATH")}
+    env.update(PYTHONPATH=str(site), XDG_CACHE_HOME=str(tmp_path / "cache"))
+
+    def install_and_probe() -> dict:
+        shutil.rmtree(site, ignore_errors=True)
+        shutil.copytree(ROOT / "tofcore", site / "tofcore", ignore=shutil.ignore_patterns("__pycache__"))
+        out = subprocess.run([sys.executable, "-c", REINSTALL_PROBE], env=env, capture_output=True, text=True,
+                             check=True, cwd=tmp_path, timeout=300)
+        return json.loads(out.stdout.strip().splitlines()[-1])
+
+    first, again = install_and_probe(), install_and_probe()
+    assert first["file"].startswith(str(site)) and first["hits"] == 0
+    assert again["hits"] == 1, "the reinstall compiled the kernels again"

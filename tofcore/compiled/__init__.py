@@ -13,11 +13,12 @@ offers (numba, its CUDA target, the cached kernels), for the tracer, the CLI and
 
 Environment: ``TOFCORE_TRACER=numpy`` forces the NumPy reference, ``compiled`` makes a render that
 cannot use the compiled tracer an error instead of a fall-back, ``auto`` (default) picks it when it
-can. The machine code is cached by numba beside the sources (``tofcore/compiled/__pycache__/numba-<hash>``;
-``~/.cache/tofcore/numba-<hash>`` where that folder is not writable; ``$NUMBA_CACHE_DIR/tofcore-<hash>``
-where that variable is set), ``<hash>`` naming the kernels' constants, so a changed constant never loads
-stale code (:mod:`tofcore.compiled._target`): the first render of a fresh install compiles for 30–80 s
-(docs/benchmarks.md), later processes load the kernels in about a second.
+can. The machine code is cached by numba in the user's cache folder
+(``~/.cache/tofcore/numba-<hash>``, ``$XDG_CACHE_HOME`` where set; ``tofcore/compiled/__pycache__`` where
+no home folder is writable; ``$NUMBA_CACHE_DIR/tofcore-<hash>`` where that variable is set), ``<hash>``
+naming the kernels' source and constants, so a changed constant never loads stale code and a reinstall of
+the same version loads what was compiled before (:mod:`tofcore.compiled._target`): the first render of a
+fresh install compiles for 30–80 s (docs/benchmarks.md), later processes load the kernels in about a second.
 """
 
 from __future__ import annotations
@@ -123,9 +124,8 @@ def cache_problem() -> str:
 
 def cache_location() -> str:
     """Where numba keeps the compiled kernels: the CPU build's folder once the kernels are imported
-    (:func:`tofcore.compiled._target.cache_folder`); else, as for the CUDA build, ``NUMBA_CACHE_DIR``, else
-    ``__pycache__`` beside the sources (also in a Blender extension: its site-packages is in the user's
-    folder), else (a read-only install) numba's user cache."""
+    (:func:`tofcore.compiled._target.cache_folder`: the user's cache folder); before that ``NUMBA_CACHE_DIR``,
+    else ``__pycache__`` beside the sources, else numba's user cache."""
     import numba
 
     from . import _target

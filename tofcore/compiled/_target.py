@@ -7,12 +7,15 @@ module name ``tofcore.compiled.kernels_cuda``, and for that name :func:`device_f
 ``numba.cuda.jit(device=True)`` instead (the one-source route of issue 21, as Mitsuba 3 builds its
 scalar/LLVM/CUDA variants and pbrt-v4 marks shared code ``PBRT_CPU_GPU``).
 
-Cache safety: numba reuses cached machine code while the source file's stamp (mtime, size) and the
-function's bytecode are unchanged, but the module's constants, read from other modules (rng, qmc, bsdf,
-surface, sampler, layout), are frozen into that code, and numba's options are not part of its key
-either. So the code is cached in a folder named after :func:`constants_fingerprint` (a hash of every
-constant of the module and of :data:`CPU_DECORATORS`): changing a constant anywhere, or an option,
-compiles anew instead of loading stale code. (The CUDA build caches as numba does.)
+Cache safety: numba reuses cached machine code while the source file's stamp (a hash of its bytes) and
+the function's bytecode are unchanged, but the module's constants, read from other modules (rng, qmc,
+bsdf, surface, sampler, layout), are frozen into that code, and numba's options are not part of its key
+either. So the code is cached in a folder named after :func:`content_fingerprint` (a hash of the source
+file's bytes, of every constant of the module and of :data:`CPU_DECORATORS`): changing a constant
+anywhere, or an option, compiles anew instead of loading stale code, and each version of the kernels
+keeps its own folder. That folder is in the user's cache folder (:func:`cache_folder`), not beside the
+sources: reinstalling the same version (a Blender extension's zip replaces its whole folder) finds the
+kernels compiled before.
 
 A cache that cannot be used never stops a render (issue 35):
 
@@ -64,6 +67,15 @@ def constants_fingerprint(namespace: dict, options: dict | None = None) -> str:
     return digest.hexdigest()[:16]
 
 
+def content_fingerprint(namespace: dict, options: dict | None = None) -> str:
+    """16 hex digits of SHA-256 over the bytes of the module's source file (``namespace["__file__"]``) and its
+    :func:`constants_fingerprint`: what the machine code compiled from the module depends on."""
+    digest = hashlib.sha256(constants_fingerprint(namespace, options).encode())
+    with open(namespace["__file__"], "rb") as source:
+        digest.update(source.read())
+    return digest.hexdigest()[:16]
+
+
 def _encode(value) -> bytes | None:
     """Bytes that identify a constant's value exactly, or None for anything that is not a constant."""
     if isinstance(value, (bool, int, float, str, np.generic)):
@@ -100,11 +112,11 @@ UNUSABLE: dict[str, str] = {}
 
 
 def cache_folder(source_file: str, fingerprint: str) -> str | None:
-    """The writable folder for the machine code of ``source_file`` compiled with constants ``fingerprint``.
+    """The writable folder for the machine code of ``source_file`` compiled as ``fingerprint`` says.
 
-    ``$NUMBA_CACHE_DIR/tofcore-<fingerprint>`` where that variable is set, else
-    ``__pycache__/numba-<fingerprint>`` beside the source, else (read-only install)
-    ``$XDG_CACHE_HOME`` (``~/.cache``) ``/tofcore/numba-<fingerprint>``; None where none can be written
+    ``$NUMBA_CACHE_DIR/tofcore-<fingerprint>`` where that variable is set, else the user's cache folder
+    ``$XDG_CACHE_HOME`` (``~/.cache``) ``/tofcore/numba-<fingerprint>``, which outlives a reinstall, else
+    (no writable home) ``__pycache__/numba-<fingerprint>`` beside the source; None where none can be written
     (the functions are then compiled in each process, never loaded stale: said once, naming the folders
     and that cost, :func:`note`).
     """
@@ -114,9 +126,9 @@ def cache_folder(source_file: str, fingerprint: str) -> str | None:
         candidates = [os.path.join(numba.config.CACHE_DIR, f"tofcore-{fingerprint}")]
     else:
         user_cache = os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache")
-        candidates = [os.path.join(os.path.dirname(os.path.abspath(source_file)), "__pycache__",
-                                   f"numba-{fingerprint}"),
-                      os.path.join(user_cache, "tofcore", f"numba-{fingerprint}")]
+        candidates = [os.path.join(user_cache, "tofcore", f"numba-{fingerprint}"),
+                      os.path.join(os.path.dirname(os.path.abspath(source_file)), "__pycache__",
+                                   f"numba-{fingerprint}")]
     for folder in candidates:
         try:
             os.makedirs(folder, exist_ok=True)
@@ -233,7 +245,7 @@ def _cpu_jit(module_name: str, kind: str):
     if module_name not in CACHE_FOLDERS:
         namespace = vars(sys.modules[module_name])
         CACHE_FOLDERS[module_name] = cache_folder(namespace["__file__"],
-                                                  constants_fingerprint(namespace, CPU_DECORATORS))
+                                                  content_fingerprint(namespace, CPU_DECORATORS))
     folder, options = CACHE_FOLDERS[module_name], CPU_DECORATORS[kind]
 
     def decorate(function):
@@ -276,15 +288,15 @@ def cpu_parallel_function(module_name: str):
 
 def gpu_kernel_function(module_name: str):
     """The decorator of a CUDA kernel written beside the functions it calls: ``numba.cuda.jit`` with the
-    machine code cached in the folder of the module's constants (:func:`cache_folder` of
-    :func:`constants_fingerprint`, as for the CPU build: a changed constant compiles anew); for the CPU
+    machine code cached in the folder of the module's source and constants (:func:`cache_folder` of
+    :func:`content_fingerprint`, as for the CPU build: a changed constant compiles anew); for the CPU
     build the function stays plain Python and is never called."""
     if not module_name.endswith(CUDA_SUFFIX):
         return lambda function: function
     from numba import cuda
 
     namespace = vars(sys.modules[module_name])
-    folder = cache_folder(namespace["__file__"], constants_fingerprint(namespace, {"target": "cuda"}))
+    folder = cache_folder(namespace["__file__"], content_fingerprint(namespace, {"target": "cuda"}))
     try:
         from numba.cuda.core import config  # numba-cuda keeps its own copy of numba's settings
     except ImportError:
