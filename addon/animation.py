@@ -151,6 +151,7 @@ Esc cancels"""
             return self._finish(context, "cancelled" if kind == "cancelled" else "error")
         self._written.append(job.out_dir)
         operators.device_report(payload[0], self.report)
+        operators.coverage_report(payload[0], self.report)
         context.window_manager.progress_update(len(self._written))
         if self._index + 1 == len(self._frames):
             return self._finish(context, "done")

@@ -2,7 +2,7 @@
 
 tofcore traces with compiled kernels wherever numba imports (``tofcore.compiled.tracer.choose``) and falls back
 to its NumPy tracer otherwise, with the reason in ``frame.stats["transport"]["tracer_reason"]``. numba is
-not bundled in the extension zip (its wheels with llvmlite are ~64 MB per platform, README), so the
+not bundled in the extension zip (its wheels with llvmlite are ~64 MB per platform, docs/blender.md), so the
 preferences offer "Install numba for the compiled tracer", as they offer CuPy (:mod:`.gpu`):
 
 =================  =====================================================================================
@@ -18,9 +18,9 @@ compile            the kernels, once (30 s on a fast machine; 128–183 s on a b
                    Blender 4.3, tests/blender_gui/numba_run.py), by a child process (``tofcore.compiled.
                    child_compile``) started right after the install (:func:`start_compiling`) or by the first
                    render; a render waits for it and Esc still cancels at once, the compile going on. The
-                   machine code is cached beside tofcore's sources (the extension's ``.local/lib/python3.x/
-                   site-packages/tofcore/compiled/__pycache__``; ~/.cache/tofcore where that folder is
-                   read-only); later Blender sessions load it in about a second.
+                   machine code is cached in the user's cache folder (``~/.cache/tofcore/numba-<hash>``, the
+                   hash naming the kernels' source: ``tofcore.compiled._target``), so later Blender sessions
+                   and a reinstall of the same extension version load it in about a second.
 which renders      every one the add-on makes: image textures, a World colour or an Environment Texture
                    (HDRI) as ambient light (``tofcore.compiled.setup.unsupported``; tests/blender_gui/
                    numba_run.py renders a textured scene under an HDRI World compiled). :func:`blender_reason`
@@ -83,6 +83,47 @@ def last_tracer() -> dict:
     return dict(_last)
 
 
+#: What the status bar, the log and the report call the compile (tofcore.progress.COMPILE_TEXT's words).
+COMPILE_TEXT = "compiling the tracer (once per install)"
+
+
+def activity_status(camera: str, event: dict) -> str:
+    """The status bar's text while a pass runs, from tofcore's ``activity`` event: the compile with its
+    seconds, or the samples per pixel traced so far."""
+    if event.get("stage") == "compile":
+        return (f"ToF render of {camera!r}: {COMPILE_TEXT}, {event['seconds']:.0f} s… (Esc to cancel; the "
+                f"compile goes on in the background)")
+    return (f"ToF render of {camera!r}: pass {event['pass']}, {event['spp']:.1f}/{event['spp_max']} spp… "
+            f"(Esc to cancel)")
+
+
+def compile_text(transport_stats: dict | None) -> str:
+    """For the final report: how the tracer was compiled first ('' when its kernels were cached)."""
+    how = (transport_stats or {}).get("compile") or ""
+    return f"{COMPILE_TEXT}: {how}" if how else ""
+
+
+class ActivityLines:
+    """``activity`` for a render in background mode (``blender -b``: no status bar): the status text as a
+    line on stdout, at most every :data:`INTERVAL_S` seconds, and at once when the compile starts."""
+
+    INTERVAL_S = 5.0
+
+    def __init__(self, camera: str):
+        self.camera = camera
+        self._last = -float("inf")
+        self._stage = None
+
+    def __call__(self, event: dict) -> None:
+        import time
+
+        now = time.monotonic()
+        if event.get("stage") != self._stage or now - self._last >= self.INTERVAL_S:
+            print(activity_status(self.camera, event).split("… (Esc", 1)[0], flush=True)
+            self._last = now
+        self._stage = event.get("stage")
+
+
 def first_status(camera: str, device: str) -> str:
     """The status bar's text while a render's first pass runs: a CPU render whose compiled kernels are not
     cached yet has them compiled first (minutes, by a child process that Esc leaves running for the next
@@ -94,8 +135,8 @@ def first_status(camera: str, device: str) -> str:
 
     if compiled.cpu_kernels_cached() is not False:
         return first
-    return (f"ToF render of {camera!r}: compiling the compiled tracer once (30 s to 3 min; later renders load "
-            f"it in a second), then the first pass… (Esc to cancel; the compile goes on in the background)")
+    return (f"ToF render of {camera!r}: {COMPILE_TEXT}, 30 s to 3 min (later renders load it in a second), "
+            f"then the first pass… (Esc to cancel; the compile goes on in the background)")
 
 
 def start_compiling() -> bool:

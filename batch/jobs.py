@@ -177,7 +177,8 @@ def random_poses(pose: PoseSpec) -> list[np.ndarray]:
 
 
 def suggested_pose(scene: SceneSpec, where: str) -> np.ndarray:
-    """The pose stored with a demo scene or in an .npz scene's metadata."""
+    """The pose stored with a demo scene or in an .npz scene's metadata; a mesh file's view framed for the
+    scene's presets (:func:`tofcore.suggested_pose`: their narrowest field of view, the range all measure)."""
     import tofcore
 
     if scene.kind == "demo":
@@ -185,6 +186,8 @@ def suggested_pose(scene: SceneSpec, where: str) -> np.ndarray:
     from tofcore.scene.mesh_files import load_mesh
 
     loaded = load_mesh(scene.source) if scene.kind == "mesh" else tofcore.Scene.load(scene.source)
+    if loaded.metadata.get("framing") is not None:
+        return tofcore.suggested_pose(loaded, [preset.sensor for preset in scene.presets])
     pose = loaded.metadata.get("world_from_sensor")
     if pose is None:
         raise SetFileError(f"{where}: {scene.source} has no suggested pose (metadata 'world_from_sensor'); "

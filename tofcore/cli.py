@@ -13,10 +13,12 @@ Every error is one line, ``tofcore render: error: …``, and exit code 2.
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import math
 import os
 import signal
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -24,9 +26,9 @@ from typing import Any
 import numpy as np
 
 from . import limits
-from .console import say, use_safe_output
+from .console import note_line, say, use_safe_output
 from .errors import ConfigError, TofError
-from .progress import PassProgress
+from .progress import COMPILE_TEXT, PassProgress
 from .units import BARE_LENGTH_UNIT, implausible_error_warning, parse_length_m
 
 
@@ -116,22 +118,34 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def formats_type(text: str) -> tuple[str, ...]:
-    """``"exr,png"`` → ("exr", "png"): a non-empty comma list of known output formats."""
-    FORMATS = ("exr", "png", "ply", "json")   # transient.npy comes with --transient-bin
+def formats_type_of(known: tuple[str, ...]) -> Callable[[str], tuple[str, ...]]:
+    """An argparse type: ``"exr,png"`` → ("exr", "png"), a non-empty comma list of the formats ``known``."""
+    def formats(text: str) -> tuple[str, ...]:
+        names = [f.strip() for f in text.split(",")]
+        unknown = [f for f in names if f and f not in known]
+        chosen = tuple(dict.fromkeys(f for f in names if f))
+        if unknown or not chosen:
+            why = f" (unknown: {', '.join(map(repr, unknown))})" if unknown else " (none given)"
+            raise argparse.ArgumentTypeError(f"must be a comma list of one or more of {', '.join(known)}, "
+                                             f"got {text!r}{why}")
+        return chosen
 
-    names = [f.strip() for f in text.split(",")]
-    unknown = [f for f in names if f and f not in FORMATS]
-    chosen = tuple(dict.fromkeys(f for f in names if f))
-    if unknown or not chosen:
-        why = f" (unknown: {', '.join(map(repr, unknown))})" if unknown else " (none given)"
-        raise argparse.ArgumentTypeError(f"must be a comma list of one or more of {', '.join(FORMATS)}, "
-                                         f"got {text!r}{why}")
-    return chosen
+    return formats
+
+
+#: ``tofcore render --formats``: every format of :func:`tofcore.write_frame` (``transient``, the transient.npy
+#: histogram, needs ``--transient-bin``: :func:`_checked_render_settings`).
+formats_type = formats_type_of(("exr", "png", "ply", "json", "transient"))
 
 
 def check_output_folder(path: Path, flag: str = "--out") -> None:
-    """ConfigError unless ``path`` is a folder, or could be made as one, that this user may write (nothing is made)."""
+    """ConfigError unless ``path`` is a folder, or could be made as one, that this user may write (nothing is
+    left behind).
+
+    The permission bits do not tell it all (root passes ``os.access`` on ``/proc`` and on read-only
+    mounts): the nearest existing folder is tried with a temporary file (``path`` itself) or folder (an
+    ancestor), removed at once, so a render never ends in "could not be written".
+    """
     if path.exists() and not path.is_dir():
         raise ConfigError(f"{flag}: must be a folder, got the existing file {str(path)!r}")
     parent = path
@@ -142,6 +156,17 @@ def check_output_folder(path: Path, flag: str = "--out") -> None:
     if parent.exists() and (not parent.is_dir() or not os.access(parent, os.W_OK | os.X_OK)):
         raise ConfigError(f"{flag}: must be a folder this user can write, got {str(path)!r} "
                           f"({str(parent)!r} is {'not a folder' if not parent.is_dir() else 'not writable'})")
+    import tempfile
+
+    try:
+        if parent == path:
+            with tempfile.TemporaryFile(dir=path, prefix=".tofcore-probe-"):
+                pass
+        else:
+            os.rmdir(tempfile.mkdtemp(dir=parent, prefix=".tofcore-probe-"))
+    except OSError as exc:
+        raise ConfigError(f"{flag}: must be a folder this user can write, got {str(path)!r} (writing in "
+                          f"{str(parent)!r}: {exc.strerror or exc})") from None
 
 
 FALL_BACK_COST = ("the compiled tracer renders the same frame about 2x faster on 2 CPU cores and 4x faster on "
@@ -204,19 +229,40 @@ def _blend_scene(path: Path):
     return scene, pose, ambient
 
 
-def _sensor(args: argparse.Namespace):
-    """The preset, resized by ``--resolution-scale`` or ``--width``/``--height``."""
+def _preset(args: argparse.Namespace):
+    """The preset as loaded (``--no-noise`` applied), not resized yet."""
     from .sensor.presets import load_preset
 
     sensor = load_preset(args.preset)
-    if args.no_noise:
-        sensor = sensor.replace(**{"noise.model": "none"})
+    return sensor.replace(**{"noise.model": "none"}) if args.no_noise else sensor
+
+
+def _size(args: argparse.Namespace, preset) -> tuple[int, int]:
+    """The image size ``--resolution-scale`` or ``--width``/``--height`` ask for (:meth:`Sensor.resized` checks it)."""
+    cam = preset.camera
     if args.width is not None or args.height is not None:
-        cam = sensor.camera
         width = args.width if args.width is not None else max(1, round(cam.width * args.height / cam.height))
         height = args.height if args.height is not None else max(1, round(cam.height * args.width / cam.width))
-        return sensor.resized(width, height)
-    return sensor.scaled(args.resolution_scale)
+        return width, height
+    return preset.scaled_size(args.resolution_scale)
+
+
+def _check_aspect(args: argparse.Namespace, cam, width: int, height: int) -> None:
+    """ConfigError when a width and height both given change the preset's aspect by more than a pixel's rounding.
+
+    The resized sensor is the preset's camera at another resolution (:meth:`tofcore.Sensor.resized`): another
+    aspect would stretch its pixels (fx ≠ fy for square ones: 100x100 of a Kinect gave fx 71.4, fy 86.2) or,
+    cropped instead, show another field of view than the preset's; neither is done silently. The line names
+    the sizes that keep the aspect.
+    """
+    true_height = cam.height * width / cam.width
+    if abs(height - true_height) <= 1.0:
+        return
+    flag = "--resolution" if args.resolution is not None else "--width/--height"
+    raise ConfigError(f"{flag}: must keep the preset's aspect {cam.width}x{cam.height} (it scales the camera; "
+                      f"another aspect would stretch its pixels), got {width}x{height}; give "
+                      f"{width}x{max(1, round(true_height))} or {max(1, round(cam.width * height / cam.height))}"
+                      f"x{height}, or --width or --height alone")
 
 
 def _convergence_table(log: list[dict]) -> str:
@@ -237,6 +283,9 @@ def _convergence_table(log: list[dict]) -> str:
 def _checked_render_settings(args: argparse.Namespace):
     """The render's formats, sensor and transient range, every flag checked before the scene is loaded."""
     formats = args.formats
+    if "transient" in formats and args.transient_bin is None:
+        raise ConfigError("--formats transient: the histogram needs the width of its bins: add --transient-bin "
+                          "LENGTH (e.g. 5cm)")
     if args.transient_bin is not None and "transient" not in formats:
         formats = (*formats, "transient")
     if args.resolution is not None:
@@ -251,18 +300,23 @@ def _checked_render_settings(args: argparse.Namespace):
         warning = implausible_error_warning(args.target_error, "--target-error")
         if warning:
             print(warning, file=sys.stderr)
-    sensor = _sensor(args)
+    preset = _preset(args)
     transient_max = None
     if args.transient_bin is not None:
-        transient_max = args.transient_max if args.transient_max is not None else 4 * sensor.range_m[1]
+        transient_max = args.transient_max if args.transient_max is not None else 4 * preset.range_m[1]
         if transient_max <= args.transient_bin:
             raise ConfigError(f"--transient-max must be longer than --transient-bin, got {transient_max:g} m "
                               f"and {args.transient_bin:g} m")
     from .render import transient_bins
 
-    limits.check_render(sensor, max_depth=args.max_depth, spp=args.spp,
-                        where=f"--preset {args.preset} with --max-depth {args.max_depth}",
-                        transient_bins=transient_bins(args.transient_bin, transient_max))
+    # The budget at the size asked, before the camera of that size is made (its distortion check builds
+    # per-pixel tables: 3.5 GB and about a minute at 4096 x 4096).
+    width, height = _size(args, preset)
+    limits.check_render_size(width, height, preset.modulation.raw_count, max_depth=args.max_depth, spp=args.spp,
+                             where=f"--preset {args.preset} with --max-depth {args.max_depth}",
+                             transient_bins=transient_bins(args.transient_bin, transient_max))
+    _check_aspect(args, preset.camera, width, height)
+    sensor = preset.resized(width, height)
     if args.exr_channels is not None:
         from .output.writers import exr_channel_names
 
@@ -291,14 +345,18 @@ def _say_setup(args: argparse.Namespace, scene, sensor, ambient, device) -> None
         say(f"estimator: sampler {args.sampler} in {REPLICATES} replicates, light vertices "
             f"{'on' if args.light_paths and args.max_depth >= 2 else 'off'}, adaptive sampling "
             f"{'on after 16 spp' if args.adaptive else 'off'}")
-    elif device.fallback_reason and not args.quiet:
-        print(device_line, file=sys.stderr)  # --device auto fell back to the CPU: say which device ran and why
+    elif device.fallback_reason and not args.quiet and importlib.util.find_spec("cupy") is not None:
+        # --device auto fell back although CuPy is installed: say which device ran and why. Without CuPy
+        # a CPU render is what the user installed, not news (--verbose still says it).
+        print(device_line, file=sys.stderr)
     if not device.is_gpu and not args.quiet:
         from . import compiled
 
-        if compiled.cpu_kernels_cached() is False:  # the first pass would otherwise seem to hang for ~40 s
-            print("compiled tracer: compiling its kernels once for this install (about 40 s on 2 cores; later "
-                  "renders load them in about a second; `tofcore warmup` compiles them ahead)", file=sys.stderr)
+        if compiled.cpu_kernels_cached() is False:  # the progress bar shows the compile's seconds meanwhile
+            print("compiling the tracer for this process only (about 40 s on 2 cores; its cache cannot be used, "
+                  "see the note)" if compiled.cache_problem() else
+                  f"{COMPILE_TEXT}: about 40 s on 2 cores; later renders load the kernels in about a second "
+                  f"(`tofcore warmup` compiles them ahead)", file=sys.stderr)
 
 
 def cmd_render(args: argparse.Namespace) -> int:
@@ -323,7 +381,7 @@ def cmd_render(args: argparse.Namespace) -> int:
                        progress=progress, device=device, sampler=args.sampler,
                        adaptive=args.adaptive, light_paths=args.light_paths,
                        transient_bin_m=args.transient_bin, transient_max_m=transient_max,
-                       preview_denoise=args.preview_denoise)
+                       preview_denoise=args.preview_denoise, activity=progress.activity)
     try:
         files = write_frame(frame, args.out, formats=formats, exr_half=args.exr_half,
                             exr_channels=args.exr_channels)
@@ -331,6 +389,11 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise TofError(f"--out {args.out}: the frame was rendered but could not be written "
                        f"({exc.strerror or exc}); files already in the folder are whole (each is written to a "
                        f"temp name and renamed), the others were not written") from None
+    from .output.coverage import low_coverage
+
+    coverage = low_coverage(frame)
+    if coverage:  # the figures below hold for a handful of pixels: say why so few, first
+        print(f"warning: {coverage}", file=sys.stderr)
     lines = []
     tracer = frame.stats["transport"]
     if args.verbose:
@@ -339,6 +402,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     elif fell_back(tracer) and not args.quiet:
         lines.append(f"note: traced by the NumPy reference, not the compiled tracer: {tracer['tracer_reason']} "
                      f"({FALL_BACK_COST})")
+    if tracer.get("compile") and not args.quiet:
+        lines.append(f"compiled tracer: {tracer['compile']} (once per install: later renders load the kernels)")
     if not args.quiet:
         lines += [_convergence_table(frame.stats["convergence"]), summary(frame),
                   f"wrote {len(files)} files to {args.out}/: {', '.join(sorted(p.name for p in files.values()))}"]
@@ -355,8 +420,10 @@ def summary(frame) -> str:
     stats = frame.stats
     seen = np.isfinite(frame.gt_depth)
     valid = frame.valid
-    err = (frame.depth - frame.gt_depth)[valid]
-    rms = f"{float(np.sqrt(np.mean(err ** 2))) * 1000:.1f} mm" if valid.any() else "– (no valid pixel)"
+    with_gt = valid & seen  # a valid pixel at an edge can have samples on a surface its centre misses: no truth
+    err = (frame.depth - frame.gt_depth)[with_gt]
+    rms = f"{float(np.sqrt(np.mean(err ** 2))) * 1000:.1f} mm" if with_gt.any() else \
+        "– (no valid pixel with a ground truth)"
     est = stats["convergence"][-1]["est_depth_error_m"] if stats.get("convergence") else None
     noise = (stats.get("plan") or {}).get("raw_noise") or (stats.get("plan") or {}).get("distance_noise")
     reasons = ", ".join(f"{r.name.lower().replace('_', ' ')} {100 * np.mean(frame.reason == r):.1f} %"
@@ -409,7 +476,12 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     frame = render(demo_scene("corner"), sensor, spp=1, device=args.device)
     transport, device = frame.stats["transport"], frame.stats["device"]["name"]
-    where = f"; kernels cached in {compiled.cache_location()}" if transport["tracer"] == "compiled" else ""
+    where = ""
+    if transport["tracer"] == "compiled" and device == "cpu":
+        where = (f"; kernels cached in {compiled.cache_location()}" if compiled.cpu_kernels_cached() else
+                 "; kernels not cached: every process compiles them again (see the note)")
+    elif transport["tracer"] == "compiled":
+        where = f"; kernels cached in {compiled.cache_location()}"
     why = f" ({transport['tracer_reason']})" if transport.get("tracer_reason") else ""
     say(f"{transport['tracer']} tracer on the {device.upper()}{why}: ready in {time.perf_counter() - start:.1f} s"
         f"{where}")
@@ -417,7 +489,13 @@ def cmd_warmup(args: argparse.Namespace) -> int:
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):
-    """Defaults in the option help; the description and the examples (epilog) as written."""
+    """Defaults in the option help; the description and the examples (epilog) as written. A switch
+    (``--no-adaptive``: store_true/store_false) says what it does, not "(default: True)"."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        if isinstance(action, (argparse._StoreTrueAction, argparse._StoreFalseAction)):
+            return action.help or ""
+        return super()._get_help_string(action)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -450,7 +528,8 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--height", type=pixels_type, default=None, metavar="PX",
                    help="image height in pixels (the width follows the aspect unless --width is given)")
     r.add_argument("--resolution", type=resolution_type, default=None, metavar="WxH",
-                   help="image size in pixels, e.g. 128x106 (the same as --width 128 --height 106)")
+                   help="image size in pixels, e.g. 128x106 (the same as --width 128 --height 106); it keeps "
+                        "the preset's aspect within a pixel")
     r.add_argument("--time-budget", type=seconds_type, default=None, metavar="S",
                    help="render for about S seconds (set-up to final frame): the passes are sized to use it")
     r.add_argument("--target-error", type=length_type, default=None, metavar="LENGTH",
@@ -467,7 +546,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sensor position, world metres (with --target; default: the scene's suggested view)")
     r.add_argument("--target", type=vector3_type, default=None, metavar="X,Y,Z", help="point looked at (with --eye)")
     r.add_argument("--formats", type=formats_type, default="exr,png,ply,json",
-                   help="comma list of exr (frame.exr + depth.exr), png, ply, json (+ camera YAML files), transient")
+                   help="comma list of exr (frame.exr + depth.exr), png, ply, json (+ camera YAML files), transient "
+                        "(transient.npy; needs --transient-bin, which adds it)")
     r.add_argument("--exr-half", action="store_true",
                    help="EXR channels as 16-bit half floats (about 4 mm steps at 4 m)")
     r.add_argument("--exr-channels", type=lambda text: tuple(c.strip() for c in text.split(",") if c.strip()),
@@ -513,6 +593,7 @@ def main(argv: list[str] | None = None) -> int:
     use_safe_output()
     previous = {signal.SIGINT: signal.signal(signal.SIGINT, signal.default_int_handler),
                 signal.SIGTERM: signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))}
+    format_before, warnings.formatwarning = warnings.formatwarning, note_line  # a warning is one line
     try:
         args = build_parser().parse_args(argv)
         return args.func(args)
@@ -524,6 +605,7 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         if argv is not None:
+            warnings.formatwarning = format_before
             for sig, handler in previous.items():
                 if handler is not None:  # None: a handler not set from Python, which cannot be put back
                     signal.signal(sig, handler)

@@ -16,6 +16,11 @@ a file or pipe (CI,    plain lines: no carriage returns, no escape codes; a rend
 ``quiet``              nothing
 =====================  =========================================================================
 
+Before a pass ends, :meth:`PassProgress.activity` (``render(activity=...)``) moves the bar too: while
+the compiled tracer's kernels compile (once per install) the bar reads :data:`COMPILE_TEXT` with the
+seconds so far, and inside a pass it advances by blocks of pixels; plain lines say the same at most
+every :data:`PLAIN_INTERVAL_S` seconds.
+
 tqdm's own environment variables (``TQDM_MININTERVAL``, ``TQDM_DISABLE``, …) apply to the bar.
 """
 
@@ -27,6 +32,9 @@ from typing import TextIO
 
 #: Least seconds between two plain progress lines of one render (the first and last pass always print).
 PLAIN_INTERVAL_S = 5.0
+
+#: What the bar and the log say while the compiled tracer's kernels compile.
+COMPILE_TEXT = "compiling the tracer (once per install)"
 
 
 def tqdm_class():
@@ -81,6 +89,8 @@ class PassProgress:
         self._tqdm = None                      # the bar, made at the first pass
         self._last_line = -float("inf")        # perf_counter of the last plain line
         self._pending: dict | None = None      # a row the interval held back
+        self._started = time.perf_counter()    # the render's start, for the plain lines inside a pass
+        self._compiling = False                # the bar's text is COMPILE_TEXT
         if self.bar and total is not None:
             self._start_bar(total)
 
@@ -99,6 +109,35 @@ class PassProgress:
         else:
             self._pending = row
 
+    def activity(self, event: dict) -> None:
+        """What a pass does before it ends (``render(activity=...)``): the compile stage, or the samples per
+        pixel traced so far."""
+        if self.quiet:
+            return
+        compiling = event.get("stage") == "compile"
+        if self.bar:
+            if self._tqdm is None:
+                self._start_bar(event.get("spp_max", 1))
+            if compiling:
+                self._tqdm.set_description_str(COMPILE_TEXT, refresh=False)
+                self._tqdm.set_postfix_str(f"{event['seconds']:.0f} s", refresh=False)
+            else:
+                if self._compiling:
+                    self._tqdm.set_description_str("render", refresh=False)
+                    self._tqdm.set_postfix_str(f"est. error {format_error_mm(None)}", refresh=False)
+                self._tqdm.update(max(0, min(int(event["spp"]), event["spp_max"]) - self._tqdm.n))
+            self._compiling = compiling
+            self._tqdm.refresh()
+            return
+        now = time.perf_counter()
+        if compiling and not self._compiling or now - max(self._last_line, self._started) >= self.plain_interval_s:
+            self.stream.write(f"{COMPILE_TEXT}: {event['seconds']:.0f} s\n" if compiling else
+                              f"pass {event['pass']}: {event['spp']:.1f}/{event['spp_max']} spp so far  "
+                              f"{now - self._started:.1f} s\n")
+            self.stream.flush()
+            self._last_line = now
+        self._compiling = compiling
+
     def _start_bar(self, total: int) -> None:
         """Draw the bar at 0 now: its clock starts with the render, not at the first pass."""
         self._tqdm = tqdm_class()(total=total, unit="spp", desc="render", file=self.stream, dynamic_ncols=True,
@@ -108,6 +147,9 @@ class PassProgress:
     def _draw(self, row: dict) -> None:
         if self._tqdm is None:
             self._start_bar(row["spp_max"])
+        if self._compiling:
+            self._tqdm.set_description_str("render", refresh=False)
+            self._compiling = False
         self._tqdm.set_postfix_str(f"est. error {format_error_mm(row['est_depth_error_m'])}", refresh=False)
         self._tqdm.update(max(0, min(row["spp"], row["spp_max"]) - self._tqdm.n))
         self._tqdm.refresh()    # every pass is drawn, whatever tqdm's rate limits held back

@@ -49,6 +49,7 @@ from .errors import ConfigError
 from .output.frame import Frame
 from .plan import Plan, make_plan
 from .scene.ambient import Ambient
+from .scene.demo import suggested_pose
 from .scene.scene import Scene
 from .sensor import decode as decoding
 from .sensor import denoise
@@ -203,7 +204,8 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                        every_pass: bool = True, device: str | backend.Device = "cpu",
                        adaptive: bool = True, sampler: str = "sobol", light_paths: bool = True,
                        transient_bin_m: float | None = None, transient_max_m: float | None = None,
-                       preview_denoise: bool = False, preview_frames: bool = False) -> Iterator[Frame]:
+                       preview_denoise: bool = False, preview_frames: bool = False,
+                       activity: Callable[[dict], None] | None = None) -> Iterator[Frame]:
     """Render one ToF frame in progressive passes, yielding the complete :class:`Frame` after each pass.
 
     The last frame yielded is the result (``frame.stats["final"]`` is True on it only).
@@ -224,6 +226,12 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
     ambient : unmodulated background light.
     reference_distance : (H, W) converged radial distance to log the RMS error against, per pass.
     progress : called after every pass with the convergence-log row (dict).
+    activity : called while a pass runs, in the rendering thread: ``{"stage": "compile", "seconds": s}``
+        about twice a second while the compiled tracer's kernels compile (once per install: later renders
+        load them in about a second), and ``{"stage": "trace", "pass": n, "spp": s, "spp_max": m}`` after
+        every block of pixels of a CPU pass, ``s`` the mean samples per pixel traced so far
+        (:class:`tofcore.tracer.trace.PassActivity`). ``frame.stats["transport"]["compile"]`` says how long
+        a compile took.
     cancel : polled between chunks of rays; when it returns True the render raises
         :class:`~tofcore.errors.Cancelled` within about a second.
     workers, chunk_size : passed to the tracer.
@@ -264,7 +272,7 @@ def render_progressive(scene: Scene, sensor, pose: np.ndarray | None = None, *, 
                               progress=progress, cancel=cancel, workers=workers, chunk_size=chunk_size,
                               every_pass=every_pass, adaptive=adaptive, sampler=sampler, light_paths=light_paths,
                               transient_bin_m=transient_bin_m, transient_max_m=transient_max_m,
-                              preview_denoise=preview_denoise, preview_frames=preview_frames)
+                              preview_denoise=preview_denoise, preview_frames=preview_frames, activity=activity)
     yield from _render_on(scene, sensor, pose, settings, dev)
 
 
@@ -310,6 +318,7 @@ class RenderSettings:
     transient_max_m: float | None
     preview_denoise: bool = False
     preview_frames: bool = False
+    activity: Callable[[dict], None] | None = None
 
 
 def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device: backend.Device) -> Iterator[Frame]:
@@ -317,8 +326,8 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
     if sensor.noise.model == "li" and sensor.modulation.kind == "pulsed":
         raise ConfigError(f"render: sensor {sensor.name!r}: noise model 'li' (eq. 2.43) needs a continuous-wave "
                           f"sensor, got modulation kind 'pulsed'; use noise model 'raw'")
-    if pose is None:
-        pose = np.asarray(scene.metadata.get("world_from_sensor", np.eye(4)), dtype=np.float64)
+    if pose is None:  # framed for this sensor where the scene stores its box (mesh files)
+        pose = suggested_pose(scene, sensor)
     s = settings
     plan = make_plan(scene, sensor, max_depth=s.max_depth, ambient=s.ambient)
     correlations = sensor.modulation.correlation_bank()
@@ -334,7 +343,8 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
                                correlations=correlations, ambient=s.ambient if plan.ambient else None,
                                max_depth=s.max_depth, seed=s.seed, workers=s.workers, chunk_size=s.chunk_size,
                                cancel=s.cancel, device=device, sampler=s.sampler, light_paths=s.light_paths,
-                               transient_bin_m=s.transient_bin_m, transient_max_m=s.transient_max_m, policy=policy)
+                               transient_bin_m=s.transient_bin_m, transient_max_m=s.transient_max_m, policy=policy,
+                               activity=s.activity)
     try:
         for transport in passes:
             elapsed = _clock() - start

@@ -104,7 +104,7 @@ def test_first_status_says_a_cold_cpu_render_compiles_first(monkeypatch):
                                              (False, "gpu", False), (False, "auto", False)):
         monkeypatch.setattr(tof_compiled, "cpu_kernels_cached", lambda cached=cached: cached)
         text = compiled.first_status("Cam", device)
-        says_compile = "compiling the compiled tracer once" in text and "the compile goes on in the background" in text
+        says_compile = "compiling the tracer (once per install)" in text and "the compile goes on in the background" in text
         assert says_compile == expected_compile
         assert (text == plain) == (not expected_compile)
 
@@ -119,3 +119,24 @@ def test_the_status_says_the_background_compile_runs(monkeypatch):
     assert text.startswith("numba 0.68.1 installed: compiling the tracer in the background") and icon == 'SORTTIME'
     monkeypatch.setattr(child_compile, "running", lambda: False)
     assert "background" not in compiled.status_line({})[0]
+
+
+def test_the_status_bar_and_the_report_say_the_compile_and_the_pass_inside(capsys):
+    """While the first render compiles, the status bar says so with its seconds (tofcore's ``activity``); the
+    final report says how long it took; in background mode the same words are printed (issue 36)."""
+    from tofcore.progress import COMPILE_TEXT
+
+    assert compiled.COMPILE_TEXT == COMPILE_TEXT  # the add-on and the command line use the same words
+    text = compiled.activity_status("Cam", {"stage": "compile", "seconds": 41.6})
+    assert text.startswith("ToF render of 'Cam': compiling the tracer (once per install), 42 s…")
+    assert compiled.activity_status("Cam", {"stage": "trace", "pass": 1, "spp": 6.25, "spp_max": 16}) \
+        .startswith("ToF render of 'Cam': pass 1, 6.2/16 spp…")
+    assert compiled.compile_text({"compile": "compiled by a child process in 95.3 s"}) == \
+        "compiling the tracer (once per install): compiled by a child process in 95.3 s"
+    assert compiled.compile_text({"compile": ""}) == compiled.compile_text(None) == ""
+    lines = compiled.ActivityLines("Cam")
+    for seconds in (0.0, 0.5, 1.0):
+        lines({"stage": "compile", "seconds": seconds})
+    lines({"stage": "trace", "pass": 1, "spp": 1.0, "spp_max": 16})
+    assert capsys.readouterr().out.splitlines() == [
+        "ToF render of 'Cam': compiling the tracer (once per install), 0 s", "ToF render of 'Cam': pass 1, 1.0/16 spp"]

@@ -347,6 +347,20 @@ def test_worker_thread_render_and_cancel(tof, tmp_path):
     assert not (tmp_path / "cancelled").exists()
 
 
+def test_a_job_keeps_what_the_running_pass_does_for_the_status_bar(tof, tmp_path):
+    """tofcore's ``activity`` reaches the job (the modal's status bar reads ``job.activity``; background mode
+    prints it); it is cleared when the pass ends (issue 36)."""
+    add_plane_and_cube()
+    add_tof_camera("o3d303", spp=2, output_dir=str(tmp_path))
+    job = operators.prepare_render(bpy.context, Reports())
+    job.settings["chunk_size"] = 64
+    events, during = [], []
+    job.run(lambda frame: during.append(job.activity), events.append)
+    assert events and {e["stage"] for e in events} <= {"compile", "trace"}
+    assert [e["spp"] for e in events if e["stage"] == "trace"][-1] == 2
+    assert during and all(a is None for a in during)
+
+
 # --------------------------------------------------------------------------- reports
 
 def test_error_no_active_camera(tof):
@@ -495,6 +509,23 @@ def test_live_preview_handler_and_render(tof, tmp_path):
     assert tuple(bpy.data.images["ToF Depth"].size) == (32, 24)
     assert operators.last_result["kind"] == "preview" and operators.last_result["state"] == "done"
     assert not any(tmp_path.iterdir())                               # previews write nothing
+
+    # A camera move re-uses the scene's export (and so its BVH) with the new pose; a scene change exports anew.
+    exported = job.exported
+    camera.location.x += 0.25
+    bpy.context.view_layer.update()
+    assert not operators._preview.scene_changed
+    moved = operators.start_live_preview(bpy.context)
+    assert moved.exported is exported and moved.scene is job.scene
+    assert not np.allclose(moved.pose, job.pose) and np.allclose(moved.pose[:3, 3] - job.pose[:3, 3], [0.25, 0, 0])
+    moved.join(60.0)
+    bpy.data.objects["Cube"].location.z += 0.1
+    bpy.context.view_layer.update()
+    assert operators._preview.scene_changed
+    changed = operators.start_live_preview(bpy.context)
+    assert changed.exported is not exported
+    changed.join(60.0)
+    operators.poll_live_preview()
 
     # A new preview cancels the running one.
     first = operators.start_live_preview(bpy.context)

@@ -73,7 +73,7 @@ def test_a_cancellable_trace_waits_for_the_child_and_says_so(monkeypatch):
     cached = {"value": False}
     monkeypatch.setattr(compiled, "cpu_kernels_cached", lambda: cached["value"])
 
-    def wait(cancel):
+    def wait(cancel, tick=None):
         calls.append(cancel)
         cached["value"] = True
         return ""
@@ -88,7 +88,11 @@ def test_a_cancellable_trace_waits_for_the_child_and_says_so(monkeypatch):
         return tofcore.trace(scene, cam, [tofcore.LED()], world_from_sensor=pose, spp=1, max_depth=2, workers=1,
                              correlations=phasor_correlations([80e6]), **kw).stats
 
-    assert stats().compile == "" and calls == []                    # no cancel: numba compiles here, as before
+    from tofcore.compiled import kernels
+
+    compiles_here = not kernels.trace_pixels.overloads  # an earlier test may have compiled them in this process
+    note = stats().compile                                          # no cancel: numba compiles here, and says so
+    assert calls == [] and (note.startswith("compiled in this process in ") if compiles_here else note == "")
     traced = stats(cancel=lambda: False)
     assert traced.tracer == "compiled" and len(calls) == 1
     assert traced.compile.startswith("compiled by a child process in ")

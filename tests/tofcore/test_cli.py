@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import importlib.util
 import json
 import os
 import re
@@ -31,7 +32,7 @@ def _tiny(tmp_path, *extra):
 
 
 @pytest.mark.parametrize("flags, size", [(("--resolution", "64x53"), (64, 53)),
-                                         (("--width", "64", "--height", "40"), (64, 40)),
+                                         (("--width", "64", "--height", "54"), (64, 54)),  # within a pixel
                                          (("--width", "128"), (128, 106)),
                                          (("--resolution-scale", "0.125"), (64, 53))])
 def test_resolution_flags(tmp_path, capsys, flags, size):
@@ -47,6 +48,11 @@ def test_resolution_flags(tmp_path, capsys, flags, size):
 @pytest.mark.parametrize("argv, needle", [
     (["--resolution", "128by106"], "argument --resolution: must be WIDTHxHEIGHT in pixels, e.g. 128x106"),
     (["--resolution", "64x53", "--width", "10"], "--resolution: give it or --width/--height, not both"),
+    # Issue 36: 100x100 of a 512x424 sensor made non-square pixels (fx 71.4, fy 86.2) without a word.
+    (["--resolution", "100x100"], "--resolution: must keep the preset's aspect 512x424 (it scales the camera; another "
+                                  "aspect would stretch its pixels), got 100x100; give 100x83 or 121x100, or --width "
+                                  "or --height alone"),
+    (["--width", "64", "--height", "40"], "--width/--height: must keep the preset's aspect 512x424"),
     (["--resolution-scale", "0.5", "--width", "10"], "--resolution-scale: give it or --width/--height/--resolution"),
     (["--resolution-sc", "0.5"], "unrecognized arguments: --resolution-sc 0.5"),     # no abbreviations
     (["--no-such-flag"], "unrecognized arguments: --no-such-flag"),
@@ -118,8 +124,62 @@ def test_a_transient_histogram_beyond_the_memory_limit_is_refused_before_renderi
     assert not (tmp_path / "out").exists()
 
 
+def _no_distortion_tables(monkeypatch) -> None:
+    """Make the per-pixel distortion check of a camera larger than a preset's fail the test: it must not run
+    before the budget is checked."""
+    from tofcore.scene.camera import Camera
+
+    check = Camera._check_invertible
+
+    def checked(self):
+        if self.width * self.height > 1 << 20:
+            raise AssertionError(f"the {self.width} x {self.height} camera built its distortion tables")
+        check(self)
+
+    monkeypatch.setattr(Camera, "_check_invertible", checked)
+
+
+@pytest.mark.parametrize("flags, size", [(("--resolution", "4096x4096"), "4096 x 4096"),
+                                         (("--resolution-scale", "8"), "4096 x 3392")])
+def test_a_render_beyond_the_memory_budget_is_refused_before_the_camera_is_made(tmp_path, capsys, monkeypatch,
+                                                                                  flags, size):
+    """4096 x 4096 Kinect v2 (53 GB estimated): refused in one line, before the distortion check builds its
+    per-pixel tables (53-74 s and 3.5 GB before the refusal, issue 35)."""
+    monkeypatch.setenv("TOFCORE_MAX_RENDER_BYTES", str(8 << 30))
+    _no_distortion_tables(monkeypatch)
+    code, _, err = _run(["render", "--scene", "plane", "--preset", "kinect_v2", "--out", str(tmp_path / "out"),
+                         "--formats", "json", *flags], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"error: --preset kinect_v2 with --max-depth 5: the estimated render memory ({size} "
+                          f"pixels, 9 raw images, max_depth 5) must be at most 8,589,934,592 bytes"), err
+
+
+def test_a_sensor_resized_beyond_any_render_is_refused_before_the_camera_is_made(monkeypatch):
+    """Sensor.resized (the set files' resolution_scale, the add-on's resolution): even max_depth 1 must fit."""
+    from tofcore import LimitError, load_preset
+
+    monkeypatch.setenv("TOFCORE_MAX_RENDER_BYTES", str(8 << 30))
+    _no_distortion_tables(monkeypatch)
+    with pytest.raises(LimitError, match=r"^Sensor.resized: the estimated render memory \(4096 x 4096 pixels, 9 raw "
+                                         r"images, max_depth 1\) must be at most 8,589,934,592 bytes"):
+        load_preset("kinect_v2").resized(4096, 4096)
+
+
+def test_formats_take_transient_as_the_help_says(tmp_path, capsys):
+    """--formats exr,json,transient was refused ("unknown: 'transient'") though --help lists it."""
+    argv = _tiny(tmp_path, "--resolution", "16x13")
+    argv[argv.index("--formats") + 1] = "exr,json,transient"
+    code, _, err = _run(argv, capsys)
+    assert code == 2 and err == ("error: --formats transient: the histogram needs the width of its bins: add "
+                                 "--transient-bin LENGTH (e.g. 5cm)\n"), err
+    code, _, err = _run([*argv, "--transient-bin", "50cm"], capsys)
+    assert code == 0, err
+    written = {p.name for p in (tmp_path / "out").iterdir()}
+    assert {"depth.exr", "frame.exr", "frame.json", "transient.npy"} <= written and "depth_mm.png" not in written
+
+
 def test_preview_denoise_and_time_budget_in_the_summary(tmp_path, capsys):
-    argv = [a for a in _tiny(tmp_path, "--resolution", "32x24", "--preview-denoise", "--time-budget", "600")
+    argv = [a for a in _tiny(tmp_path, "--resolution", "32x27", "--preview-denoise", "--time-budget", "600")
             if a != "--quiet"]
     argv[argv.index("--spp") + 1] = "8"
     code, out, err = _run(argv, capsys)
@@ -166,3 +226,42 @@ def test_a_render_the_compiled_tracer_could_not_run_says_why_and_what_it_costs(t
     assert code == 0
     assert "note: traced by the NumPy reference, not the compiled tracer: numba is not installed" in out
     assert "about 2x faster on 2 CPU cores" in out
+
+
+@pytest.mark.skipif(not os.path.isdir("/proc/self"), reason="needs Linux's /proc")
+@pytest.mark.parametrize("command", [[sys.executable, "-m", "tofcore", "render", "--scene", "corner",
+                                      "--resolution-scale", "0.0625", "--spp", "1"],
+                                     [sys.executable, "-m", "batch", "run", str(REPO / "batch" / "examples"
+                                                                                / "demo_set.toml")]])
+def test_an_unwritable_out_is_one_line_before_anything_renders(command, tmp_path):
+    """``/proc`` passes the permission bits for root (os.access), yet nothing can be made in it: the folder is
+    tried before the render, in both commands (issue 36: found after the render, with a raw [Errno 2])."""
+    env = dict(os.environ, PYTHONPATH=str(REPO), TOFCORE_TRACER="numpy")
+    proc = subprocess.run([*command, "--out", "/proc/tofcore-test/out"], cwd=tmp_path, env=env, capture_output=True,
+                          text=True, timeout=120)
+    assert proc.returncode == 2
+    lines = proc.stderr.splitlines()  # root: "(writing in '/proc': No such file …)"; others: "('/proc' is not …)"
+    assert len(lines) == 1 and lines[0].startswith("error: --out: must be a folder this user can write, got "
+                                                   "'/proc/tofcore-test/out' (")
+    assert proc.stdout == ""
+
+
+def test_help_shows_no_default_on_switches(capsys):
+    """Issue 36: "--no-adaptive … (default: True)" read as if the switch were on by default."""
+    with pytest.raises(SystemExit):
+        main(["render", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "(default: True)" not in text and "(default: False)" not in text
+    assert "--no-adaptive every pixel gets the same samples (default: after 16 spp" in text
+    assert "most samples per pixel (at most TOFCORE_MAX_SPP) (default: 64)" in text  # valued options keep theirs
+
+
+@pytest.mark.skipif(importlib.util.find_spec("cupy") is not None, reason="CuPy is installed here")
+def test_a_cpu_render_without_cupy_does_not_say_so_every_time(tmp_path, capsys):
+    """Issue 36: every CPU render printed that CuPy is not installed (--device auto's fall-back); --verbose
+    still names the device and why."""
+    argv = [a for a in _tiny(tmp_path) if a != "--quiet"]
+    code, _, err = _run(argv, capsys)
+    assert code == 0 and "CuPy" not in err, err
+    code, out, err = _run([*argv, "--verbose"], capsys)
+    assert code == 0 and "(auto: GPU: CuPy is not installed" in out + err

@@ -110,12 +110,12 @@ def test_the_suggested_front_view_sees_the_whole_box_and_renders_at_the_right_di
     radius = math.sqrt(4 ** 2 + 1 + 3 ** 2) / 2
     np.testing.assert_allclose(pose[:3, 3], [0, 2.5 - 2 * radius, 1.5], atol=1e-6)
     sensor = tofcore.load_preset("kinect_v2").scaled(0.0625)
-    frame = tofcore.render(scene, sensor, spp=1, max_depth=1)
+    frame = tofcore.render(scene, sensor, spp=1, max_depth=1)  # the view framed for this sensor (below)
     h, w = frame.gt_distance.shape
     centre = frame.gt_distance[h // 2 - 1:h // 2 + 1, w // 2 - 1:w // 2 + 1]
     # The centre pixels look along +Y at height 1.5 m, above the red triangle (up to 1 m): the wall at y = 3,
     # radial distance 3 − y_cam within 2 cm (the pixels are about a degree off the axis).
-    np.testing.assert_allclose(centre, 3 - pose[1, 3], atol=0.02)
+    np.testing.assert_allclose(centre, 3 - frame.world_from_sensor[1, 3], atol=0.02)
 
 
 def test_tofcore_render_takes_a_mesh_file(tmp_path):
@@ -128,3 +128,89 @@ def test_tofcore_render_takes_a_mesh_file(tmp_path):
 
     document = json.loads((tmp_path / "o" / "frame.json").read_text())
     assert document["metadata"]["objects"] == [{"id": 0, "name": "crate", "materials": ["steel"]}]
+
+
+def _room(path):
+    """A 4 m room as a user makes one with trimesh (Y up): floor, back and side wall, a box and a ball."""
+    floor = trimesh.creation.box(extents=[4, 0.05, 4])
+    floor.apply_translation([0, -0.025, 0])
+    back = trimesh.creation.box(extents=[4, 2.5, 0.05])
+    back.apply_translation([0, 1.25, -2])
+    side = trimesh.creation.box(extents=[0.05, 2.5, 4])
+    side.apply_translation([-2, 1.25, 0])
+    box = trimesh.creation.box(extents=[0.8, 0.8, 0.8])
+    box.apply_translation([0.5, 0.4, -0.5])
+    ball = trimesh.creation.icosphere(radius=0.4)
+    ball.apply_translation([-0.8, 0.4, 0.6])
+    trimesh.Scene([floor, back, side, box, ball]).export(str(path))
+    return path
+
+
+@pytest.mark.parametrize("suffix", [".obj", ".glb"])
+def test_a_room_is_framed_within_the_sensors_range(tmp_path, suffix):
+    """Issue 36: the 60° sphere fit put a 4 m room 6.2 m from a Kinect (range 0.5–4.5 m): 2–4 % valid pixels.
+    Framed for the sensor, the room's far side is within 90 % of the range and most pixels are valid."""
+    scene = load_mesh(_room(tmp_path / f"room{suffix}"))
+    sensor = tofcore.load_preset("kinect_v2").scaled(0.0625)
+    old = tofcore.render(scene, sensor, np.asarray(scene.metadata["world_from_sensor"]), spp=1, max_depth=1)
+    frame = tofcore.render(scene, sensor, spp=1, max_depth=1)
+    far_side = scene.metadata["framing"]["hi"][1] - frame.world_from_sensor[1, 3]
+    assert far_side <= 0.9 * sensor.range_m[1] + 1e-9
+    assert old.valid.mean() < 0.10 < 0.5 < frame.valid.mean()
+    assert np.nanmax(frame.gt_depth[frame.valid]) <= sensor.range_m[1]
+
+
+def test_framed_view_fits_a_small_box_into_the_field_of_view_and_keeps_a_deep_one_in_range():
+    from tofcore.scene.pose import FAR_MARGIN, framed_view
+
+    sensor = tofcore.load_preset("kinect_v2")
+    cam = sensor.camera
+    tan_half = (min(cam.cx, cam.width - cam.cx) / cam.fx, min(cam.cy, cam.height - cam.cy) / cam.fy)
+    lo, hi = np.array([-1.0, 1.0, 0.0]), np.array([1.0, 2.0, 1.6])  # d_fov 1.9 m: beyond the near limit
+    pose = framed_view(lo, hi, tan_half_fov=tan_half, range_m=sensor.range_m)
+    corners = np.array([[x, y, z, 1.0] for x in (lo[0], hi[0]) for y in (lo[1], hi[1]) for z in (lo[2], hi[2])])
+    in_sensor = (np.linalg.inv(pose) @ corners.T)[:3]
+    u = cam.fx * in_sensor[0] / in_sensor[2] + cam.cx
+    v = cam.fy * in_sensor[1] / in_sensor[2] + cam.cy
+    assert np.all((u >= -1e-6) & (u <= cam.width + 1e-6) & (v >= -1e-6) & (v <= cam.height + 1e-6))
+    assert np.isclose(max(np.abs(u - cam.cx).max() / (cam.width - cam.cx), np.abs(v - cam.cy).max() / cam.cy), 1.0)
+    wide = framed_view([-5, 0, 0], [5, 3, 3], tan_half_fov=tan_half, range_m=sensor.range_m)
+    assert np.isclose(3 - wide[1, 3], FAR_MARGIN * sensor.range_m[1])  # the far side at 90 % of the range
+    deep = framed_view([-5, 0, 0], [5, 6, 3], tan_half_fov=tan_half, range_m=sensor.range_m)
+    assert np.isclose(deep[1, 3], 0.0)  # deeper than the range: at its near side, never inside
+
+
+def test_a_frame_with_few_valid_pixels_is_warned_about_with_the_likely_reason(tmp_path):
+    from tofcore.output.coverage import low_coverage
+
+    scene = load_mesh(_room(tmp_path / "room.obj"))
+    sensor = tofcore.load_preset("kinect_v2").scaled(0.0625)
+    far = tofcore.render(scene, sensor, np.asarray(scene.metadata["world_from_sensor"]), spp=1, max_depth=1)
+    assert "see surfaces beyond the sensor's range (0.5-4.5 m; the farthest at 8." in low_coverage(far)
+    assert low_coverage(far).startswith(f"only {100 * far.valid.mean():.1f} % of the pixels are valid")
+    away = tofcore.render(scene, sensor, tofcore.look_at([0, -3, 1], [0, -6, 1]), spp=1, max_depth=1)
+    assert low_coverage(away) == ("only 0.0 % of the pixels are valid (fewer than 10 %): 100 % see no surface, so "
+                                  "no LED returns: aim the sensor at the scene")
+    assert low_coverage(tofcore.render(scene, sensor, spp=1, max_depth=1)) is None
+
+
+def test_tofcore_render_warns_and_prints_no_nan(tmp_path):
+    """``tofcore render`` of a view that sees little: a warning line naming why, no "nan" in the summary."""
+    from dataclasses import replace
+
+    from tofcore.cli import summary
+
+    room = _room(tmp_path / "room.obj")
+    proc = subprocess.run([sys.executable, "-m", "tofcore", "render", "--scene", str(room), "--resolution-scale",
+                           "0.0625", "--spp", "1", "--max-depth", "1", "--formats", "json", "--eye", "0,-3,1",
+                           "--target", "0,-6,1", "--out", str(tmp_path / "o")], capture_output=True, text=True,
+                          timeout=240)
+    assert proc.returncode == 0, proc.stderr
+    assert "warning: only 0.0 % of the pixels are valid (fewer than 10 %): 100 % see no surface" in proc.stderr
+    assert "nan" not in proc.stdout.lower()
+    assert "depth error vs ground truth: – (no valid pixel with a ground truth)" in proc.stdout
+    # A valid pixel at an edge whose centre ray misses (no ground truth) made the RMS "nan mm".
+    frame = tofcore.render(load_mesh(room), tofcore.load_preset("kinect_v2").scaled(0.0625), spp=1, max_depth=1)
+    gt = frame.gt_depth.copy()
+    gt[np.unravel_index(np.argmax(frame.valid), gt.shape)] = np.nan
+    assert "nan" not in summary(replace(frame, gt_depth=gt)).lower()

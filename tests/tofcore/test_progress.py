@@ -120,6 +120,7 @@ def test_render_command_logs_plain_lines_when_stderr_is_not_a_terminal(tmp_path)
     assert "\r" not in proc.stderr and "\r" not in proc.stdout
     warning, *lines = proc.stderr.splitlines()   # a target of 1 nm (never reached: every pass runs) is implausible
     assert warning.startswith("warning: --target-error 1e-06 mm is implausible for a depth error")
+    lines = [line for line in lines if " spp so far " not in line]  # inside a pass longer than 5 s (activity)
     assert lines[0].startswith("pass 1: 1/4 spp  est. error ") and lines[-1].startswith("pass 3: 4/4 spp")
     # The summary the command prints at the end is kept: one named line per number.
     assert "| pass | spp | seconds | est. depth error mm |" in proc.stdout
@@ -150,3 +151,67 @@ def test_tofcore_renders_without_tqdm_and_never_imports_it(tmp_path):
             "assert 'tqdm' not in sys.modules, 'tofcore imported tqdm'\n")
     proc = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=240)
     assert proc.returncode == 0, proc.stderr
+
+
+def test_the_bar_moves_while_the_tracer_compiles_and_inside_a_pass():
+    """The first compiled render compiles for minutes inside its first pass: the bar says so with the seconds,
+    then advances by blocks of pixels before the pass ends (issue 36)."""
+    term = _Terminal()
+    with PassProgress(stream=term, total=16) as show:
+        show.activity({"stage": "compile", "seconds": 0.0})
+        show.activity({"stage": "compile", "seconds": 41.6})
+        compiling = term.getvalue().rsplit("\r", 1)[-1]
+        show.activity({"stage": "trace", "pass": 1, "spp": 6.4, "spp_max": 16})
+        inside = term.getvalue().rsplit("\r", 1)[-1]
+        show({"pass": 1, "spp": 16, "spp_max": 16, "seconds": 50.0, "est_depth_error_m": 0.004})
+    assert compiling.startswith(f"{progress_module.COMPILE_TEXT}:") and "42 s" in compiling
+    assert inside.startswith("render:") and " 6/16 " in inside and "compiling" not in inside
+    assert "16/16" in term.getvalue().rsplit("\r", 1)[-1]
+
+
+def test_plain_lines_say_the_compile_at_once_and_the_pass_inside_at_the_interval():
+    log = io.StringIO()
+    with PassProgress(stream=log, plain_interval_s=3600) as show:
+        show.activity({"stage": "compile", "seconds": 0.0})
+        show.activity({"stage": "compile", "seconds": 0.5})   # held back: the interval
+        show.activity({"stage": "trace", "pass": 1, "spp": 4.0, "spp_max": 16})
+    lines = log.getvalue().splitlines()
+    assert lines == [f"{progress_module.COMPILE_TEXT}: 0 s"]
+    log = io.StringIO()
+    with PassProgress(stream=log, plain_interval_s=0.05) as show:
+        show.activity({"stage": "trace", "pass": 1, "spp": 1.0, "spp_max": 16})  # a short render: no line
+        time.sleep(0.06)
+        show.activity({"stage": "trace", "pass": 1, "spp": 4.0, "spp_max": 16})
+    assert log.getvalue().splitlines()[0].startswith("pass 1: 4.0/16 spp so far")
+
+
+def test_render_tells_activity_after_every_block_of_pixels(monkeypatch):
+    """``activity`` inside a pass: the samples per pixel traced so far rise chunk by chunk to the pass's end."""
+    import tofcore
+    from tofcore.scene.demo import demo_scene
+
+    monkeypatch.setenv("TOFCORE_TRACER", "numpy")
+    sensor = tofcore.load_preset("kinect_v2")
+    sensor = sensor.scaled(16 / sensor.camera.width)
+    events, rows = [], []
+    tofcore.render(demo_scene("corner"), sensor, spp=4, max_depth=1, chunk_size=64, workers=1, adaptive=False,
+                   activity=events.append, progress=rows.append)
+    pixels = sensor.camera.width * sensor.camera.height
+    assert {e["stage"] for e in events} == {"trace"} and len(events) >= pixels * 4 // 64
+    spp = [e["spp"] for e in events]
+    assert spp == sorted(spp) and spp[-1] == rows[-1]["spp"] == 4
+    assert {e["pass"] for e in events} == set(range(1, len(rows) + 1))
+
+
+def test_a_compile_on_a_thread_ticks_until_it_ends_and_its_failure_reaches_the_caller():
+    from tofcore.compiled.tracer import TICK_S, compile_in_thread
+
+    ticks = []
+    seconds = compile_in_thread(lambda: time.sleep(3 * TICK_S), ticks.append)
+    assert len(ticks) >= 3 and ticks == sorted(ticks) and ticks[0] < TICK_S and seconds >= 3 * TICK_S
+
+    def fails():
+        raise RuntimeError("LLVM said no")
+
+    with pytest.raises(RuntimeError, match="LLVM said no"):
+        compile_in_thread(fails, ticks.append)

@@ -316,16 +316,25 @@ def test_exr_half_and_a_channel_subset(frame, tmp_path):
     assert names[:-2] == list(writers._exr_channels(frame)) and names[-2:] == ["render_error", "samples"]
 
 
-def test_ir_png_is_16_bit_amplitude_in_full_well_counts(frame, tmp_path):
+def test_ir_png_is_16_bit_amplitude_exposed_for_display(frame, tmp_path):
+    """Issue 36: in full-well counts a room's ir.png held at most 922 of 65,535 and opened black. Exposed for
+    display, the valid pixels' 99.5th percentile is at 80 % of 65,535; frame.json's e_per_count gives the
+    electrons back; a frame without a valid pixel keeps the full well's scale."""
     cv2 = pytest.importorskip("cv2")
     sensor = {"readout": {"full_well_e": 65535.0 * 2}}
     with_well = Frame(**{**vars(frame), "metadata": {**frame.metadata, "sensor": sensor}})
     written = writers.write_frame(with_well, tmp_path, ("png", "json"))
     ir = cv2.imread(str(written["ir"]), cv2.IMREAD_UNCHANGED)
     assert ir.dtype == np.uint16 and ir.shape == (H, W)
-    np.testing.assert_array_equal(ir, np.clip(np.rint(np.nan_to_num(frame.amplitude) / 2.0), 0, 65535))
-    document = json.loads(written["json"].read_text())
-    assert document["previews"]["ir"]["e_per_count"] == 2.0 and document["previews"]["ir"]["file"] == "ir.png"
+    e_per_count = json.loads(written["json"].read_text())["previews"]["ir"]["e_per_count"]
+    amplitude = np.nan_to_num(frame.amplitude)
+    np.testing.assert_array_equal(ir, np.clip(np.rint(amplitude / e_per_count), 0, 65535))
+    lit = frame.valid & (amplitude > 0)
+    assert np.isclose(np.percentile(amplitude[lit], 99.5) / e_per_count, 0.8 * 65535)
+    assert np.percentile(ir[lit], 50) > 0.1 * 65535 > 922, "ir.png opens dark"
+    dark = Frame(**{**vars(with_well), "valid": np.zeros_like(frame.valid)})
+    written = writers.write_frame(dark, tmp_path / "dark", ("png", "json"))
+    assert json.loads(written["json"].read_text())["previews"]["ir"]["e_per_count"] == 2.0
 
 
 def test_camera_files_open_in_opencv_ros_and_bop(tmp_path):

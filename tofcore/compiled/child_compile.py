@@ -29,6 +29,9 @@ from ..errors import Cancelled
 POLL_S = 0.1
 """How often :func:`wait` asks ``cancel`` (seconds)."""
 
+TICK_S = 0.5
+"""Seconds between two ``tick`` calls of :func:`wait`."""
+
 _child: dict = {}  # the running compile: {"process": Popen, "log": file with its stderr}
 _lock = threading.Lock()
 
@@ -52,12 +55,14 @@ def start() -> str:
 
     Returns '' when a child compiles now or none is needed, else why none could start.
     """
-    from . import cpu_kernels_cached
+    from . import cache_problem, cpu_kernels_cached
     from ..tracer.workers import python_executable
 
     with _lock:
         if running() or cpu_kernels_cached() is not False:
             return ""
+        if cache_problem():  # a child's compile could not be kept for this process
+            return cache_problem()
         python = python_executable()
         if python is None:
             return f"no Python interpreter beside {sys.executable!r} to compile in"
@@ -81,8 +86,9 @@ def running() -> bool:
     return process is not None and process.poll() is None
 
 
-def wait(cancel) -> str:
-    """Have the CPU kernels compiled by a child process (started here if need be) and wait for it.
+def wait(cancel, tick=None) -> str:
+    """Have the CPU kernels compiled by a child process (started here if need be) and wait for it, calling
+    ``tick(seconds waited)`` about every :data:`TICK_S` when given.
 
     Returns '' once they are cached (the caller loads them in about a second), else why no child cached
     them (the caller then compiles in its own process). Raises :class:`tofcore.Cancelled` as soon as
@@ -91,7 +97,12 @@ def wait(cancel) -> str:
     why_not = start()
     if why_not:
         return why_not
+    start_s, told = time.perf_counter(), -TICK_S
     while running():
+        waited = time.perf_counter() - start_s
+        if tick is not None and waited - told >= TICK_S:
+            tick(waited)
+            told = waited
         if cancel():
             raise Cancelled("cancelled while the compiled tracer compiles (the compile goes on in the "
                             "background, for the next render)")
@@ -99,15 +110,15 @@ def wait(cancel) -> str:
     return _outcome()
 
 
-def compile_aside(cancel) -> str:
-    """For a trace with ``cancel``: uncached CPU kernels compiled by the child (:func:`wait`); what happened,
-    in words for ``stats["transport"]["compile"]`` ('' when they were cached)."""
+def compile_aside(cancel, tick=None) -> str:
+    """For a trace with ``cancel``: uncached CPU kernels compiled by the child (:func:`wait`, ``tick`` as there);
+    what happened, in words for ``stats["transport"]["compile"]`` ('' when they were cached)."""
     from . import cpu_kernels_cached
 
     if cpu_kernels_cached() is not False:
         return ""
     start_s = time.perf_counter()
-    why_not = wait(cancel)
+    why_not = wait(cancel, tick)
     if why_not:
         return f"compiled in this process: {why_not}"
     return f"compiled by a child process in {time.perf_counter() - start_s:.1f} s"

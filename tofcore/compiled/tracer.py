@@ -13,6 +13,7 @@ functions through :mod:`tofcore.compiled.kernels`), so every import between the 
 from __future__ import annotations
 
 import os
+import threading
 import time
 from dataclasses import dataclass
 
@@ -63,7 +64,7 @@ class CompiledTracer:
         """Before the first hits: numba's compile cannot be cancelled, so a trace that can be has uncached CPU
         kernels compiled by a child process (:mod:`tofcore.compiled.child_compile`) and says how."""
         if self.choice.device_scene is None and self.execution.cancel is not None:
-            stats.compile = child_compile.compile_aside(self.execution.cancel)
+            stats.compile = child_compile.compile_aside(self.execution.cancel, self._tick)
 
     def attach(self, transport: Transport) -> str:
         """The frame's sums exist: the passes add to them; returns how the kernels run (``stats.parallel``)."""
@@ -73,13 +74,68 @@ class CompiledTracer:
     def run(self, done: np.ndarray, counts: np.ndarray) -> None:
         """Trace samples [done[p], done[p] + counts[p]) of every pixel; raises Cancelled when asked to stop."""
         run = self.execution
+        if self.choice.device_scene is None and needs_compile():
+            # An empty pixel range compiles the kernels for this trace's argument types and traces nothing.
+            seconds = compile_in_thread(lambda: cpu_trace_chunk(self.choice.packed, self._transport, 0, 0, done,
+                                                                counts), self._tick)
+            stats = self._transport.stats  # a child that could not compile said why (compile_aside)
+            stats.compile = f"{stats.compile}, {seconds:.1f} s" if stats.compile else \
+                f"compiled in this process in {seconds:.1f} s"
         pieces = pass_pieces(self.choice, counts, run.chunk_size, chunks)
         results = trace_pass(self.choice, self._transport, done, counts, pieces, run.workers, run.cancel)
-        collect(results, len(pieces), self._transport.stats)
+        collect(results, len(pieces), self._transport.stats, run.on_chunk)
+
+    def _tick(self, seconds: float) -> None:
+        """The kernels compile: tell ``activity`` (about twice a second)."""
+        if self.execution.activity is not None:
+            self.execution.activity({"stage": "compile", "seconds": seconds})
 
     def close(self) -> None:
         """The trace has ended: its GPU arrays may serve the next trace."""
         release(self.choice)
+
+
+def needs_compile() -> bool:
+    """Whether this process's first call of the CPU kernels compiles them: not compiled here yet, and not in
+    numba's cache (:func:`tofcore.compiled.cpu_kernels_cached`); loading the cache takes about a second."""
+    from . import cpu_kernels_cached, kernels
+
+    return not kernels.trace_pixels.overloads and cpu_kernels_cached() is False
+
+
+TICK_S = 0.5
+"""Seconds between two ``{"stage": "compile"}`` reports while the kernels compile."""
+
+
+def compile_in_thread(compile_kernels, tick) -> float:
+    """Run ``compile_kernels()`` on a thread of its own, calling ``tick(seconds)`` at once and every
+    :data:`TICK_S` until it ends; its seconds. numba's compile holds the GIL only between its steps, so
+    this thread keeps telling the caller (a progress bar whose clock moves) and takes Ctrl-C at once (the
+    compile thread is a daemon: it ends with the process)."""
+    failure: list[BaseException] = []
+
+    def work() -> None:
+        try:
+            compile_kernels()
+        except BaseException as exc:  # re-raised in the caller's thread
+            failure.append(exc)
+
+    start = time.perf_counter()
+    thread = threading.Thread(target=work, name="tofcore-compile", daemon=True)
+    thread.start()
+    while thread.is_alive():
+        tick(time.perf_counter() - start)
+        thread.join(TICK_S)
+    if failure:
+        raise failure[0]
+    return time.perf_counter() - start
+
+
+def cpu_trace_chunk(packed, out, p0: int, p1: int, first: np.ndarray, counts: np.ndarray) -> np.ndarray:
+    """:func:`tofcore.compiled.cpu.trace_chunk` (imported when called: it imports the kernels)."""
+    from . import cpu
+
+    return cpu.trace_chunk(packed, out, p0, p1, first, counts)
 
 
 COMPILED_CHUNK_PATHS = 1 << 18

@@ -32,9 +32,10 @@ file                 kind          content
 ``depth.exr``        exr           one channel ``Y``: depth in m (NaN where invalid), the layout
                                    OpenCV (``cv2.imread(…, cv2.IMREAD_UNCHANGED)``) and EXR viewers
                                    open as a grey image; header attribute ``tofcore`` as above
-``ir.png``           png           16-bit grey IR image like the Kinect's IR stream: amplitude in
-                                   counts of ``full_well_e`` / 65535 electrons (0 = none, 65535 =
-                                   full well), rounded, clipped; the scale is in ``frame.json``
+``ir.png``           png           16-bit grey IR image like the Kinect's IR stream: amplitude,
+                                   linear, exposed for display (the 99.5th percentile of the valid
+                                   pixels at 80 % of 65535), rounded, clipped; electrons per count
+                                   (``e_per_count``) are in ``frame.json``
 ``transient.npy``    transient     (H, W, B) float32 transient histogram (``frame.transient``); bin
                                    width and count in ``frame.json`` (only when the frame has one)
 ``camera_opencv.yml``  json        OpenCV ``FileStorage`` YAML: ``camera_matrix``,
@@ -78,6 +79,7 @@ from pathlib import Path, PurePath
 
 import numpy as np
 
+from ..errors import ExrError
 from . import exr
 from .convergence_plot import convergence_png
 from .frame import Frame, Reason
@@ -214,8 +216,15 @@ def _write_pngs(frame: Frame, out: Path, prefix: str, written: dict, previews: d
 
 def read_exr(path: str | os.PathLike, names: Iterable[str] | None = None) -> dict[str, np.ndarray]:
     """Channels of a ``frame.exr`` (or ``depth.exr``) as ``{name: (H, W) float32 array}`` (half floats widened);
-    ``names`` picks some. A damaged file is a one-line ValueError naming it (:func:`tofcore.output.exr.read`)."""
-    return {name: np.asarray(image, dtype=np.float32) for name, image in exr.read(path, names).items()}
+    ``names`` picks some. A damaged file, or a channel of integers (UINT: tofcore writes FLOAT or HALF, and an
+    integer depth read as metres would be silently wrong), is a one-line :class:`~tofcore.errors.ExrError`
+    (a ValueError) naming the file (:func:`tofcore.output.exr.read`)."""
+    channels = exr.read(path, names)
+    integers = [name for name, image in channels.items() if image.dtype.kind != "f"]
+    if integers:
+        raise ExrError(f"{os.fsdecode(os.fspath(path))}: channels {integers} are UINT (integers); a tofcore frame's "
+                       f"channels are FLOAT or HALF (metres, electrons, 0/1 masks)")
+    return {name: np.asarray(image, dtype=np.float32) for name, image in channels.items()}
 
 
 def exr_channel_names(raw_labels: Iterable[str], bounces: int) -> list[str]:
@@ -348,18 +357,34 @@ def write_exr(path: str | os.PathLike, channels: Mapping[str, np.ndarray], attri
 # --------------------------------------------------------------------------- PNG
 
 _IR_MAX = 65535
+IR_PERCENTILE = 99.5
+IR_LEVEL = 0.8
+"""ir.png's exposure: the IR_PERCENTILE-th percentile of the valid pixels' amplitude at IR_LEVEL × 65535."""
 
 
 def _ir16(frame: Frame) -> tuple[np.ndarray, dict]:
-    """(H, W) uint16 amplitude in counts of full_well_e / 65535 electrons (the sensor's full well from
-    ``frame.metadata["sensor"]``; 1 e⁻ per count without one), rounded, clipped; and its scale."""
-    readout = (frame.metadata.get("sensor") or {}).get("readout") or {}
-    full_well = readout.get("full_well_e")
-    e_per_count = float(full_well) / _IR_MAX if full_well else 1.0
-    amplitude = np.nan_to_num(np.asarray(frame.amplitude, dtype=np.float64), nan=0.0) / e_per_count
-    counts = np.clip(np.rint(amplitude), 0, _IR_MAX).astype(np.uint16)
+    """(H, W) uint16 amplitude, linear, exposed for display; and its scale.
+
+    In counts of the full well (full_well_e / 65535 e⁻ per count) a frame's amplitude filled ~1 % of the
+    16 bits (a Kinect room: 922 of 65,535) and the image opened black. So the scale is the frame's own:
+
+    .. math:: e_\\mathrm{count} = P_{99.5}(A_\\mathrm{valid}) / (0.8 \\cdot 65535),
+
+    counts = round(A / e_count) clipped to 0..65535 (the brightest 0.5 % may clip). ``e_per_count`` in
+    frame.json gives electrons back; a frame without a valid pixel with amplitude uses the full well's
+    scale (1 e⁻ per count without one). The amplitude itself, unscaled, is in the EXR files.
+    """
+    amplitude = np.nan_to_num(np.asarray(frame.amplitude, dtype=np.float64), nan=0.0)
+    lit = amplitude[np.asarray(frame.valid, dtype=bool) & (amplitude > 0)]
+    if lit.size:
+        e_per_count = float(np.percentile(lit, IR_PERCENTILE)) / (IR_LEVEL * _IR_MAX)
+    else:
+        full_well = ((frame.metadata.get("sensor") or {}).get("readout") or {}).get("full_well_e")
+        e_per_count = float(full_well) / _IR_MAX if full_well else 1.0
+    counts = np.clip(np.rint(amplitude / e_per_count), 0, _IR_MAX).astype(np.uint16)
     return counts, {"quantity": "amplitude", "bits": 16, "e_per_count": e_per_count,
-                    "rule": "counts = round(amplitude_e / e_per_count), clipped to 0..65535; 65535 = full well"}
+                    "rule": f"counts = round(amplitude_e / e_per_count), clipped to 0..65535; e_per_count puts the "
+                            f"{IR_PERCENTILE:g}th percentile of the valid pixels at {IR_LEVEL:g} x 65535"}
 
 
 def _write_npy(path: Path, array: np.ndarray) -> None:

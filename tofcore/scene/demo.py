@@ -29,7 +29,7 @@ import numpy as np
 from ..errors import ConfigError
 from .ambient import Ambient
 from .material import Material, Texture
-from .pose import look_at
+from .pose import framed_view, look_at
 from .scene import Scene
 
 NAMES = ("plane", "corner", "box_on_wall", "room", "textured_room")
@@ -183,7 +183,24 @@ def demo_ambient(name: str) -> Ambient | None:
     return Ambient(environment=Texture(sky, "demo sky"))
 
 
-def suggested_pose(scene: Scene) -> np.ndarray:
-    """The sensor pose stored with a demo scene (identity when there is none)."""
+def suggested_pose(scene: Scene, sensors=None) -> np.ndarray:
+    """The sensor pose suggested for a scene: for a scene that stores the box to frame
+    (``metadata["framing"]``: mesh files, :func:`tofcore.load_mesh`) and given ``sensors`` (one
+    :class:`~tofcore.sensor.Sensor` or several), :func:`~tofcore.scene.pose.framed_view` of that box for
+    their narrowest field of view and the range all of them measure; else the pose stored with the scene
+    (``metadata["world_from_sensor"]``; identity when there is none)."""
+    framing = scene.metadata.get("framing")
+    if framing is not None and sensors is not None:
+        sensors = [sensors] if hasattr(sensors, "camera") else list(sensors)
+        if sensors:
+            return framed_view(framing["lo"], framing["hi"], tan_half_fov=_tan_half_fov(sensors),
+                               range_m=(max(s.range_m[0] for s in sensors), min(s.range_m[1] for s in sensors)))
     pose = scene.metadata.get("world_from_sensor")
     return np.eye(4) if pose is None else np.asarray(pose, dtype=np.float64)
+
+
+def _tan_half_fov(sensors) -> tuple[float, float]:
+    """(t_x, t_y): the narrowest half field of view of the sensors' cameras (principal point off-centre: its
+    nearer image edge)."""
+    return (min(min(s.camera.cx, s.camera.width - s.camera.cx) / s.camera.fx for s in sensors),
+            min(min(s.camera.cy, s.camera.height - s.camera.cy) / s.camera.fy for s in sensors))

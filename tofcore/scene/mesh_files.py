@@ -26,8 +26,10 @@ none (PLY, STL, no material)           default          reflectance 0.5, roughne
 =====================================  ===============  ==========================================
 
 Textures are not read: a textured material takes its constant factor. The scene's suggested
-pose (``metadata["world_from_sensor"]``) looks at the centre of the bounding box from −Y (Blender's
-front view), far enough that the whole box is in a 60° field of view.
+pose looks at the centre of the bounding box from −Y (Blender's front view): for a sensor, framed for its
+field of view and range (:func:`tofcore.suggested_pose` of the box stored as ``metadata["framing"]``,
+:func:`~tofcore.scene.pose.framed_view`); without one (``metadata["world_from_sensor"]``), far enough that
+the whole box is in a 60° field of view.
 """
 
 from __future__ import annotations
@@ -107,6 +109,7 @@ def load_mesh(path: str | os.PathLike) -> Scene:
     scene = Scene.from_arrays(points, np.concatenate(triangles), np.concatenate(material_ids), materials,
                               object_ids=np.concatenate(object_ids), object_names=names, name=path.stem)
     scene.metadata["world_from_sensor"] = front_view(points.min(axis=0), points.max(axis=0)).tolist()
+    scene.metadata["framing"] = {"lo": points.min(axis=0).tolist(), "hi": points.max(axis=0).tolist()}
     scene.metadata["source"] = {"file": path.name, "reader": f"trimesh {trimesh.__version__}"}
     return scene
 

@@ -57,3 +57,45 @@ def rigid_problem(matrix: np.ndarray) -> str | None:
     if not np.allclose(matrix[3], [0, 0, 0, 1]):
         return f"its last row must be 0 0 0 1, got {matrix[3].tolist()}"
     return None
+
+
+#: Margins of :func:`framed_view`: the box's far side at most this share of the sensor's longest range (the
+#: LED's return falls as 1/d², so the last metres are the noisiest), its near side at least this many times
+#: the shortest range.
+FAR_MARGIN = 0.9
+NEAR_MARGIN = 1.1
+
+
+def framed_view(lo, hi, *, tan_half_fov: tuple[float, float], range_m: tuple[float, float]) -> np.ndarray:
+    """4×4 ``world_from_sensor`` looking along +Y (Blender's front view) at the centre of the box [lo, hi],
+    framed for a sensor: the whole box in its field of view where that keeps the box within its range,
+    else as much of it as the range allows.
+
+    The box has half extents (a_x, a_y, a_z) about its centre; the sensor sits at distance d in front of
+    it, so the box's near side is at depth d − a_y and its far side at d + a_y. Its near side fills the
+    field of view (half-angle tangents t_x, t_y) at
+
+    .. math:: d_\\mathrm{fov} = a_y + \\max(a_x / t_x,\\; a_z / t_y),
+
+    its far side is within the range [r_min, r_max] while d ≤ d_far = FAR_MARGIN·r_max − a_y, and its near
+    side while d ≥ d_near = a_y + NEAR_MARGIN·r_min. The sensor takes d = max(d_fov, d_near), moved in to
+    max(d_far, a_y) where that is beyond d_far: the far side's range comes first (in a room the far wall
+    fills the image; what is nearer than r_min is the floor's near edge, below the field of view), and the
+    sensor never enters the box. A box deeper than FAR_MARGIN·r_max keeps its far side out of range.
+
+    Parameters
+    ----------
+    lo, hi : the box's corners, world frame, m.
+    tan_half_fov : (t_x, t_y), tangents of the narrower half-angles of the field of view (e.g. min(c_x,
+        W − c_x) / f_x).
+    range_m : (r_min, r_max), the sensor's valid distances, m.
+    """
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    centre, half = (lo + hi) / 2, np.maximum((hi - lo) / 2, 1e-3)
+    d_fov = half[1] + max(half[0] / tan_half_fov[0], half[2] / tan_half_fov[1])
+    d_near = half[1] + NEAR_MARGIN * range_m[0]
+    d_far = FAR_MARGIN * range_m[1] - half[1]
+    distance = max(d_fov, d_near)
+    if distance > d_far:
+        distance = max(d_far, half[1])
+    return look_at(centre - np.array([0.0, distance, 0.0]), centre)

@@ -115,6 +115,8 @@ class Execution:
     chunk_size: int                      # paths per chunk at most
     workers: int                         # processes (NumPy) or threads (compiled) tracing chunks at once
     cancel: Callable[[], bool] | None    # polled before every chunk
+    activity: Callable[[dict], None] | None = None  # told what a pass does meanwhile (trace_progressive)
+    on_chunk: Callable[[int], None] | None = None   # called with each finished chunk's paths
 
 
 class ReferenceTracer:
@@ -167,7 +169,7 @@ class ReferenceTracer:
                 return None if cancel is not None and cancel() else run(*chunk)
 
             results = self._threads.map(job, pieces) if self._shared is None else map(job, pieces)
-        collect(results, len(pieces), self._transport.stats)
+        collect(results, len(pieces), self._transport.stats, self.execution.on_chunk)
 
     def close(self) -> None:
         """The trace has ended: stop the threads, give the transport private copies of the shared sums."""
@@ -226,15 +228,18 @@ class HostTracer:
         self.inner.close()
 
 
-def collect(results: Iterable[TraceStats | None], n_chunks: int, stats: TraceStats) -> None:
-    """Add each chunk's statistics to the trace's; raises Cancelled where a chunk was cancelled (None) or
-    fewer than ``n_chunks`` came back."""
+def collect(results: Iterable[TraceStats | None], n_chunks: int, stats: TraceStats,
+            on_chunk: Callable[[int], None] | None = None) -> None:
+    """Add each chunk's statistics to the trace's, and tell ``on_chunk`` its paths (its camera rays) as it
+    comes back; raises Cancelled where a chunk was cancelled (None) or fewer than ``n_chunks`` came back."""
     finished = 0
     for chunk_stats in results:
         if chunk_stats is None:
             raise Cancelled("trace: cancelled")
         stats.add(chunk_stats)
         finished += 1
+        if on_chunk is not None:
+            on_chunk(chunk_stats.camera_rays)
     if finished < n_chunks:
         raise Cancelled("trace: cancelled")
 

@@ -66,6 +66,7 @@ class TraceSettings:
     device: str | backend.Device = "cpu"
     sampler: str = "sobol"
     light_paths: bool = True
+    activity: Callable[[dict], None] | None = None
 
 
 @dataclass(frozen=True)

@@ -18,7 +18,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable, Iterator, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Protocol
 
 import numpy as np
@@ -144,6 +144,7 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
                       sampler: str = "sobol", light_paths: bool = True, policy: PassPolicy | None = None,
                       allocate: Callable[[Transport, int], np.ndarray | None] | None = None,
                       pass_size: Callable[[Transport, int], int] | None = None,
+                      activity: Callable[[dict], None] | None = None,
                       tracer: TracerChoice = reference) -> Passes:
     """Trace in progressive passes, yielding the accumulated :class:`Transport` after each.
 
@@ -188,17 +189,24 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         always NumPy); the same seed gives the same sums within float rounding (``tests/tofcore/test_gpu.py``).
         The GPU traces paths with the compiled wavefront only; the reference (and the compiled tracer where
         numba-cuda is missing) traces a GPU render's paths on the CPU (:class:`~.parallel.HostTracer`).
+    activity : told, in the tracing thread, what a pass does before it ends (:class:`PassActivity`):
+        ``{"stage": "compile", "seconds": s}`` about twice a second while the compiled tracer's kernels
+        compile (once per install), and ``{"stage": "trace", "pass": n, "spp": s, "spp_max": m}`` after every
+        block of pixels (chunk) of a CPU pass, ``s`` the mean samples per pixel traced so far.
     tracer : picks the :class:`Tracer` that runs the passes (:data:`TracerChoice`): the NumPy reference here;
         :func:`tofcore.trace_progressive` passes :func:`tofcore.compiled.tracer.choose`, the compiled tracer
         wherever it can run the trace.
 
-    Returns :class:`Passes`: iterate it; the yielded object is the live accumulator, so copy what you keep
-    between passes.
+    Returns
+    -------
+    Passes
+        Iterate it; the yielded object is the live accumulator, so copy what you keep between passes.
     """
     settings = TraceSettings(
         world_from_sensor=world_from_sensor, correlations=correlations, ambient=ambient, max_depth=max_depth,
         seed=seed, chunk_size=chunk_size, workers=workers, transient_bin_m=transient_bin_m,
-        transient_max_m=transient_max_m, cancel=cancel, device=device, sampler=sampler, light_paths=light_paths)
+        transient_max_m=transient_max_m, cancel=cancel, device=device, sampler=sampler, light_paths=light_paths,
+        activity=activity)
     schedule = PassSchedule(_policy(policy, spp, progressive), allocate=allocate, pass_size=pass_size)
     return Passes(_passes(scene, camera, leds, settings, schedule, tracer), schedule)
 
@@ -250,7 +258,8 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
     schedule.start()
     dev = backend.select_device(settings.device)
     setup = make_setup(scene, camera, leds, settings, dev)
-    execution = _execution(settings, setup)
+    activity = PassActivity(settings.activity, spp_max=schedule.policy.spp, pixels=camera.width * camera.height)
+    execution = replace(_execution(settings, setup), on_chunk=activity.chunk if settings.activity else None)
     start = time.perf_counter()
     tracer = choose(setup, execution)
     stats = TraceStats(tracer=tracer.name, tracer_reason=tracer.reason)
@@ -260,6 +269,7 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
         stats.parallel = tracer.attach(transport)
         stats.setup_seconds = time.perf_counter() - start
         while (counts := schedule.next_pass(transport)) is not None:
+            activity.begin(stats.passes + 1, int(transport.sample_count.sum()))
             tracer.run(schedule.done, counts)
             schedule.add(counts)
             transport.sample_count += dev.xp.asarray(counts)
@@ -268,6 +278,34 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
             yield transport
     finally:
         tracer.close()
+
+
+class PassActivity:
+    """What a pass of a trace does before it ends, told to ``activity`` (:func:`trace_progressive`).
+
+    A pass of 16 samples of a Kinect frame is 3.5 M paths, a minute of NumPy tracing on two cores: after
+    every chunk (a block of whole pixels) the caller hears the mean samples per pixel traced so far,
+    s = (N_before + N_chunks) / P, N the paths of the passes before and of the pass's finished chunks, P
+    the pixels. The compile stage (``{"stage": "compile", ...}``) is told by the compiled tracer itself
+    (:mod:`tofcore.compiled.tracer`).
+    """
+
+    def __init__(self, activity: Callable[[dict], None] | None, *, spp_max: int, pixels: int):
+        self.activity = activity
+        self.spp_max = spp_max
+        self.pixels = max(1, pixels)
+        self.number = 0          # the pass running now
+        self.paths = 0           # paths traced before it and in its finished chunks
+
+    def begin(self, number: int, paths_before: int) -> None:
+        """A pass starts: its number, and the paths traced by the passes before it."""
+        self.number, self.paths = number, paths_before
+
+    def chunk(self, paths: int) -> None:
+        """A chunk of the pass came back with ``paths`` paths."""
+        self.paths += paths
+        self.activity({"stage": "trace", "pass": self.number, "spp": self.paths / self.pixels,
+                       "spp_max": self.spp_max})
 
 
 class PassSchedule:
@@ -363,7 +401,7 @@ def _execution(settings: TraceSettings, setup: TraceSetup) -> Execution:
     if not isinstance(workers, (int, np.integer)) or workers < 1:
         raise ConfigError(f"trace: workers must be an integer >= 1, got {workers!r}")
     limits.MAX_WORKERS.check(int(workers), "trace", "workers")
-    return Execution(chunk_size=chunk_size, workers=workers, cancel=settings.cancel)
+    return Execution(chunk_size=chunk_size, workers=workers, cancel=settings.cancel, activity=settings.activity)
 
 
 def _empty_transport(setup: TraceSetup, first: FirstHit, stats: TraceStats) -> Transport:
