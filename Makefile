@@ -7,7 +7,7 @@ PY     := $(VENV)/bin/python
 PYTHON313 ?= $(firstword $(wildcard $(HOME)/.pyenv/versions/3.13*/bin/python3.13) $(shell command -v python3.13 2>/dev/null))
 VENV313   ?= .venv313
 
-.PHONY: demo test test-numpy2 bench venv clean addon
+.PHONY: demo test test-numpy2 bench venv clean addon docs
 
 # OpenCV comes as opencv-contrib-python-headless (cv2 with cv2.ximgproc). The plain builds (opencv-python-headless,
 # which an older venv has, or opencv-python) own the same cv2 folder: installed beside the contrib build, or
@@ -85,8 +85,20 @@ $(VENV)/.studies: $(VENV)/.installed pyproject.toml
 studies: $(VENV)/.studies
 	@for s in $(STUDIES); do echo "== studies/$$s.py"; $(PY) studies/$$s.py --out out/studies || exit 1; done
 
+# The documentation site (MkDocs, docs/ + the API reference from the docstrings) into out/site, --strict: a
+# link to a missing page, anchor or repository file fails the build. Its own venv with pinned packages.
+VENV_DOCS ?= .venv-docs
+
+$(VENV_DOCS)/.installed: docs/requirements.txt
+	$(PYTHON) -m venv $(VENV_DOCS)
+	$(VENV_DOCS)/bin/python -m pip install --quiet -r docs/requirements.txt
+	touch $@
+
+docs: $(VENV_DOCS)/.installed
+	NO_MKDOCS_2_WARNING=1 $(VENV_DOCS)/bin/mkdocs build --strict --clean
+
 clean:
-	rm -rf $(VENV) $(VENV313) out
+	rm -rf $(VENV) $(VENV313) $(VENV_DOCS) out
 
 # Peers (Mitsuba 3, mitransient, Blender Cycles) in a separate venv: studies/crosscheck/README.md.
 VENV_BENCH ?= .venv-bench

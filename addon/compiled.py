@@ -2,7 +2,7 @@
 
 tofcore traces with compiled kernels wherever numba imports (``tofcore.compiled.tracer.choose``) and falls back
 to its NumPy tracer otherwise, with the reason in ``frame.stats["transport"]["tracer_reason"]``. numba is
-not bundled in the extension zip (its wheels with llvmlite are ~64 MB per platform, README), so the
+not bundled in the extension zip (its wheels with llvmlite are ~64 MB per platform, docs/blender.md), so the
 preferences offer "Install numba for the compiled tracer", as they offer CuPy (:mod:`.gpu`):
 
 =================  =====================================================================================

@@ -3,7 +3,7 @@
 tofcore renders on an NVIDIA GPU through CuPy (``device="gpu"`` or ``"auto"``, :mod:`tofcore.backend`).
 Blender ships NumPy but not CuPy, and the extension zips stay small (CuPy and the CUDA libraries are
 about 1 GB), so the user installs CuPy on request: the preferences' button (:func:`cupy_install_command`
-run by an :class:`Installer`), or the same command by hand (README, "GPU in Blender").
+run by an :class:`Installer`), or the same command by hand (docs/blender.md, "GPU in Blender").
 
 ===================  =====================================================================================
 what                 how

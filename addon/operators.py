@@ -97,12 +97,14 @@ class RenderJob:
     camera : name of the Blender camera (for the UI).
     kind : ``"render"`` or ``"preview"``.
     device : tofcore's ``device``: ``"cpu"``, ``"gpu"`` or ``"auto"``.
+    exported : the scene export the job renders (the live preview reuses it after a camera move).
     """
 
     def __init__(self, *, scene, sensor, pose, ambient=None, settings: dict, workers: int | None = None,
                  out_dir: str | None = None, formats: tuple[str, ...] = (), camera: str = "",
-                 kind: str = "render", device: str = "cpu") -> None:
+                 kind: str = "render", device: str = "cpu", exported=None) -> None:
         self.scene, self.sensor, self.pose, self.ambient = scene, sensor, pose, ambient
+        self.exported = exported
         self.settings = dict(settings)
         self.workers = workers
         self.device = device
@@ -227,7 +229,8 @@ def frame_path(path: str, frame: int, *, numbered: bool = False) -> str:
     return re.sub(r"#+", lambda m: f"{frame:0{len(m.group())}d}", path)
 
 
-def prepare_render(context, report, *, preview: bool = False, numbered: bool = False) -> RenderJob | None:
+def prepare_render(context, report, *, preview: bool = False, numbered: bool = False,
+                   exported: "export.ExportResult | None" = None) -> RenderJob | None:
     """Export the scene and build the :class:`RenderJob` of the scene camera, or report why not.
 
     Parameters
@@ -237,6 +240,8 @@ def prepare_render(context, report, *, preview: bool = False, numbered: bool = F
         (then None is returned), WARNING for what the exporter skipped.
     preview : the live-preview job (``preview_scale``, ``preview_spp``, nothing written).
     numbered : an animation frame: the output folder gets the frame number even without ``#``.
+    exported : an export of the scene as it still is (the live preview after a camera move): its
+        triangles, materials and ambient light are used, only the camera's pose is read anew.
     """
     camera_obj, problem = render_target(context)
     if problem:
@@ -269,22 +274,27 @@ def prepare_render(context, report, *, preview: bool = False, numbered: bool = F
     except tofcore.ConfigError as err:
         report({'ERROR'}, str(err))
         return None
-    try:
-        result = export.export_scene(context.evaluated_depsgraph_get(), camera_obj)
-    except tofcore.SceneError as err:  # "nothing visible to render: …"
-        report({'ERROR'}, f"Cannot render: {err}")
-        return None
-    except tofcore.TofError as err:  # e.g. a material override tofcore rejects
-        report({'ERROR'}, f"Scene export failed: {err}")
-        return None
+    if exported is not None:
+        result = exported
+        pose = export.camera_pose(camera_obj, context.evaluated_depsgraph_get())
+    else:
+        try:
+            result = export.export_scene(context.evaluated_depsgraph_get(), camera_obj)
+        except tofcore.SceneError as err:  # "nothing visible to render: …"
+            report({'ERROR'}, f"Cannot render: {err}")
+            return None
+        except tofcore.TofError as err:  # e.g. a material override tofcore rejects
+            report({'ERROR'}, f"Scene export failed: {err}")
+            return None
+        pose = result.world_from_sensor
     for warning in result.warnings:
         report({'WARNING'}, warning)
-    pose = result.world_from_sensor
     if pose is None:
         pose = tofcore.from_blender_matrix_world(camera_obj.matrix_world)
     return RenderJob(scene=result.scene, sensor=sensor, pose=pose, ambient=result.ambient, settings=quality,
                      workers=preferences.get(context).workers or None, out_dir=out_dir, formats=formats,
-                     camera=camera_obj.name, kind="preview" if preview else "render", device=device)
+                     camera=camera_obj.name, kind="preview" if preview else "render", device=device,
+                     exported=result)
 
 
 def prepare_device(device: str, report) -> str | None:
@@ -742,6 +752,10 @@ class _PreviewState:
         self.deadline = 0.0
         self.camera = ""      # the camera object of the last preview started
         self.messages: list[tuple[str, str]] = []
+        # The last preview's scene export, reused while only the preview camera (its pose, its ToF
+        # settings) changed: a camera move then exports nothing and the BVH is the one built before.
+        self.exported = None
+        self.scene_changed = True
 
 
 _preview = _PreviewState()
@@ -758,6 +772,26 @@ def live_preview_camera(scene):
         return None
     settings = obj.data.tof
     return obj if settings.enabled and settings.live_preview else None
+
+
+def _scene_changed(depsgraph, camera_obj) -> bool:
+    """Whether an update touched anything the export reads: anything but the preview camera object, its
+    camera data (pose, lens, ToF settings), its LED empties (they move with it) and the IDs tagged along
+    with every change."""
+    camera_ids = {camera_obj.name_full, camera_obj.data.name_full}
+    for update in depsgraph.updates:
+        data = getattr(update.id, "original", update.id)
+        if isinstance(data, (bpy.types.Object, bpy.types.Camera)) and data.name_full in camera_ids:
+            continue
+        if isinstance(data, bpy.types.Object) and LED_KEY in data and data.parent == camera_obj.original:
+            continue
+        if isinstance(data, (bpy.types.Scene, bpy.types.WorkSpace, bpy.types.Screen, bpy.types.WindowManager)):
+            continue
+        if isinstance(data, bpy.types.Image) and (data.name in images.IMAGE_NAMES.values()
+                                                  or data.name == images.CONVERGENCE_IMAGE):
+            continue
+        return True
+    return False
 
 
 def _relevant(depsgraph) -> bool:
@@ -777,7 +811,12 @@ def _relevant(depsgraph) -> bool:
 def _on_depsgraph_update(scene, depsgraph) -> None:
     """``depsgraph_update_post``: restart the preview (debounced) when the scene or the scene camera changed."""
     obj = live_preview_camera(scene) if _render_job is None else None
-    if obj is not None and (obj.name != _preview.camera or _relevant(depsgraph)):
+    if obj is None:
+        _preview.scene_changed = True  # a render or another camera: export afresh next time
+        return
+    if _scene_changed(depsgraph, obj):
+        _preview.scene_changed = True
+    if obj.name != _preview.camera or _relevant(depsgraph):
         schedule_live_preview()
 
 
@@ -803,10 +842,12 @@ def start_live_preview(context) -> RenderJob | None:
     obj = live_preview_camera(context.scene)
     if _render_job is not None or obj is None:
         return None
+    reuse = _preview.exported if (obj.name == _preview.camera and not _preview.scene_changed) else None
     _preview.camera = obj.name
     _preview.messages = []
     job = prepare_render(context, lambda levels, message: _preview.messages.append((min(levels), message)),
-                         preview=True)
+                         preview=True, exported=reuse)
+    _preview.exported, _preview.scene_changed = (job.exported, False) if job is not None else (None, True)
     if job is None:
         last_result.update(kind="preview", state="error", message=_preview.messages[-1][1])
         _redraw(context)
@@ -860,6 +901,8 @@ def settings_changed(camera_data) -> None:
         return
     scene = bpy.context.scene
     obj = live_preview_camera(scene)
+    if camera_data is None:  # a material setting: the export changes
+        _preview.scene_changed = True
     if obj is not None and (camera_data is None or obj.data == camera_data):
         schedule_live_preview()
 

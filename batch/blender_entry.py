@@ -47,7 +47,9 @@ def script_args(argv: list[str]) -> list[str]:
 
 def build_parser() -> argparse.ArgumentParser:
     from batch.cli import _Formatter, add_device_option, add_quality_options
-    from tofcore.cli import formats_type
+    from tofcore.cli import formats_type_of
+
+    from batch.setfile import FORMATS  # a set's formats: transient.npy comes with [output] transient_bin_m
 
     parser = argparse.ArgumentParser(
         prog="blender -b FILE.blend --python batch/blender_entry.py --",
@@ -62,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_quality_options(parser, seed_help="set seed (per-frame seeds derive from it)",
                         ambient_help="constant ambient radiance (default: the exporter's, from the world)",
                         scale_help="image size factor (intrinsics scaled)")
-    parser.add_argument("--formats", type=formats_type, default="exr,png,ply,json",
+    parser.add_argument("--formats", type=formats_type_of(FORMATS), default="exr,png,ply,json",
                         help="comma list of exr, png, ply, json")
     add_device_option(parser, gpu_help="on this process's GPU, the first CUDA_VISIBLE_DEVICES shows")
     parser.add_argument("--retry-failed", action="store_true", help="render only the frames recorded as failed")

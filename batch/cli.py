@@ -143,7 +143,10 @@ def cmd_validate(args: argparse.Namespace) -> int:
         done = sum(1 for job in jobs if job.job_id in records and records[job.job_id].get("status") == "ok"
                    and data.verify(records[job.job_id], "size") is None)
         failed = sum(1 for job in jobs if records.get(job.job_id, {}).get("status") == "failed")
-        print(f"  {args.out}: {done} done, {failed} failed, {len(jobs) - done - failed} to render")
+        outside = len(records.keys() - {job.job_id for job in jobs})
+        print(f"  {args.out}: {done} done, {failed} failed, {len(jobs) - done - failed} to render"
+              + (f"; {outside} indexed frame(s) not in this set (an earlier version of it or another set: kept)"
+                 if outside else ""))
     if args.list:
         for job in jobs:
             print(f"{job.job_id}  {job.label}  seed {job.seed}")
@@ -173,8 +176,10 @@ def cmd_verify(args: argparse.Namespace) -> int:
               f"rendered again, the index rebuilt from the frame folders): tofcore-batch run SET.toml --out "
               f"{args.dataset}")
         return EXIT_FAILED
-    print("ok: the index describes every frame folder and every file matches its checksum"
-          if args.checksum == "sha256" else "ok: the index describes every frame folder and every size matches")
+    print(("ok: the index describes every frame folder and every file matches its checksum"
+           if args.checksum == "sha256" else "ok: the index describes every frame folder and every size matches")
+          + (f" ({counts['outside_set']} frame(s) not in the last run's set: see the note)"
+             if counts["outside_set"] else ""))
     return EXIT_OK
 
 
@@ -419,12 +424,16 @@ def main(argv: list[str] | None = None) -> int:
     on return.
     """
     previous = hold_signals()
-    from tofcore.console import use_safe_output
+    import warnings
+
+    from tofcore.console import note_line, use_safe_output
 
     use_safe_output()  # any locale: what the terminal cannot show is spelled in ASCII
+    format_before, warnings.formatwarning = warnings.formatwarning, note_line  # a warning is one line
     try:
         return _command(build_parser().parse_args(argv))
     finally:
+        warnings.formatwarning = format_before
         if argv is None:
             hold_signals(_exit_quietly)
         else:

@@ -128,8 +128,9 @@ def comparison_image(rows: list[tuple[str, dict[str, np.ndarray]]]) -> tuple[np.
     for (label, ch), depth, error in zip(rows, depths, errors):
         depth_rgb = apply_lut((depth - lo) / (hi - lo if hi > lo else 1.0), TURBO)
         error_rgb = apply_lut((error / limit_mm + 1.0) / 2.0, DIVERGING)
-        codes = np.clip(ch["reason"].astype(np.int64), 0, len(palette) - 1)
-        cells.append((label, [_resize_nearest(img, CELL_WIDTH) for img in (depth_rgb, error_rgb, palette[codes])]))
+        codes = np.clip(reason_codes(ch["reason"]), -1, len(palette) - 1)  # -1 (NaN): the background colour
+        shown = np.concatenate([palette, np.array([_BACKGROUND], np.uint8)])[codes]
+        cells.append((label, [_resize_nearest(img, CELL_WIDTH) for img in (depth_rgb, error_rgb, shown)]))
     row_heights = [max(img.shape[0] for img in imgs) for _, imgs in cells]
     bars = [horizontal_bar(TURBO, CELL_WIDTH, lo, hi, "m"),
             horizontal_bar(DIVERGING, CELL_WIDTH, -limit_mm, limit_mm, "mm")]
@@ -162,6 +163,15 @@ def comparison_image(rows: list[tuple[str, dict[str, np.ndarray]]]) -> tuple[np.
     return canvas, limits
 
 
+def reason_codes(reason: np.ndarray) -> np.ndarray:
+    """The ``reason`` channel as int64 codes; -1 where it is NaN (damaged frame data: no reason to show or count),
+    without NumPy's warning about casting NaN."""
+    codes = np.full(reason.shape, -1, np.int64)
+    finite = np.isfinite(reason)
+    codes[finite] = reason[finite].astype(np.int64)
+    return codes
+
+
 # --------------------------------------------------------------------------- tables
 
 def _mm(value: float | None) -> str:
@@ -174,7 +184,7 @@ def table_rows(records: list[dict], channels: list[dict[str, np.ndarray]]) -> li
 
     rows = []
     for record, ch in zip(records, channels):
-        reason = ch["reason"].astype(np.int64)
+        reason = reason_codes(ch["reason"])
         n = reason.size
         rows.append({
             "preset": record["preset"], "sensor": record.get("sensor_name"),

@@ -6,6 +6,7 @@ Layout
 
     DATASET/
       index.jsonl            one JSON record per frame (job), in set order after a run
+      set.json               the set of the last run: its set file and job ids (in set order)
       README.md              the dataset card (counts, presets, settings, how to load)
       frames/<job_id>/       tofcore.write_frame outputs + record.json (the frame's done record)
       frames/.<job_id>.partial-XXXXXXXX/   a frame being written (removed by the next run)
@@ -74,6 +75,16 @@ copied verbatim to ``index.jsonl.rejected`` and left out of the rewritten
 index. The frame it would describe is then taken from its folder's
 ``record.json`` when every file verifies, else rendered again.
 ``tofcore-batch verify DATASET`` checks all of this without changing anything.
+
+When the set changed
+--------------------
+A run keeps the records of frames that are not in its set (an earlier version
+of the set file, another set run into the same folder): they stay in the index
+and in ``frames/``, after the set's own. Each run writes ``set.json``
+(:meth:`Dataset.write_current_set`) before it renders; the run warns how many
+indexed frames are not in its set, ``verify`` lists them
+(:meth:`Dataset.outside_set`), and the reader opens only the set's frames with
+``Dataset(root, current_set=True)`` (:mod:`tofcore.output.dataset`).
 """
 
 from __future__ import annotations
@@ -92,7 +103,7 @@ from collections.abc import Iterable
 from contextlib import contextmanager
 from pathlib import Path
 
-from tofcore.output.dataset import FRAMES, INDEX, RECORD, STATUSES, read_regular
+from tofcore.output.dataset import CURRENT_SET, FRAMES, INDEX, RECORD, STATUSES, read_current_set, read_regular
 from tofcore.output.dataset import differing_keys as reader_differing_keys
 
 CARD = "README.md"
@@ -194,6 +205,22 @@ def write_json_atomic(path: Path, data) -> Path:
 def sha256_of(path: Path) -> str:
     with open(path, "rb") as fh:
         return hashlib.file_digest(fh, "sha256").hexdigest()
+
+
+def exr_defect(path: Path) -> str | None:
+    """Why tofcore's EXR codec cannot read ``path`` (header, declared sizes, offset table, chunk headers:
+    :func:`tofcore.output.exr.check`, no pixels inflated), or None. A file whose checksum was made to
+    match the record is still found."""
+    from tofcore.errors import ExrError
+    from tofcore.output import exr
+
+    try:
+        exr.check(path)
+    except ExrError as exc:
+        return str(exc).removeprefix(f"{path}: ")
+    except OSError as exc:
+        return f"cannot be read ({exc.strerror or exc})"
+    return None
 
 
 def file_entry(kind: str, path: Path) -> dict:
@@ -515,7 +542,8 @@ class Dataset:
         """None when the record's frame is complete on disk, else why not.
 
         ``mode``: ``"sha256"`` checks sizes and checksums of ``record.json`` and of every file,
-        ``"size"`` only sizes (fast). A record without ``record_file`` (an index line written before
+        ``"size"`` only sizes (fast); with ``"sha256"`` an EXR file must also be one the codec can read
+        (:func:`exr_defect`). A record without ``record_file`` (an index line written before
         ``record.json`` was checksummed) must equal the folder's ``record.json``.
         """
         if record.get("status") != "ok":
@@ -553,6 +581,10 @@ class Dataset:
                 return f"{entry['name']} has {size} bytes, the record says {entry['bytes']}"
             if mode == "sha256" and sha256_of(path) != entry["sha256"]:
                 return f"{entry['name']} checksum differs from the record"
+            if mode == "sha256" and path.suffix == ".exr":
+                defect = exr_defect(path)
+                if defect is not None:
+                    return f"{entry['name']}: {defect}"
         return None
 
     def discard(self, job_id: str) -> bool:
@@ -587,8 +619,9 @@ class Dataset:
         """Everything :meth:`read_index`, :meth:`verify` and the frames folder say, without changing anything.
 
         Returns ``{"problems": [one line each], "notes": [...], "counts": {records, ok, failed,
-        record_files, files}}``. Problems: index lines that are not records, ok frames that do not
-        verify (``mode``), published folders missing from the index, leftovers of a killed run.
+        record_files, files, outside_set}}``. Problems: index lines that are not records, ok frames that do not
+        verify (``mode``), published folders missing from the index, leftovers of a killed run. Frames not in the
+        last run's set (``set.json``) are a note: kept on purpose, not damage.
         """
         records, info = self.read_index()
         problems = [f"{INDEX}:{number}: not a frame record ({why})" for number, why, _ in info["problems"]]
@@ -620,12 +653,37 @@ class Dataset:
             if _STRAY_TEMP.fullmatch(path.name):
                 problems.append(f"{path.name}: temporary file left by an interrupted run")
         notes = []
+        current, outside = self.outside_set(records)
+        if outside:
+            shown = ", ".join(f"{r['job_id']} ({r['scene']}/{r['view']['label']}/{r['preset']})" for r in outside[:3])
+            notes.append(f"{len(outside)} indexed frame(s) are not in the set of the last run "
+                         f"({current.get('set_file') or 'its set'}): {shown}{' …' if len(outside) > 3 else ''}; an "
+                         f"earlier version of the set file or another set (kept; the reader's "
+                         f"Dataset(root, current_set=True) opens only that set's frames)")
+        counts["outside_set"] = len(outside)
         if info["duplicates"]:
             notes.append(f"{info['duplicates']} index line(s) superseded by a later line of the same frame")
         if legacy:
             notes.append(f"{legacy} index line(s) without the checksum of record.json (written by an older "
                          f"version; compared by content; the next run adds it)")
         return {"problems": problems, "notes": notes, "counts": counts}
+
+    def write_current_set(self, set_file: str | None, job_ids: Iterable[str]) -> None:
+        """Write ``set.json``: the set file and the job ids, in set order, of the set this run renders."""
+        from datetime import datetime, timezone
+
+        write_json_atomic(self.root / CURRENT_SET, {
+            "set_file": set_file, "written": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "jobs": list(job_ids)})
+
+    def outside_set(self, records: dict[str, dict]) -> tuple[dict | None, list[dict]]:
+        """``set.json`` (None where there is none) and the records (any status) of ``records`` whose job is not in
+        it, in index order."""
+        current = read_current_set(self.root)
+        if current is None:
+            return None, []
+        in_set = set(current["jobs"])
+        return current, [r for job_id, r in records.items() if job_id not in in_set]
 
     def write_card(self, text: str) -> None:
         write_bytes_atomic(self.root / CARD, utf8_text(text))

@@ -189,6 +189,25 @@ class DevicePlan:
     notes: tuple[str, ...] = ()
 
 
+CPU_THREADS_PER_FRAME = 4
+"""Tracer threads per frame when a CPU batch chooses its own frames × threads (``--workers`` not given).
+
+One frame does not keep a many-core machine busy: on the 16-core GPU host a frame on 16 numba threads ran
+at 71 % parallel efficiency, on 4 threads at 78 % (docs/benchmarks.md, "CPU tracer"), and part of every
+frame (set-up, decoding, writing) runs on one thread. So a batch renders ``cpus // 4`` frames at once
+with 4 threads each (measured on that host: docs/benchmarks.md, "Batch")."""
+
+
+def cpu_frames_and_threads(cpus: int, frames: int) -> tuple[int, int]:
+    """Frames rendered at once and tracer threads each, for a CPU batch that chooses them itself.
+
+    ``workers = clamp(cpus // CPU_THREADS_PER_FRAME, 1, frames)``, ``threads = max(1, cpus // workers)``:
+    2 cores → 1 frame × 2 threads; 16 cores → 4 × 4; 16 cores and 2 frames → 2 × 8.
+    """
+    workers = max(1, min(cpus // CPU_THREADS_PER_FRAME, frames))
+    return workers, max(1, cpus // workers)
+
+
 def plan_devices(device: str, *, executor: str, workers: int | None = None,
                  env: Mapping[str, str] | None = None) -> DevicePlan:
     """Decide where frames render.

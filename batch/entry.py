@@ -9,7 +9,13 @@ the command, whose own handlers take over (the tracer's workers ignore SIGINT; t
 Only the interpreter's own start-up (some 10-30 ms) comes before.
 """
 
-from .interrupt import hold
+try:
+    from .interrupt import hold
+except KeyboardInterrupt:  # Ctrl-C while that small module loads: no handler of ours yet
+    import os
+
+    os.write(2, b"\ninterrupted (SIGINT): nothing was written\n")
+    os._exit(130)
 
 
 def tofcore() -> int:

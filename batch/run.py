@@ -64,10 +64,10 @@ from tofcore.tracer.workers import sigint_held
 
 from .card import dataset_card
 from .dataset import FRAMES, RECORD, Dataset, differing_keys
-from .devices import VISIBLE_ENV, plan_devices
+from .devices import VISIBLE_ENV, cpu_frames_and_threads, plan_devices
 from .jobs import Job, ViewTask, group_by_view
 from .timing import timing_lines, worker_timing
-from .worker import WorkerDied, failed_record, init_worker, run_view
+from .worker import WorkerDied, failed_record, finish_writes, init_worker, run_view, start_view
 
 
 class Interrupted(BaseException):
@@ -138,13 +138,15 @@ class InlineExecutor:
 
 @dataclass
 class _Slot:
-    """One worker process of the local pool: its own one-process pool, its GPU, the view it renders."""
+    """One worker process of the local pool: its own one-process pool, its GPU, the view it renders, and
+    the jobs it was handed whose records it has not reported yet (rendering, or held by its writer)."""
 
     gpu: str | None
     pool: cf.ProcessPoolExecutor
     future: cf.Future | None = None
     task: ViewTask | None = None
     process: multiprocessing.Process | None = None
+    unreported: dict[str, tuple[ViewTask, Job]] = field(default_factory=dict)
 
 
 class LocalExecutor:
@@ -155,10 +157,15 @@ class LocalExecutor:
     the last views go to whichever worker is free first. With ``gpus`` (``CUDA_VISIBLE_DEVICES`` ids)
     there is one slot per GPU, pinned to it by the initializer (:func:`batch.worker.init_worker`).
 
-    A worker that dies (``kill -9``, the out-of-memory killer) breaks only its own slot: its view's
-    frames fail with one line (:class:`WorkerDied`; ``--retry-failed`` renders them again; frames it
-    had published are indexed as published), the slot gets a new process on the same GPU, and the
-    other workers carry on.
+    A worker renders a view and hands its frames to its writer thread (:func:`batch.worker.start_view`):
+    it reports a view as soon as it is rendered, with the records of the frames written so far, and
+    renders the next view while the last one is written. A slot keeps the jobs it has not reported;
+    when no view is left, it asks for the rest (:func:`batch.worker.finish_writes`).
+
+    A worker that dies (``kill -9``, the out-of-memory killer) breaks only its own slot: every frame it
+    had not reported (its view's, and those its writer held) fails with one line (:class:`WorkerDied`;
+    ``--retry-failed`` renders them again; frames it had published are indexed as published), the slot
+    gets a new process on the same GPU, and the other workers carry on.
     """
 
     def __init__(self, workers: int, gpus: tuple[str, ...] = ()):
@@ -177,16 +184,59 @@ class LocalExecutor:
         return _Slot(gpu, cf.ProcessPoolExecutor(max_workers=1, mp_context=context, initializer=init_worker,
                                                  initargs=(os.getpid(), gpu, time.time())))
 
-    def _submit(self, slot: _Slot, task: ViewTask) -> None:
+    def _submit(self, slot: _Slot, task: ViewTask | None) -> None:
+        """Hand ``task`` to the slot's worker (:func:`start_view`), or with None ask it for the records of the
+        frames its writer still holds (:func:`finish_writes`)."""
+        call = (start_view, task) if task is not None else (finish_writes,)
         with sigint_held():  # the first submit starts the slot's worker process
             try:
-                slot.future = slot.pool.submit(run_view, task)
+                slot.future = slot.pool.submit(*call)
             except BrokenProcessPool:  # the worker died between two views: a new one takes this view
-                self._replace(slot)
-                slot.future = slot.pool.submit(run_view, task)
+                self._replace(slot)  # (its unreported jobs were failed when its future broke)
+                slot.future = slot.pool.submit(*call)
         slot.task = task
+        if task is not None:
+            slot.unreported.update((job.job_id, (task, job)) for job in task.jobs)
         if slot.process is None:
             slot.process = next(iter((getattr(slot.pool, "_processes", None) or {}).values()), None)
+
+    def _next(self, slot: _Slot, pending: deque) -> None:
+        """Give a free slot the next view, or, with none left, ask it for the frames it still writes."""
+        if slot.future is not None:
+            return
+        if pending:
+            self._submit(slot, pending.popleft())
+        elif slot.unreported:
+            self._submit(slot, None)
+
+    def _reported(self, slot: _Slot, task: ViewTask | None, outcome) -> tuple[ViewTask | None, list[dict] | BaseException]:
+        """What a slot's finished call gives the run: its records, the slot's unreported jobs updated.
+
+        A worker that died fails every job it had not reported; a view whose call raised fails its jobs;
+        after :func:`finish_writes` (``task`` None) the worker holds nothing any more, so a job still
+        unreported fails rather than wait for ever (none is, unless a record was lost).
+        """
+        if task is not None and not isinstance(outcome, WorkerDied):
+            if isinstance(outcome, BaseException):
+                for job in task.jobs:
+                    slot.unreported.pop(job.job_id, None)
+            else:
+                for record in outcome:
+                    slot.unreported.pop(record.get("job_id"), None)
+            return task, outcome
+        if isinstance(outcome, BaseException):
+            records, lost = [], outcome
+        else:
+            records = outcome
+            lost = WorkerDied("the worker wrote its frames but reported no record for this one; --retry-failed "
+                              "renders it again", pid=slot.process.pid if slot.process is not None else None,
+                              gpu=slot.gpu)
+        for record in records:
+            slot.unreported.pop(record.get("job_id"), None)
+        held = list(slot.unreported.values())
+        slot.unreported.clear()
+        return task or (held[0][0] if held else None), records + [failed_record(job, job_task, lost)
+                                                                  for job_task, job in held]
 
     def _replace(self, slot: _Slot) -> None:
         """A new worker process (pool) for a slot whose process died, pinned to the same GPU."""
@@ -207,7 +257,7 @@ class LocalExecutor:
             except ValueError:
                 how = f"killed by signal {-code}"
         pid = f" (pid {process.pid})" if process is not None else ""
-        return WorkerDied(f"the worker process{where}{pid} died while rendering this view ({how}); the other "
+        return WorkerDied(f"the worker process{where}{pid} died while rendering or writing this frame ({how}); the other "
                           f"workers went on; --retry-failed renders its frames again",
                           pid=process.pid if process is not None else None, gpu=slot.gpu)
 
@@ -216,8 +266,7 @@ class LocalExecutor:
         self.slots = [self._new_slot(gpu) for gpu in (self.gpus or [None] * self.workers)]
         while True:
             for slot in self.slots:  # every free worker takes the next view first: none waits for the parent
-                if slot.future is None and pending:
-                    self._submit(slot, pending.popleft())
+                self._next(slot, pending)
             busy = [slot.future for slot in self.slots if slot.future is not None]
             if not busy:
                 return
@@ -238,10 +287,9 @@ class LocalExecutor:
                     self._replace(slot)
                 except Exception as exc:
                     outcome = exc
-                finished.append((task, outcome))
+                finished.append(self._reported(slot, task, outcome))
             for slot in self.slots:  # refill before the parent indexes what came back
-                if slot.future is None and pending:
-                    self._submit(slot, pending.popleft())
+                self._next(slot, pending)
             yield from finished
 
     def close(self, kill: bool = False) -> None:
@@ -478,6 +526,7 @@ class RunResult:
     recovered: int = 0                # index line lost, taken from the frame's record.json
     duplicates: int = 0               # results of a job indexed already in this run (dropped)
     pending: int = 0                  # not rendered (interrupted)
+    outside_set: int = 0              # indexed frames not in this set (an earlier version of it, another set): kept
     seconds: float = 0.0
     interrupted: Interrupted | None = None
     failures: list[dict] = field(default_factory=list)
@@ -517,6 +566,22 @@ def report_index(data: Dataset, info: dict, log, shown: int = 10) -> None:
     if info["duplicates"]:
         log(f"note: {data.index_path}: {info['duplicates']} record(s) superseded by a later line of the same "
             f"frame dropped")
+
+
+def report_outside_set(records: dict[str, dict], jobs: list[Job], set_file: str | None, result: RunResult,
+                       log) -> None:
+    """Warn, once, how many indexed frames are not in this set: an edited set file gives its frames new job ids,
+    and the frames of the earlier version stay in the index and in ``frames/`` (counted in ``result``)."""
+    in_set = {job.job_id for job in jobs}
+    outside = [r for job_id, r in records.items() if job_id not in in_set]
+    result.outside_set = len(outside)
+    if outside:
+        first = outside[0]  # a record (Dataset.read_index): scene, view label and preset are there
+        log(f"warning: {len(outside)} indexed frame(s) are not in {set_file or 'this set'} (e.g. {first['job_id']} "
+            f"{first['scene']}/{first['view']['label']}/{first['preset']}): frames of an earlier version of the set "
+            f"file or of "
+            f"another set, kept in the index and frames/; `tofcore-batch verify` lists them, "
+            f"Dataset(root, current_set=True) reads only this set's frames")
 
 
 def plan(jobs: list[Job], data: Dataset, records: dict[str, dict], *, retry_failed: bool, verify: str,
@@ -586,8 +651,9 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
     ----------
     jobs : from :func:`batch.jobs.expand`, in set order.
     dataset : the dataset folder (created if needed).
-    workers : local worker processes, or LocalCluster workers with ``dask_local`` (default: 1; with a
-        GPU plan one per GPU, and never more).
+    workers : local worker processes, or LocalCluster workers with ``dask_local`` (default on the CPU:
+        :func:`batch.devices.cpu_frames_and_threads` of the usable CPUs and the frames to render, with
+        that many tracer threads each; with a GPU plan one per GPU, and never more).
     threads_per_worker : tracer worker processes per render (threads inside a Dask worker, which may not
         start processes; default: usable CPUs / workers, at least 1, so frames × tracer workers never
         exceed the CPUs; on a remote cluster: each worker machine's CPU count).
@@ -604,7 +670,7 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
     where = ("inline" if inline else "cluster" if executor is not None or scheduler is not None
              else "dask-local" if dask_local else "local")
     devices = plan_devices(device, executor=where, workers=workers)
-    workers = devices.workers
+    workers_given, workers = workers, devices.workers
     for note in devices.notes:
         log(note)
     result = RunResult(jobs=len(jobs))
@@ -613,11 +679,18 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
     with data.locked():
         records, info = data.read_index()
         report_index(data, info, log)
+        report_outside_set(records, jobs, set_file, result, log)
+        data.write_current_set(set_file, [job.job_id for job in jobs])
         removed = data.clean_partials()
         if removed:
             log(f"removed {removed} half-written frame folder(s) left by an interrupted run")
         todo = plan(jobs, data, records, retry_failed=retry_failed, verify=verify, result=result, log=log)
         data.rewrite_index(_ordered(records, jobs))
+        if (workers_given is None and threads_per_worker is None and not devices.gpus
+                and where in ("local", "dask-local") and todo):
+            workers, threads_per_worker = cpu_frames_and_threads(usable_cpus(), len(todo))
+            log(f"{workers} frame(s) at once × {threads_per_worker} tracer thread(s) each, for "
+                f"{usable_cpus()} CPUs (--workers and --threads-per-worker set them)")
         if threads_per_worker is None and scheduler is None:
             threads_per_worker = max(1, usable_cpus() // max(1, workers if not inline else 1))
         tasks = group_by_view(todo, dataset=str(data.root), render_threads=threads_per_worker,
@@ -722,6 +795,8 @@ def summary(result: RunResult, dataset: str | os.PathLike) -> str:
         lines.append("  retry them with --retry-failed once the cause is fixed")
     if result.interrupted is not None:
         lines.append(result.interrupted.message())
+    if result.outside_set:
+        lines.append(f"  the index also holds {result.outside_set} frame(s) not in this set (see the warning above)")
     lines += timing_lines(result.workers)
     lines.append(f"dataset: {os.fspath(dataset)} (index.jsonl, README.md, frames/)")
     return "\n".join(lines)

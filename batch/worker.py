@@ -6,7 +6,7 @@ gives a record (:mod:`batch.dataset`), ``status`` ``"ok"`` or ``"failed"``
 with the error text.
 
 Frame folders are written all or nothing, and published once: the frame is
-rendered into ``frames/.<job_id>.partial-XXXXXXXX/`` (``tofcore.write_frame``,
+rendered, then written into ``frames/.<job_id>.partial-XXXXXXXX/`` (``tofcore.write_frame``,
 every file atomic, ``frame.json`` last), then ``record.json`` is written there,
 then the folder is renamed to ``frames/<job_id>/`` by :func:`batch.dataset.publish`,
 which never replaces a published folder. A folder named after a job is
@@ -14,6 +14,16 @@ therefore complete and written by exactly one execution of the job; a second
 execution (a Dask retry, a duplicate task) deletes its own folder and reports
 the published record. A killed worker leaves only a ``.partial-`` folder, which
 the next run removes.
+
+Writing is off the render's path: :func:`render_frame` renders, :func:`write_frame`
+writes, and a worker hands each rendered frame to a writer thread (:class:`batch.writer.FrameWriter`,
+a bounded queue: rendering waits when the writer falls behind) and renders the next
+frame meanwhile. :func:`run_view` (Dask, in-process) returns when its view's frames
+are written; the local pool's workers run :func:`start_view`, which returns as soon
+as the view is rendered with the records written so far, and :func:`finish_writes`
+at the end, so that a view's frames are written while the next view renders. The
+parent indexes only records the worker reported, so a frame is indexed only once it
+is published.
 
 Devices (:mod:`batch.devices`): every render gets the task's ``device``
 (``"cpu"``, ``"gpu"``, ``"auto"``; the CPU with the reason when the run's plan
@@ -32,22 +42,29 @@ Timing: every record has ``timing``, where its worker's time went (epoch seconds
 ``worker_started`` (the parent started the process), ``task_started`` (the worker took the view),
 ``load_s`` (scene load or export, with the first import of tofcore; 0 for the view's later frames),
 ``render_started``, ``render_s`` (``tofcore.render``: in a process's first GPU frame this includes
-importing CuPy, the CUDA context and compiling or loading the kernels), ``write_s`` (error metrics
-and the frame's files, up to ``record.json``) and ``finished``. :func:`batch.timing.worker_timing`
-sums them up per worker at the end of a run.
+importing CuPy, the CUDA context and compiling or loading the kernels), ``handoff_wait_s`` (the
+render thread waited for room in the writer's queue), ``write_started`` and ``write_s`` (on the
+writer thread: error metrics and the frame's files, up to ``record.json``) and ``finished``.
+:func:`batch.timing.worker_timing` sums them up per worker at the end of a run.
 
 Fault injection for tests: ``TOF_BATCH_FAIL`` holds comma-separated
 :mod:`fnmatch` patterns; a job whose id or label (``scene/view/preset``)
 matches one raises before rendering. A pattern written ``gpu:PATTERN`` raises a
 one-line ``GpuUnavailable`` instead, in place of a GPU or auto render (what an
 out-of-memory GPU does), so the GPU failure paths run on machines without one
-(with ``TOF_BATCH_FAKE_GPU``, :mod:`batch.devices`).
+(with ``TOF_BATCH_FAKE_GPU``, :mod:`batch.devices`). ``write:PATTERN`` fails the
+frame's writing with a full disk's ``OSError`` after its files are written (before
+``record.json``), ``kill-write:PATTERN`` kills the worker there with SIGKILL (a crash
+in the middle of writing a frame).
 """
 
 from __future__ import annotations
 
+import errno
 import fnmatch
+import functools
 import gc
+import json
 import os
 import secrets
 import shutil
@@ -65,11 +82,19 @@ import numpy as np
 from . import dataset as ds
 from .devices import VISIBLE_ENV, gpu_error_line, is_gpu_error, render_device
 from .jobs import Job, ViewTask, file_sha256
+from .writer import FrameWriter
 
 FAIL_ENV = "TOF_BATCH_FAIL"
 
 # The last scene loaded in this process: views of the same demo/npz scene reuse it (and its BVH).
 _SCENE_CACHE: dict = {}
+# Sensors built in this process, by their JSON description (:func:`_sensor`); the oldest goes first.
+_SENSOR_CACHE: dict = {}
+_SENSOR_CACHE_SIZE = 8
+# This process's frame writer for :func:`start_view` (the local pool), made at the first view.
+_WRITER: FrameWriter | None = None
+# How long a stopped worker waits for its writer to finish the frames it holds before it exits.
+_STOP_WRITER_WAIT_S = 5.0
 # Set by SIGTERM in a pool worker that is rendering: the render is cancelled between ray chunks, the
 # half-written folder removed, and the process exits (nothing is recorded). An idle worker exits at once.
 _STOP = threading.Event()
@@ -90,7 +115,11 @@ def _exit_stopped() -> None:
 
     ``os._exit`` skips the pool's clean-up: its semaphores would stay registered, and Python's
     resource tracker would print a "leaked semaphore objects" warning on the run's stderr at the end.
+    The frames handed to this process's writer are written first (at most a few seconds): they are
+    rendered, and published they are indexed by the parent (or read back by the next run).
     """
+    if _WRITER is not None and threading.current_thread() is not _WRITER.thread:
+        _WRITER.drain(timeout=_STOP_WRITER_WAIT_S)
     workers = sys.modules.get("tofcore.tracer.workers")
     if workers is not None:
         def stop() -> None:
@@ -236,18 +265,31 @@ def _check_unchanged(source: dict) -> None:
 
 # --------------------------------------------------------------------------- one job
 
-def _maybe_fail(job: Job, gpu: bool = False) -> None:
-    """Raise for a job matched by ``TOF_BATCH_FAIL``; ``gpu:``-patterns (checked with ``gpu=True``,
-    inside a GPU or auto render) raise a one-line ``GpuUnavailable``, as a failing GPU does."""
+def _maybe_fail(job: Job, gpu: bool = False, write: bool = False) -> None:
+    """Raise for a job matched by ``TOF_BATCH_FAIL``.
+
+    A plain pattern raises before the render. ``gpu:``-patterns (checked with ``gpu=True``, inside a
+    GPU or auto render) raise a one-line ``GpuUnavailable``, as a failing GPU does. The write
+    patterns are checked with ``write=True``, after the frame's files are written and before its
+    ``record.json`` and the publishing rename: ``write:`` raises a full disk's ``OSError``,
+    ``kill-write:`` kills the worker process with SIGKILL (a crash in the middle of writing).
+    """
     from tofcore.backend import GpuUnavailable
 
     patterns = [p.strip() for p in os.environ.get(FAIL_ENV, "").split(",") if p.strip()]
     for pattern in patterns:
-        is_gpu, glob = pattern.startswith("gpu:"), pattern.removeprefix("gpu:")
-        if is_gpu != gpu or not (fnmatch.fnmatchcase(job.job_id, glob) or fnmatch.fnmatchcase(job.label, glob)):
+        kind, _, glob = pattern.partition(":")
+        if kind not in ("gpu", "write", "kill-write"):
+            kind, glob = "", pattern
+        if (kind == "gpu") != gpu or (kind in ("write", "kill-write")) != write \
+                or not (fnmatch.fnmatchcase(job.job_id, glob) or fnmatch.fnmatchcase(job.label, glob)):
             continue
-        if gpu:
+        if kind == "gpu":
             raise GpuUnavailable(f"GPU: fault injected by {FAIL_ENV}={pattern!r}")
+        if kind == "write":
+            raise OSError(errno.ENOSPC, f"No space left on device (fault injected by {FAIL_ENV}={pattern!r})")
+        if kind == "kill-write":
+            os.kill(os.getpid(), signal.SIGKILL)
         raise RuntimeError(f"fault injected by {FAIL_ENV}={pattern!r}")
 
 
@@ -292,6 +334,23 @@ def _base_record(job: Job, task: ViewTask) -> dict:
     }
 
 
+def _sensor(job: Job):
+    """The job's ``tofcore.Sensor``, built once per process and preset description.
+
+    Building a sensor checks its camera's distortion over the whole image (the Kinect v2's undistortion
+    table: about 0.4 s on a 2-core machine); the jobs of a set share a few sensor descriptions.
+    """
+    import tofcore
+
+    key = json.dumps(job.sensor, sort_keys=True)
+    sensor = _SENSOR_CACHE.get(key)
+    if sensor is None:
+        if len(_SENSOR_CACHE) >= _SENSOR_CACHE_SIZE:
+            _SENSOR_CACHE.pop(next(iter(_SENSOR_CACHE)))
+        sensor = _SENSOR_CACHE[key] = tofcore.Sensor.from_dict(job.sensor, where=f"preset {job.preset!r}")
+    return sensor
+
+
 def _render(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient):
     """``tofcore.render`` on the task's device; for ``auto``, a GPU failure renders again on the CPU.
 
@@ -301,7 +360,7 @@ def _render(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient):
     import tofcore
     from tofcore.backend import cpu_device, gpu_errors
 
-    sensor = tofcore.Sensor.from_dict(job.sensor, where=f"preset {job.preset!r}")
+    sensor = _sensor(job)
     q = job.quality
     settings = dict(spp=q["spp"], max_depth=q["max_depth"], seed=job.seed, time_budget_s=q["time_budget_s"],
                     target_error_m=q["target_error_m"], ambient=ambient, workers=task.render_threads,
@@ -320,37 +379,61 @@ def _render(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient):
     return tofcore.render(scene, sensor, pose, device=cpu_device("auto", reason), **settings)
 
 
-def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warnings: list[str],
-               timing: dict | None = None) -> dict:
-    """Render and write one job; return its record (never raises for the job's own failure).
+def render_frame(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warnings: list[str],
+                 timing: dict | None = None) -> tuple[object | None, dict]:
+    """Render one job: ``(frame, record so far)``, or ``(None, failed record)``; the render phase only.
 
-    ``timing``: the record's ``timing`` so far (``worker_started``, ``task_started``, ``load_s``); the
-    render and write phases are added here.
+    ``timing``: the record's ``timing`` so far (``worker_started``, ``task_started``, ``load_s``);
+    ``render_started`` and ``render_s`` are added here. Stopped by the parent (SIGTERM), the process
+    exits here; a KeyboardInterrupt or SystemExit is raised on, anything else gives the failed record.
     """
-    import tofcore
-
     record = _base_record(job, task)
     timing = dict(timing or {"worker_started": _WORKER_STARTED, "task_started": time.time(), "load_s": 0.0})
     record["timing"] = timing
-    frames_dir = Path(task.dataset) / ds.FRAMES
-    partial = frames_dir / f".{job.job_id}.partial-{secrets.token_hex(4)}"
     started = time.perf_counter()
     try:
         _maybe_fail(job)
         timing["render_started"] = time.time()
         frame = _render(job, task, scene, pose, ambient)
-        rendered = time.perf_counter()
-        timing["render_s"] = rendered - started
-        frame.metadata["batch"] = {"job_id": job.job_id, "scene": job.scene, "view": job.view,
-                                   "preset": job.preset, "seed": job.seed, "set_seed": job.set_seed,
-                                   "source": job.source, "export_warnings": warnings}
+        timing["render_s"] = time.perf_counter() - started
+    except BaseException as exc:
+        if _STOP.is_set():  # stopped by the parent: not the frame's fault, nothing recorded
+            _exit_stopped()
+        if not isinstance(exc, Exception):  # KeyboardInterrupt, SystemExit: stop, do not record
+            raise
+        return None, failed_record(job, task, exc, time.perf_counter() - started, record)
+    frame.metadata["batch"] = {"job_id": job.job_id, "scene": job.scene, "view": job.view,
+                               "preset": job.preset, "seed": job.seed, "set_seed": job.set_seed,
+                               "source": job.source, "export_warnings": warnings}
+    return frame, record
+
+
+def write_frame(job: Job, task: ViewTask, frame, record: dict, warnings: list[str], handoff_wait_s: float = 0.0) -> dict:
+    """Write a rendered frame: metrics, files, ``record.json``, the publishing rename; the record to index.
+
+    Runs on the worker's writer thread (:mod:`batch.writer`) or inline. Raises when the frame cannot
+    be written (its staging folder is removed first; :func:`failed_record` makes the failure's record).
+    Adds to ``record["timing"]``: ``handoff_wait_s`` (the render thread waited this long for room in
+    the writer's queue), ``write_started`` (epoch s), ``write_s`` (metrics and files up to
+    ``record.json``) and ``finished``.
+    """
+    import tofcore
+
+    timing = record["timing"]
+    timing["handoff_wait_s"] = handoff_wait_s
+    timing["write_started"] = time.time()
+    begun = time.perf_counter()
+    frames_dir = Path(task.dataset) / ds.FRAMES
+    partial = frames_dir / f".{job.job_id}.partial-{secrets.token_hex(4)}"
+    try:
         partial.mkdir(parents=True)
         formats = (*job.formats, "transient") if "transient_bin_m" in job.output else job.formats
         written = tofcore.write_frame(frame, partial, formats=formats, exr_half=job.output.get("exr_half", False),
                                       exr_channels=job.output.get("exr_channels"))
+        _maybe_fail(job, write=True)
         stats = frame.stats
         convergence = stats.get("convergence", [])
-        record.update({
+        record = {**record, **{
             "status": "ok", "error": None, "device": stats.get("device", record["device"]),
             "dir": f"{ds.FRAMES}/{job.job_id}",
             "files": [ds.file_entry(kind, path) for kind, path in written.items()],
@@ -364,12 +447,13 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
             **frame_metrics(frame),
             "objects": frame.metadata.get("objects", []),
             "export_warnings": warnings,
-            "seconds": time.perf_counter() - started,
+            # from the start of the render to record.json, waits for the writer included
+            "seconds": time.time() - timing["render_started"],
             "finished": datetime.now(timezone.utc).isoformat(timespec="seconds"),
-        })
+        }}
         # The write phase ends with the publishing rename; record.json holds the time up to its own
         # writing (what is measured after it is a few system calls).
-        timing["write_s"] = time.perf_counter() - rendered
+        timing["write_s"] = time.perf_counter() - begun
         timing["finished"] = time.time()
         record = ds.write_record(partial, record)
         if ds.publish(partial, frames_dir / job.job_id):
@@ -382,13 +466,37 @@ def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warni
             raise JobError(f"{ds.FRAMES}/{job.job_id} is already published but its {ds.RECORD} is unreadable; "
                            f"it was left as it is (the next run verifies it)")
         return published
-    except BaseException as exc:
+    except BaseException:
         shutil.rmtree(partial, ignore_errors=True)
-        if _STOP.is_set():  # stopped by the parent: not the frame's fault, nothing recorded
+        timing.setdefault("write_s", time.perf_counter() - begun)
+        timing.setdefault("finished", time.time())
+        raise
+
+
+def _write_failed(job: Job, task: ViewTask, record: dict, exc: BaseException) -> dict:
+    """The record of a frame whose writing raised ``exc`` (one line for a disk error: :func:`failed_record`)."""
+    seconds = time.time() - record["timing"].get("render_started", time.time())
+    return failed_record(job, task, exc, seconds, record)
+
+
+def render_job(job: Job, task: ViewTask, scene, pose: np.ndarray, ambient, warnings: list[str],
+               timing: dict | None = None) -> dict:
+    """Render and write one job in this thread; return its record (never raises for the job's own failure).
+
+    ``timing``: the record's ``timing`` so far (``worker_started``, ``task_started``, ``load_s``); the
+    render and write phases are added here.
+    """
+    frame, record = render_frame(job, task, scene, pose, ambient, warnings, timing)
+    if frame is None:
+        return record
+    try:
+        return write_frame(job, task, frame, record, warnings)
+    except BaseException as exc:
+        if _STOP.is_set():
             _exit_stopped()
-        if not isinstance(exc, Exception):  # KeyboardInterrupt, SystemExit: stop, do not record
+        if not isinstance(exc, Exception):
             raise
-        return failed_record(job, task, exc, time.perf_counter() - started, record)
+        return _write_failed(job, task, record, exc)
 
 
 def failed_record(job: Job, task: ViewTask, exc: BaseException, seconds: float = 0.0,
@@ -420,25 +528,79 @@ def failed_record(job: Job, task: ViewTask, exc: BaseException, seconds: float =
 
 # --------------------------------------------------------------------------- one view
 
-def run_view(task: ViewTask) -> list[dict]:
-    """Load or export the view's scene once, then render each of its jobs; one record per job."""
+def _render_view(task: ViewTask, writer: FrameWriter) -> list[dict]:
+    """Load or export the view's scene once, render each job and hand the frame to ``writer``.
+
+    Returns the records of the jobs that failed before they reached the writer (scene load, render);
+    the writer gives the others' records.
+    """
     task_started = time.time()
     started = time.perf_counter()
-    _BUSY.set()
     try:
-        try:
-            scene, pose, ambient, warnings = _load_scene(task)
-        except Exception as exc:
-            return [failed_record(job, task, exc, time.perf_counter() - started) for job in task.jobs]
-        load_s = time.perf_counter() - started
-        records = []
-        for job in task.jobs:
-            timing = {"worker_started": _WORKER_STARTED, "task_started": task_started, "load_s": load_s}
-            records.append(render_job(job, task, scene, pose, ambient, warnings, timing))
-            load_s = 0.0
-            if _STOP.is_set():  # finished frames are published (their record.json is read back next run)
-                _exit_stopped()
+        scene, pose, ambient, warnings = _load_scene(task)
+    except Exception as exc:
+        return [failed_record(job, task, exc, time.perf_counter() - started) for job in task.jobs]
+    load_s = time.perf_counter() - started
+    failed = []
+    for job in task.jobs:
+        timing = {"worker_started": _WORKER_STARTED, "task_started": task_started, "load_s": load_s}
+        load_s = 0.0
+        frame, record = render_frame(job, task, scene, pose, ambient, warnings, timing)
+        if frame is None:
+            failed.append(record)
+        else:
+            writer.submit(functools.partial(write_frame, job, task, frame, record, warnings),
+                          functools.partial(_write_failed, job, task, record))
+            del frame  # the writer holds the only reference: its arrays go when it is written
+        if _STOP.is_set():  # the frames handed over are written first (their record.json is read back next run)
+            writer.drain(timeout=_STOP_WRITER_WAIT_S)
+            _exit_stopped()
+    return failed
+
+
+def run_view(task: ViewTask) -> list[dict]:
+    """Render a view's jobs and write them; one record per job, every frame written when it returns.
+
+    The frames are written on a writer thread while the next job of the view renders (a view has one
+    job per preset); the call waits for the last one. Executors that can collect records later (the
+    local pool) use :func:`start_view` and :func:`finish_writes`, which overlap across views too.
+    """
+    _BUSY.set()
+    writer = FrameWriter(name="frame-writer-view")
+    try:
+        failed = _render_view(task, writer)
+        records = failed + writer.drain()
         sys.stdout.flush()
+        if _STOP.is_set():  # stopped while the last frames were written: they are published, the parent
+            _exit_stopped()  # or the next run reads them back
         return records
     finally:
+        writer.close()
         _BUSY.clear()
+
+
+def start_view(task: ViewTask) -> list[dict]:
+    """Render a view's jobs, handing each frame to this process's writer; return the records finished so far.
+
+    The records are those of this view's jobs that failed before writing and of every frame (of this
+    view or earlier ones) whose writing has finished; frames still being written are reported by a
+    later call or by :func:`finish_writes`. The local pool's workers run this, so that a frame is
+    written while the next view renders.
+    """
+    global _WRITER
+    _BUSY.set()
+    try:
+        if _WRITER is None:
+            _WRITER = FrameWriter()
+        failed = _render_view(task, _WRITER)
+        sys.stdout.flush()
+        if _STOP.is_set():  # stopped after the view's last render: its frames are written first
+            _exit_stopped()
+        return failed + _WRITER.take()
+    finally:
+        _BUSY.clear()
+
+
+def finish_writes() -> list[dict]:
+    """Wait for this process's writer to write every frame handed to it; their records not reported yet."""
+    return [] if _WRITER is None else _WRITER.drain()

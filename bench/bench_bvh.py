@@ -12,7 +12,10 @@ the requested number of triangles.  Three ray sets, 512 x 424 rays each:
 
 Run ``python bench/bench_bvh.py`` (``--sizes 10000 500000 1000000``,
 ``--repeat 5``, ``--workers 1 2``, ``--leaf-size`` = the `BVH.build`
-default).  Times are the best of ``--repeat`` interleaved runs (the host's
+default).  ``--build-only`` times `BVH.build` alone, the compiled levels
+(:mod:`tofcore.scene.bvh_build`, numba's threads: ``NUMBA_NUM_THREADS``)
+against the NumPy levels, interleaved, wall and CPU seconds, and checks
+that both give the same tree.  Times are the best of ``--repeat`` interleaved runs (the host's
 load varies); box tests count every
 child box of every visited node, triangle tests every (padded) leaf slot.
 """
@@ -121,6 +124,52 @@ def timed(fn):
     return time.perf_counter() - t0, out
 
 
+def _boxes(verts, tris):
+    """(3, M) float32 triangle box minima and maxima."""
+    corners = verts[tris.astype(np.int64)]
+    return np.ascontiguousarray(corners.min(axis=1).T), np.ascontiguousarray(corners.max(axis=1).T)
+
+
+def build_only(sizes, repeat):
+    """`BVH.build` with the compiled levels and with the NumPy levels (TOFCORE_TRACER=numpy), interleaved."""
+    import os
+
+    from tofcore.scene import bvh as bvh_module
+
+    print("| triangles | levels | wall s (best of %d) | CPU s | of which the levels, wall s |" % repeat)
+    print("|---|---|---|---|---|")
+    for size in sizes:
+        verts, tris = room_scene(size)
+        warm = room_scene(2 * bvh_module.COMPILED_BUILD_MIN)  # numba's compile (or cache load) is not timed
+        bvh_module._build_binary(*_boxes(*warm), 2, bvh_module.N_BINS, compiled=True)
+        results = {}
+        for _ in range(repeat):
+            for kind in ("compiled", "numpy"):
+                os.environ["TOFCORE_TRACER"] = "auto" if kind == "compiled" else "numpy"
+                levels_s = []
+                levels = bvh_module._levels
+
+                def timed_levels(*a, **k):
+                    t = time.perf_counter()
+                    out = levels(*a, **k)
+                    levels_s.append(time.perf_counter() - t)
+                    return out
+
+                bvh_module._levels = timed_levels
+                c0, t0 = time.process_time(), time.perf_counter()
+                tree = BVH.build(verts, tris)
+                wall, cpu = time.perf_counter() - t0, time.process_time() - c0
+                bvh_module._levels = levels
+                best = results.get(kind)
+                if best is None or wall < best[0]:
+                    results[kind] = (wall, cpu, levels_s[-1], tree)
+        same = all(np.array_equal(getattr(results["compiled"][3], a), getattr(results["numpy"][3], a))
+                   for a in ("_nodes", "_leaves"))
+        for kind, (wall, cpu, lv, _) in results.items():
+            print(f"| {len(tris):,} | {kind} | {wall:.3f} | {cpu:.3f} | {lv:.3f} |", flush=True)
+        print(f"| | same tree: {same} | {results['numpy'][0] / results['compiled'][0]:.1f}× | | |", flush=True)
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--sizes", type=int, nargs="+", default=[10_000, 500_000, 1_000_000],
@@ -128,7 +177,10 @@ def main(argv=None):
     ap.add_argument("--repeat", type=int, default=5, help="runs per timing, best kept (default: 5)")
     ap.add_argument("--workers", type=int, nargs="+", default=[1, 2], help="thread counts (default: 1 2)")
     ap.add_argument("--leaf-size", type=int, default=None, help="BVH leaf size (default: BVH.build's)")
+    ap.add_argument("--build-only", action="store_true", help="time the build alone: compiled against NumPy levels")
     args = ap.parse_args(argv)
+    if args.build_only:
+        return build_only(args.sizes, args.repeat)
     leaf = {} if args.leaf_size is None else {"leaf_size": args.leaf_size}
     rng = np.random.default_rng(7)
     print(f"numpy {np.__version__}; {WIDTH_PX}x{HEIGHT_PX} = {WIDTH_PX * HEIGHT_PX} rays per set")

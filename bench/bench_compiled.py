@@ -118,7 +118,7 @@ def kernel_costs(n: int = 200_000) -> dict:
     @numba.njit
     def bsdf(n, sample):
         total = 0.0
-        params = (0.5, 0.5, 0.0, 1.52, 0.0)
+        params = k.surface_params(0.5, 0.5, 0.0, 1.52, 0.0, 0.0, 0.0)
         for i in range(n):
             c = 0.1 + 0.8 * (i % 1000) / 1000.0
             wo = (np.sqrt(1.0 - c * c), 0.0, c)

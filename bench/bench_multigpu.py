@@ -165,14 +165,15 @@ def _seconds(value: float | None) -> str:
 def table(results: list[dict]) -> list[str]:
     by_key = {(r["cache"], r["round"], r["gpus"]): r for r in results}
     lines = ["| cache | round | GPUs | frames | wall s | frames/min | scaling | frames per worker | parent s "
-             "(before workers / after) | per worker: start-up / first render / render median / write total / "
-             "idle s |",
+             "(before workers / after) | per worker: start-up / first render / render median / render total / "
+             "write total (overlapped with rendering) / render waited for the writer / idle s |",
              "|---|---|---|---|---|---|---|---|---|---|"]
     for r in results:
         one = by_key.get((r["cache"], r["round"], 1))
         scaling = f"{r['frames_per_min'] / one['frames_per_min']:.2f}×" if one and r["gpus"] > 1 else "–"
         phases = "; ".join(f"{w['startup_s']:.1f} / {w['first_s']:.1f} / {_seconds(w['render_median_s'])} / "
-                           f"{w['write_s']:.1f} / {w['idle_s']:.1f}" for w in r["workers"])
+                           f"{w['render_s']:.1f} / {w['write_s']:.1f} ({w.get('overlap_s', 0.0):.1f}) / "
+                           f"{w.get('wait_s', 0.0):.1f} / {w['idle_s']:.1f}" for w in r["workers"])
         lines.append(f"| {r['cache']} | {r['round']} | {r['gpus']} | {r['frames']} | {r['wall_s']:.1f} | "
                      f"{r['frames_per_min']:.1f} | {scaling} | {r['frames_per_worker']} | {r['parent_s']:.1f} / "
                      f"{r['tail_s']:.1f} | {phases} |")

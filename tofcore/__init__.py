@@ -25,14 +25,20 @@ import sys as _sys
 
 if _sys.argv[:1] == ["-m"] and "tofcore" in _sys.orig_argv[1:] \
         and _sys.orig_argv[_sys.orig_argv.index("tofcore") - 1] == "-m":  # `python -m tofcore`: Ctrl-C is one line
-    from ._interrupt import hold_until_the_command_starts
+    try:
+        from ._interrupt import hold_until_the_command_starts
 
-    hold_until_the_command_starts()
+        hold_until_the_command_starts()
+    except KeyboardInterrupt:  # Ctrl-C while that small module loads: no handler of ours yet
+        import os as _os
+
+        _os.write(2, b"\ninterrupted (SIGINT): nothing was written\n")
+        _os._exit(130)
 
 from . import limits
 from .constants import SPEED_OF_LIGHT_M_S
 from .output import exr
-from .errors import Cancelled, ConfigError, LimitError, SceneError, TofError
+from .errors import Cancelled, ConfigError, ExrError, LimitError, SceneError, TofError
 from .output.frame import Frame, Reason
 from .output.writers import read_exr, write_frame
 from .render import render, render_progressive, trace, trace_progressive
@@ -50,7 +56,8 @@ from .sensor.presets import list_presets, load_preset
 from .tracer.transport import FirstHit, Transport
 
 __all__ = [
-    "Ambient", "Camera", "Cancelled", "ConfigError", "FirstHit", "Frame", "LED", "LimitError", "Material", "Modulation",
+    "Ambient", "Camera", "Cancelled", "ConfigError", "ExrError", "FirstHit", "Frame", "LED", "LimitError", "Material",
+    "Modulation",
     "Reason", "SPEED_OF_LIGHT_M_S", "Scene", "SceneError", "Sensor", "Texture", "TofError", "Transport", "demo_ambient", "demo_scene",
     "from_blender_matrix_world", "list_presets", "load_mesh", "load_preset", "look_at", "read_exr", "render",
     "render_progressive",

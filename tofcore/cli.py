@@ -17,6 +17,7 @@ import math
 import os
 import signal
 import sys
+import warnings
 from collections.abc import Callable
 from pathlib import Path
 from typing import Any
@@ -24,7 +25,7 @@ from typing import Any
 import numpy as np
 
 from . import limits
-from .console import say, use_safe_output
+from .console import note_line, say, use_safe_output
 from .errors import ConfigError, TofError
 from .progress import PassProgress
 from .units import BARE_LENGTH_UNIT, implausible_error_warning, parse_length_m
@@ -116,18 +117,24 @@ class OneLineParser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message} (see {self.prog} --help)\n")
 
 
-def formats_type(text: str) -> tuple[str, ...]:
-    """``"exr,png"`` → ("exr", "png"): a non-empty comma list of known output formats."""
-    FORMATS = ("exr", "png", "ply", "json")   # transient.npy comes with --transient-bin
+def formats_type_of(known: tuple[str, ...]) -> Callable[[str], tuple[str, ...]]:
+    """An argparse type: ``"exr,png"`` → ("exr", "png"), a non-empty comma list of the formats ``known``."""
+    def formats(text: str) -> tuple[str, ...]:
+        names = [f.strip() for f in text.split(",")]
+        unknown = [f for f in names if f and f not in known]
+        chosen = tuple(dict.fromkeys(f for f in names if f))
+        if unknown or not chosen:
+            why = f" (unknown: {', '.join(map(repr, unknown))})" if unknown else " (none given)"
+            raise argparse.ArgumentTypeError(f"must be a comma list of one or more of {', '.join(known)}, "
+                                             f"got {text!r}{why}")
+        return chosen
 
-    names = [f.strip() for f in text.split(",")]
-    unknown = [f for f in names if f and f not in FORMATS]
-    chosen = tuple(dict.fromkeys(f for f in names if f))
-    if unknown or not chosen:
-        why = f" (unknown: {', '.join(map(repr, unknown))})" if unknown else " (none given)"
-        raise argparse.ArgumentTypeError(f"must be a comma list of one or more of {', '.join(FORMATS)}, "
-                                         f"got {text!r}{why}")
-    return chosen
+    return formats
+
+
+#: ``tofcore render --formats``: every format of :func:`tofcore.write_frame` (``transient``, the transient.npy
+#: histogram, needs ``--transient-bin``: :func:`_checked_render_settings`).
+formats_type = formats_type_of(("exr", "png", "ply", "json", "transient"))
 
 
 def check_output_folder(path: Path, flag: str = "--out") -> None:
@@ -204,19 +211,22 @@ def _blend_scene(path: Path):
     return scene, pose, ambient
 
 
-def _sensor(args: argparse.Namespace):
-    """The preset, resized by ``--resolution-scale`` or ``--width``/``--height``."""
+def _preset(args: argparse.Namespace):
+    """The preset as loaded (``--no-noise`` applied), not resized yet."""
     from .sensor.presets import load_preset
 
     sensor = load_preset(args.preset)
-    if args.no_noise:
-        sensor = sensor.replace(**{"noise.model": "none"})
+    return sensor.replace(**{"noise.model": "none"}) if args.no_noise else sensor
+
+
+def _size(args: argparse.Namespace, preset) -> tuple[int, int]:
+    """The image size ``--resolution-scale`` or ``--width``/``--height`` ask for (:meth:`Sensor.resized` checks it)."""
+    cam = preset.camera
     if args.width is not None or args.height is not None:
-        cam = sensor.camera
         width = args.width if args.width is not None else max(1, round(cam.width * args.height / cam.height))
         height = args.height if args.height is not None else max(1, round(cam.height * args.width / cam.width))
-        return sensor.resized(width, height)
-    return sensor.scaled(args.resolution_scale)
+        return width, height
+    return preset.scaled_size(args.resolution_scale)
 
 
 def _convergence_table(log: list[dict]) -> str:
@@ -242,6 +252,9 @@ def _convergence_table(log: list[dict]) -> str:
 def _checked_render_settings(args: argparse.Namespace):
     """The render's formats, sensor and transient range, every flag checked before the scene is loaded."""
     formats = args.formats
+    if "transient" in formats and args.transient_bin is None:
+        raise ConfigError("--formats transient: the histogram needs the width of its bins: add --transient-bin "
+                          "LENGTH (e.g. 5cm)")
     if args.transient_bin is not None and "transient" not in formats:
         formats = (*formats, "transient")
     if args.resolution is not None:
@@ -256,18 +269,22 @@ def _checked_render_settings(args: argparse.Namespace):
         warning = implausible_error_warning(args.target_error, "--target-error")
         if warning:
             print(warning, file=sys.stderr)
-    sensor = _sensor(args)
+    preset = _preset(args)
     transient_max = None
     if args.transient_bin is not None:
-        transient_max = args.transient_max if args.transient_max is not None else 4 * sensor.range_m[1]
+        transient_max = args.transient_max if args.transient_max is not None else 4 * preset.range_m[1]
         if transient_max <= args.transient_bin:
             raise ConfigError(f"--transient-max must be longer than --transient-bin, got {transient_max:g} m "
                               f"and {args.transient_bin:g} m")
     from .render import transient_bins
 
-    limits.check_render(sensor, max_depth=args.max_depth, spp=args.spp,
-                        where=f"--preset {args.preset} with --max-depth {args.max_depth}",
-                        transient_bins=transient_bins(args.transient_bin, transient_max))
+    # The budget at the size asked, before the camera of that size is made (its distortion check builds
+    # per-pixel tables: 3.5 GB and about a minute at 4096 x 4096).
+    width, height = _size(args, preset)
+    limits.check_render_size(width, height, preset.modulation.raw_count, max_depth=args.max_depth, spp=args.spp,
+                             where=f"--preset {args.preset} with --max-depth {args.max_depth}",
+                             transient_bins=transient_bins(args.transient_bin, transient_max))
+    sensor = preset.resized(width, height)
     if args.exr_channels is not None:
         from .output.writers import exr_channel_names
 
@@ -302,7 +319,9 @@ def _say_setup(args: argparse.Namespace, scene, sensor, ambient, device) -> None
         from . import compiled
 
         if compiled.cpu_kernels_cached() is False:  # the first pass would otherwise seem to hang for ~40 s
-            print("compiled tracer: compiling its kernels once for this install (about 40 s on 2 cores; later "
+            print("compiled tracer: compiling its kernels for this process only (about 40 s on 2 cores; their "
+                  "cache cannot be used, see the note)" if compiled.cache_problem() else
+                  "compiled tracer: compiling its kernels once for this install (about 40 s on 2 cores; later "
                   "renders load them in about a second; `tofcore warmup` compiles them ahead)", file=sys.stderr)
 
 
@@ -416,7 +435,12 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     start = time.perf_counter()
     frame = render(demo_scene("corner"), sensor, spp=1, device=args.device)
     transport, device = frame.stats["transport"], frame.stats["device"]["name"]
-    where = f"; kernels cached in {compiled.cache_location()}" if transport["tracer"] == "compiled" else ""
+    where = ""
+    if transport["tracer"] == "compiled" and device == "cpu":
+        where = (f"; kernels cached in {compiled.cache_location()}" if compiled.cpu_kernels_cached() else
+                 "; kernels not cached: every process compiles them again (see the note)")
+    elif transport["tracer"] == "compiled":
+        where = f"; kernels cached in {compiled.cache_location()}"
     why = f" ({transport['tracer_reason']})" if transport.get("tracer_reason") else ""
     say(f"{transport['tracer']} tracer on the {device.upper()}{why}: ready in {time.perf_counter() - start:.1f} s"
         f"{where}")
@@ -474,7 +498,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="sensor position, world metres (with --target; default: the scene's suggested view)")
     r.add_argument("--target", type=vector3_type, default=None, metavar="X,Y,Z", help="point looked at (with --eye)")
     r.add_argument("--formats", type=formats_type, default="exr,png,ply,json",
-                   help="comma list of exr (frame.exr + depth.exr), png, ply, json (+ camera YAML files), transient")
+                   help="comma list of exr (frame.exr + depth.exr), png, ply, json (+ camera YAML files), transient "
+                        "(transient.npy; needs --transient-bin, which adds it)")
     r.add_argument("--exr-half", action="store_true",
                    help="EXR channels as 16-bit half floats (about 4 mm steps at 4 m)")
     r.add_argument("--exr-channels", type=lambda text: tuple(c.strip() for c in text.split(",") if c.strip()),
@@ -520,6 +545,7 @@ def main(argv: list[str] | None = None) -> int:
     use_safe_output()
     previous = {signal.SIGINT: signal.signal(signal.SIGINT, signal.default_int_handler),
                 signal.SIGTERM: signal.signal(signal.SIGTERM, lambda *_: sys.exit(143))}
+    format_before, warnings.formatwarning = warnings.formatwarning, note_line  # a warning is one line
     try:
         args = build_parser().parse_args(argv)
         return args.func(args)
@@ -531,6 +557,7 @@ def main(argv: list[str] | None = None) -> int:
         return 130
     finally:
         if argv is not None:
+            warnings.formatwarning = format_before
             for sig, handler in previous.items():
                 if handler is not None:  # None: a handler not set from Python, which cannot be put back
                     signal.signal(sig, handler)

@@ -92,3 +92,13 @@ def say(text: str = "") -> bool:
         print(f"note: stdout: {exc.strerror or exc}; the rest of this command's summary was not shown "
               f"(its work is not affected)", file=sys.stderr)
         return False
+
+
+def note_line(message, category, filename, lineno, line=None) -> str:
+    """``warnings.formatwarning`` for the commands: one line, ``note: …`` for tofcore's notes about the compiled
+    tracer's environment (:class:`tofcore.compiled._target.CompiledWarning`), else ``warning: Category: …``;
+    never the source line a warning came from."""
+    text = " ".join(str(message).split())
+    if category.__name__ == "CompiledWarning":
+        return f"note: {text}\n"
+    return f"warning: {category.__name__}: {text}\n"

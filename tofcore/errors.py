@@ -27,6 +27,12 @@ class LimitError(ConfigError):
     """
 
 
+class ExrError(TofError, ValueError):
+    """A file that tofcore's EXR codec cannot read: not an EXR file, damaged, truncated, of a kind it does
+    not cover, or declaring more than it holds (:mod:`tofcore.output.exr`). The message is one line:
+    ``"{path}: {defect}"``."""
+
+
 class Cancelled(TofError):
     """A render was cancelled by its caller (``cancel`` callback); nothing was written."""
 

@@ -20,6 +20,9 @@ limit                      environment variable         default              wha
 :data:`MAX_SCENE_BYTES`    ``TOFCORE_MAX_SCENE_BYTES``  4 GiB                uncompressed size of the arrays of a scene
                                                                              file (.npz), read from the zip directory
                                                                              and the .npy headers
+:data:`MAX_EXR_BYTES`      ``TOFCORE_MAX_EXR_BYTES``    4 GiB                size of an EXR file read, and the pixel
+                                                                             bytes its header declares (checked
+                                                                             before anything is allocated or inflated)
 :data:`MAX_SET_FRAMES`     ``TOFCORE_MAX_SET_FRAMES``   100,000              frames of one scene set (poses × frames ×
                                                                              cameras × presets), and any one pose count
                                                                              or frame range
@@ -135,6 +138,10 @@ MAX_RENDER_BYTES = Limit(
 MAX_SCENE_BYTES = Limit(
     "max_scene_bytes", "TOFCORE_MAX_SCENE_BYTES", 4 << 30, "bytes",
     "a small .npz can decompress to gigabytes (a zip bomb); 4 GiB is ~100 M triangles")
+MAX_EXR_BYTES = Limit(
+    "max_exr_bytes", "TOFCORE_MAX_EXR_BYTES", 4 << 30, "bytes",
+    "a 200-byte header can declare 320 GiB of pixels; tofcore's largest frame.exr (4096 x 4096, every "
+    "channel) is about 3 GiB")
 MAX_SET_FRAMES = Limit(
     "max_set_frames", "TOFCORE_MAX_SET_FRAMES", 100_000, "frames",
     "jobs are expanded in memory (a few kB each) before rendering starts")
@@ -167,15 +174,24 @@ def check_render(sensor, *, max_depth: int, where: str, spp: int | None = None, 
 
     ``where`` prefixes the message (e.g. ``"render"``, a set file's key path).
     """
+    cam = sensor.camera
+    check_render_size(cam.width, cam.height, sensor.modulation.raw_count, max_depth=max_depth, where=where, spp=spp,
+                      transient_bins=transient_bins)
+
+
+def check_render_size(width: int, height: int, raw_images: int, *, max_depth: int, where: str,
+                      spp: int | None = None, transient_bins: int = 0) -> None:
+    """:func:`check_render` for a sensor of ``width`` × ``height`` pixels and ``raw_images`` raw images that is
+    not made yet: a caller that resizes a preset checks the budget first, before the camera of that size builds
+    its per-pixel tables (its distortion check: ~200 bytes and ~4 µs a pixel)."""
     if spp is not None:
         MAX_SPP.check(int(spp), where, "spp")
     MAX_DEPTH.check(int(max_depth), where, "max_depth")
-    cam = sensor.camera
-    need = render_bytes(cam.width * cam.height, sensor.modulation.raw_count, max_depth, transient_bins)
+    need = render_bytes(width * height, raw_images, max_depth, transient_bins)
     if MAX_RENDER_BYTES.exceeded(need):
         transient = f", {transient_bins} transient bins" if transient_bins else ""
-        raise LimitError(f"{where}: the estimated render memory ({cam.width} x {cam.height} pixels, "
-                         f"{sensor.modulation.raw_count} raw images, max_depth {max_depth}{transient}) must be "
+        raise LimitError(f"{where}: the estimated render memory ({width} x {height} pixels, "
+                         f"{raw_images} raw images, max_depth {max_depth}{transient}) must be "
                          f"{MAX_RENDER_BYTES.describe()}, got {need:,} bytes; lower the resolution or max_depth"
                          + (" or widen the transient bins" if transient_bins else ""))
 

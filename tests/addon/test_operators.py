@@ -496,6 +496,23 @@ def test_live_preview_handler_and_render(tof, tmp_path):
     assert operators.last_result["kind"] == "preview" and operators.last_result["state"] == "done"
     assert not any(tmp_path.iterdir())                               # previews write nothing
 
+    # A camera move re-uses the scene's export (and so its BVH) with the new pose; a scene change exports anew.
+    exported = job.exported
+    camera.location.x += 0.25
+    bpy.context.view_layer.update()
+    assert not operators._preview.scene_changed
+    moved = operators.start_live_preview(bpy.context)
+    assert moved.exported is exported and moved.scene is job.scene
+    assert not np.allclose(moved.pose, job.pose) and np.allclose(moved.pose[:3, 3] - job.pose[:3, 3], [0.25, 0, 0])
+    moved.join(60.0)
+    bpy.data.objects["Cube"].location.z += 0.1
+    bpy.context.view_layer.update()
+    assert operators._preview.scene_changed
+    changed = operators.start_live_preview(bpy.context)
+    assert changed.exported is not exported
+    changed.join(60.0)
+    operators.poll_live_preview()
+
     # A new preview cancels the running one.
     first = operators.start_live_preview(bpy.context)
     second = operators.start_live_preview(bpy.context)

@@ -156,7 +156,8 @@ def test_install_refused_when_offline(prefs):
     result, reports = run_execute(preferences.TOF_OT_install_cupy)
     assert result == {'CANCELLED'}
     assert reports.of("ERROR") == ["Cannot install CuPy: Online access is off: allow it in Preferences > System > "
-                                   "Network > Allow Online Access, or install CuPy by hand (README, GPU in Blender)"]
+                                   "Network > Allow Online Access, or install CuPy by hand (docs/blender.md, GPU in "
+                                   "Blender)"]
     with pytest.raises(RuntimeError, match="Cannot install CuPy: Online access is off") as raised:
         bpy.ops.tof.install_cupy()
     assert "Traceback" not in str(raised.value)
@@ -316,8 +317,8 @@ def test_install_numba_refused_when_offline(prefs, monkeypatch, tmp_path):
     result, reports = run_execute(preferences.TOF_OT_install_numba)
     assert result == {'CANCELLED'}
     assert reports.of("ERROR") == ["Cannot install numba: Online access is off: allow it in Preferences > System > "
-                                   "Network > Allow Online Access, or install numba by hand (README, The compiled "
-                                   "tracer)"]
+                                   "Network > Allow Online Access, or install numba by hand (docs/blender.md, The "
+                                   "compiled tracer)"]
     assert not (tmp_path / "numba").exists()
 
 
@@ -336,7 +337,7 @@ def test_install_numba_without_pip_points_to_its_own_readme_section(prefs, monke
         assert result == {'CANCELLED'}
         assert reports.of("ERROR") == [f"Cannot install {what}: pip is not available in Blender's Python "
                                        f"({sys.executable}) and ensurepip has no pip wheel; install {what} by hand "
-                                       f"(README, {section})"]
+                                       f"(docs/blender.md, {section})"]
     assert not (tmp_path / "numba").exists()
 
 

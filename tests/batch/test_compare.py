@@ -8,7 +8,7 @@ import struct
 import numpy as np
 
 from batch.compare import CELL_WIDTH, comparison_image
-from batch_helpers import batch, read_index
+from batch_helpers import batch, match_checksums, read_index
 
 
 def test_compare_writes_the_image_and_the_tables(tmp_path):
@@ -34,6 +34,19 @@ def test_compare_writes_the_image_and_the_tables(tmp_path):
     # Both presets saw the same pose.
     records = read_index(out)
     assert records[0]["world_from_sensor"] == records[1]["world_from_sensor"]
+
+    # A frame.exr damaged with its checksums made to match (issue 35): verify names it; compare renders it
+    # again instead of a traceback (the codec's ExrError is a TofError both CLIs catch).
+    frame = out / records[0]["dir"] / "frame.exr"
+    frame.write_bytes(frame.read_bytes()[:500])
+    match_checksums(out, records[0]["job_id"])
+    proc = batch("verify", str(out))
+    assert proc.returncode == 1 and f"frames/{records[0]['job_id']}: frame.exr: truncated EXR" in proc.stdout, \
+        proc.stdout + proc.stderr
+    proc = batch("compare", "--scene", "box_on_wall", "--presets", "kinect_v2,o3d303", "--out", str(out),
+                 "--spp", "2", "--max-depth", "2", "--resolution-scale", "0.0625", "--quiet")
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    assert read_index(out)[0]["finished"] != records[0]["finished"]  # rendered again
 
 
 def test_comparison_image_rows_share_colour_limits():
@@ -83,3 +96,21 @@ def test_compare_takes_a_mesh_file(tmp_path):
     (record,) = read_index(out)
     assert record["source"]["kind"] == "mesh" and record["objects"] == [
         {"id": 0, "name": "wall.stl", "materials": ["default"]}]
+
+
+def test_all_nan_frame_data_gives_the_image_and_rows_without_a_numpy_warning():
+    """A frame whose channels are all NaN (reason too): a RuntimeWarning about casting NaN before (issue 35)."""
+    import warnings
+
+    from batch.compare import table_rows
+
+    nan = np.full((6, 8), np.nan, np.float32)
+    channels = {name: nan.copy() for name in ("depth", "gt_depth", "valid", "reason")}
+    record = {"preset": "kinect_v2", "settings": {"width": 8, "height": 6}, "job_id": "0" * 16, "dir": "frames/x",
+              "valid_fraction": 0.0}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        image, limits = comparison_image([("kinect_v2", channels), ("o3d303", channels)])
+        [row] = table_rows([record], [channels])
+    assert image.ndim == 3 and limits["depth_m"] == [0.0, 1.0]
+    assert row["invalid_by_reason"] == {} and row["invalid_fraction"] == 1.0

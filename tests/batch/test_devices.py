@@ -366,3 +366,20 @@ def test_only_the_pinned_workers_touch_cupy(tmp_path, small_set):
     in_workers = [(pid, visible) for pid, visible in imports if pid != probe[0]]
     assert len(in_workers) == 8  # once per frame (a failed import is not cached)
     assert all(worker_pids.get(pid) == visible and visible in ("0", "1") for pid, visible in in_workers)
+
+
+def test_cpu_batch_chooses_frames_and_threads_for_the_cores():
+    """Without --workers a CPU batch renders cpus // CPU_THREADS_PER_FRAME frames at once, never more than
+    it has frames, and gives each the remaining threads: every core busy, none oversubscribed."""
+    from batch.devices import CPU_THREADS_PER_FRAME, cpu_frames_and_threads
+
+    assert CPU_THREADS_PER_FRAME == 4
+    assert cpu_frames_and_threads(2, 100) == (1, 2)
+    assert cpu_frames_and_threads(16, 100) == (4, 4)
+    assert cpu_frames_and_threads(16, 2) == (2, 8)
+    assert cpu_frames_and_threads(128, 100) == (32, 4)
+    assert cpu_frames_and_threads(1, 0) == (1, 1)
+    for cpus in range(1, 65):
+        for frames in (1, 3, 50):
+            workers, threads = cpu_frames_and_threads(cpus, frames)
+            assert 1 <= workers <= max(1, frames) and workers * threads <= max(cpus, 1)

@@ -31,5 +31,6 @@ def test_phases_add_up_to_each_workers_span():
     assert two["frames"] == 1 and two["render_median_s"] is None and two["idle_s"] == pytest.approx(0.0)
     lines = timing_lines([one, two])
     assert lines[0] == ("worker 1 (GPU 0): 3 frame(s) in 19.5 s: start-up 2.0 s, first render 10.0 s, then render "
-                        "4.5 s (median 2.25 s), write 1.5 s, scene load 1.0 s, idle 0.5 s")
+                        "4.5 s (median 2.25 s), write 1.5 s (0.0 s of it while rendering; rendering waited 0.0 s for the "
+                        "writer), scene load 1.0 s, idle 0.5 s")
     assert "median –" in lines[1]

@@ -378,9 +378,9 @@ def test_presets_command_checks_the_limits(capsys, monkeypatch):
     ("--ambient", "-1", "argument --ambient: must be a finite number >= 0, at most 1e+30 (W m^-2 sr^-1), got '-1'"),
     ("--ambient", "1e308", "argument --ambient: must be a finite number >= 0, at most 1e+30"),
     ("--formats", "exr,gif", "argument --formats: must be a comma list of one or more of exr, png, ply, json, "
-                             "got 'exr,gif' (unknown: 'gif')"),
-    ("--formats", ",", "argument --formats: must be a comma list of one or more of exr, png, ply, json, got ',' "
-                       "(none given)"),
+                             "transient, got 'exr,gif' (unknown: 'gif')"),
+    ("--formats", ",", "argument --formats: must be a comma list of one or more of exr, png, ply, json, transient, "
+                       "got ',' (none given)"),
 ])
 def test_bad_flag_is_an_argument_error(tmp_path, capsys, flag, value, needle):
     code, err = run(render_args(tmp_path, f"{flag}={value}"), capsys)

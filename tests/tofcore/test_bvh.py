@@ -229,3 +229,103 @@ def test_stats_and_counters():
     counts = {}
     bvh.intersect(rng.random((100, 3)).astype(np.float32), unit(rng.standard_normal((100, 3))), counters=counts)
     assert counts["rays"] == 100 and counts["box_tests"] >= 400 and counts["tri_tests"] >= 0
+
+
+# ----------------------------------------------------------------- the compiled build (tofcore.scene.bvh_build)
+def _meshes_for_the_build():
+    """Meshes that exercise every branch of the level split: irregular soup (binned and small-node cuts),
+    a height field (shared vertices), a flat plane (zero centroid extent on one axis), stacked copies of
+    a few triangles (equal centroids: no finite cut, split at the middle) and a mix of tiny and huge
+    triangles (boxes much wider than their centroids' bins)."""
+    rng = np.random.default_rng(11)
+    v_soup, t_soup = soup(rng, 3000)
+    v_ter, t_ter = terrain(rng, 30)
+    v_flat = v_ter.copy()
+    v_flat[:, 2] = 0.25
+    few = rng.random((9, 3)).astype(np.float32)
+    v_stack, t_stack = few, np.tile(np.array([[0, 1, 2], [3, 4, 5], [6, 7, 8]], np.int32), (700, 1))
+    big = np.array([[-5, -5, 0], [5, -5, 0], [0, 5, 0.5]], np.float32)
+    v_mix = np.concatenate([v_soup[:900], big])
+    t_mix = np.concatenate([t_soup[:300], np.full((40, 3), 900, np.int32) + [0, 1, 2]])
+    return {"soup": (v_soup, t_soup), "terrain": (v_ter, t_ter), "flat": (v_flat, t_ter),
+            "stacked": (v_stack, t_stack), "mixed": (v_mix, t_mix)}
+
+
+@pytest.mark.parametrize("leaf_size, threads", [(1, "one"), (2, "one"), (4, "one"), (2, "all")])
+def test_compiled_build_gives_the_numpy_tree_bit_for_bit(leaf_size, threads, monkeypatch):
+    """The compiled level split (numba; on one thread, and on all of numba's threads as for meshes of
+    PARALLEL_LEVEL triangles or more) and the NumPy levels make the same tree: every array equal."""
+    pytest.importorskip("numba")
+    from tofcore.scene import bvh as bvh_module, bvh_build
+
+    monkeypatch.setattr(bvh_build, "PARALLEL_LEVEL", 0 if threads == "all" else 1 << 62)
+
+    for name, (v, t) in _meshes_for_the_build().items():
+        corners = v[t.astype(np.int64)]
+        lo = np.ascontiguousarray(corners.min(axis=1).T)
+        hi = np.ascontiguousarray(corners.max(axis=1).T)
+        numpy_tree = bvh_module._build_binary(lo, hi, leaf_size, bvh_module.N_BINS, compiled=False)
+        compiled_tree = bvh_module._build_binary(lo, hi, leaf_size, bvh_module.N_BINS, compiled=True)
+        for what, a, b in zip(("order", "lo", "hi", "left", "right", "start", "count"), numpy_tree, compiled_tree):
+            assert np.array_equal(a, b), f"{name}, leaf size {leaf_size}: {what} differs"
+        assert len(numpy_tree[3]) > 1, name
+
+
+def test_build_uses_the_compiled_levels_above_the_size_rule(monkeypatch):
+    """`BVH.build` takes the compiled levels for a mesh of COMPILED_BUILD_MIN triangles or more, and the
+    records equal the NumPy build's; TOFCORE_TRACER=numpy keeps the build in NumPy."""
+    pytest.importorskip("numba")
+    from tofcore.scene import bvh as bvh_module, bvh_build
+
+    monkeypatch.setenv("TOFCORE_TRACER", "auto")  # the suite's default is the NumPy reference (tests/conftest.py)
+    v, t = soup(np.random.default_rng(5), bvh_module.COMPILED_BUILD_MIN)
+    calls = []
+    split = bvh_build.split_level
+    monkeypatch.setattr(bvh_build, "split_level", lambda *a: calls.append(1) or split(*a))
+    compiled = BVH.build(v, t)
+    assert calls
+    monkeypatch.setenv("TOFCORE_TRACER", "numpy")
+    calls.clear()
+    reference = BVH.build(v, t)
+    assert not calls
+    assert np.array_equal(compiled._nodes, reference._nodes) and np.array_equal(compiled._leaves, reference._leaves)
+
+
+def test_a_failing_compiled_build_falls_back_to_numpy_with_a_warning(monkeypatch):
+    """A level split that raises (numba unable to load a damaged cache file) costs a warning, not the
+    render: the NumPy levels build the same tree."""
+    pytest.importorskip("numba")
+    import pickle
+
+    from tofcore.scene import bvh as bvh_module, bvh_build
+
+    def broken(*args):
+        raise pickle.UnpicklingError("pickle data was truncated")
+
+    v, t = soup(np.random.default_rng(6), 500)
+    reference = BVH.build(v, t)
+    monkeypatch.setenv("TOFCORE_TRACER", "auto")
+    monkeypatch.setattr(bvh_module, "COMPILED_BUILD_MIN", 1)
+    monkeypatch.setattr(bvh_build, "split_level", broken)
+    with pytest.warns(RuntimeWarning, match="compiled BVH build failed.*UnpicklingError"):
+        tree = BVH.build(v, t)
+    assert np.array_equal(tree._nodes, reference._nodes)
+
+
+def test_cached_tree_is_shared_by_equal_geometry_only():
+    """`BVH.cached` returns the tree built for the same triangles (another array object, another Scene), and
+    a new tree when one vertex moved."""
+    from tofcore.scene import bvh as bvh_module
+
+    v, t = soup(np.random.default_rng(7), 200)
+    first = BVH.cached(v, t)
+    assert BVH.cached(v.copy(), t.astype(np.int64)) is first
+    moved = v.copy()
+    moved[0, 0] += np.float32(1e-3)
+    other = BVH.cached(moved, t)
+    assert other is not first
+    assert bvh_module.geometry_key(v, t, 2) != bvh_module.geometry_key(moved, t, 2)
+    assert bvh_module.geometry_key(v, t, 2) != bvh_module.geometry_key(v, t, 4)
+    for seed in range(bvh_module.CACHED_TREES + 1):  # the oldest tree is dropped
+        BVH.cached(*soup(np.random.default_rng(100 + seed), 50))
+    assert BVH.cached(v, t) is not first

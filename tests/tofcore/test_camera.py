@@ -241,3 +241,32 @@ def test_generate_rays_rejects_pixel_indices_outside_the_image():
     zeros = np.zeros(2)
     with pytest.raises(ValueError, match=r"pixel_index must be in \[0, 217088\), got values in \[-1, 3\]"):
         cam.generate_rays(np.array([-1, 3]), zeros, zeros, zeros, zeros)
+
+
+def test_the_undistortion_table_built_in_blocks_equals_newton_over_the_whole_image():
+    """The table is built in cache-sized blocks that take the same Newton steps as the whole image: bit for bit
+    what :meth:`Camera._newton_undistort` gives over all pixel centres at once."""
+    cam = Camera(width=97, height=211, fx=90.0, fy=88.0, cx=47.3, cy=104.6, k1=-0.3, k2=0.08, p1=0.01, p2=-0.01,
+                 k3=0.002)  # 20,467 pixels: three blocks, the last one short
+    xd, yd = cam._distorted_centres()
+    x, y = cam._newton_undistort(xd, yd, xd, yd)
+    _, _, j_xx, j_xy, j_yy = cam._distort_with_jacobian(x, y)
+    inv_det = 1.0 / (j_xx * j_yy - j_xy * j_xy)
+    whole = (x, y, j_yy * inv_det, -j_xy * inv_det, j_xx * inv_det)
+    for built, expected in zip(cam._build_centre_table(), whole):
+        np.testing.assert_array_equal(built.view(np.int64), expected.view(np.int64))
+
+
+def test_equal_cameras_share_one_undistortion_table_and_check():
+    """A batch worker builds its preset's sensor for every frame, a set's check builds it again for overrides:
+    equal cameras are checked once per process and share the (read-only) table."""
+    fields = dict(width=64, height=48, fx=60.0, fy=60.0, cx=31.5, cy=23.5, k1=0.11, k2=-0.07, p1=0.001)
+    a, b = Camera(**fields), Camera(**fields)
+    assert all(ta is tb for ta, tb in zip(a._centre_table, b._centre_table))
+    assert not a._centre_table[0].flags.writeable
+    other = Camera(**{**fields, "k1": 0.12})
+    assert other._centre_table[0] is not a._centre_table[0]
+    bad = dict(fields, k1=-2.0)
+    for _ in range(2):  # the second refusal comes from the shared check, with the same message
+        with pytest.raises(ConfigError, match=r"^Camera: distortion \(k1=-2.0, .* must be invertible over the 64x48"):
+            Camera(**bad)

@@ -118,6 +118,60 @@ def test_a_transient_histogram_beyond_the_memory_limit_is_refused_before_renderi
     assert not (tmp_path / "out").exists()
 
 
+def _no_distortion_tables(monkeypatch) -> None:
+    """Make the per-pixel distortion check of a camera larger than a preset's fail the test: it must not run
+    before the budget is checked."""
+    from tofcore.scene.camera import Camera
+
+    check = Camera._check_invertible
+
+    def checked(self):
+        if self.width * self.height > 1 << 20:
+            raise AssertionError(f"the {self.width} x {self.height} camera built its distortion tables")
+        check(self)
+
+    monkeypatch.setattr(Camera, "_check_invertible", checked)
+
+
+@pytest.mark.parametrize("flags, size", [(("--resolution", "4096x4096"), "4096 x 4096"),
+                                         (("--resolution-scale", "8"), "4096 x 3392")])
+def test_a_render_beyond_the_memory_budget_is_refused_before_the_camera_is_made(tmp_path, capsys, monkeypatch,
+                                                                                  flags, size):
+    """4096 x 4096 Kinect v2 (53 GB estimated): refused in one line, before the distortion check builds its
+    per-pixel tables (53-74 s and 3.5 GB before the refusal, issue 35)."""
+    monkeypatch.setenv("TOFCORE_MAX_RENDER_BYTES", str(8 << 30))
+    _no_distortion_tables(monkeypatch)
+    code, _, err = _run(["render", "--scene", "plane", "--preset", "kinect_v2", "--out", str(tmp_path / "out"),
+                         "--formats", "json", *flags], capsys)
+    assert code == 2 and err.count("\n") == 1, err
+    assert err.startswith(f"error: --preset kinect_v2 with --max-depth 5: the estimated render memory ({size} "
+                          f"pixels, 9 raw images, max_depth 5) must be at most 8,589,934,592 bytes"), err
+
+
+def test_a_sensor_resized_beyond_any_render_is_refused_before_the_camera_is_made(monkeypatch):
+    """Sensor.resized (the set files' resolution_scale, the add-on's resolution): even max_depth 1 must fit."""
+    from tofcore import LimitError, load_preset
+
+    monkeypatch.setenv("TOFCORE_MAX_RENDER_BYTES", str(8 << 30))
+    _no_distortion_tables(monkeypatch)
+    with pytest.raises(LimitError, match=r"^Sensor.resized: the estimated render memory \(4096 x 4096 pixels, 9 raw "
+                                         r"images, max_depth 1\) must be at most 8,589,934,592 bytes"):
+        load_preset("kinect_v2").resized(4096, 4096)
+
+
+def test_formats_take_transient_as_the_help_says(tmp_path, capsys):
+    """--formats exr,json,transient was refused ("unknown: 'transient'") though --help lists it."""
+    argv = _tiny(tmp_path, "--resolution", "16x13")
+    argv[argv.index("--formats") + 1] = "exr,json,transient"
+    code, _, err = _run(argv, capsys)
+    assert code == 2 and err == ("error: --formats transient: the histogram needs the width of its bins: add "
+                                 "--transient-bin LENGTH (e.g. 5cm)\n"), err
+    code, _, err = _run([*argv, "--transient-bin", "50cm"], capsys)
+    assert code == 0, err
+    written = {p.name for p in (tmp_path / "out").iterdir()}
+    assert {"depth.exr", "frame.exr", "frame.json", "transient.npy"} <= written and "depth_mm.png" not in written
+
+
 def test_preview_denoise_and_time_budget_in_the_summary(tmp_path, capsys):
     argv = [a for a in _tiny(tmp_path, "--resolution", "32x24", "--preview-denoise", "--time-budget", "600")
             if a != "--quiet"]

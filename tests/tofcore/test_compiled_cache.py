@@ -60,7 +60,8 @@ def test_cache_folder_is_named_after_the_fingerprint_and_writable(tmp_path, monk
     assert folder == str(tmp_path / "tofcore-0123456789abcdef") and os.path.isdir(folder)
     monkeypatch.setattr(numba.config, "CACHE_DIR", str(tmp_path / "file"))
     (tmp_path / "file").write_text("not a folder")
-    assert _target.cache_folder(__file__, "0123456789abcdef") is None
+    with pytest.warns(_target.CompiledWarning, match="cannot be used .*compiled again in every process"):
+        assert _target.cache_folder(__file__, "0123456789abcdef") is None
 
 
 @needs_numba
@@ -98,7 +99,124 @@ def test_a_cold_cache_is_recognised_before_the_render_so_the_command_can_say_it_
     cached, folder = probe()
     assert cached == "False"
     assert probe(TOFCORE_TRACER="numpy")[0] == "None"
-    index = Path(folder) / "compiled_1" / "kernels.trace_pixels-1093.py311.nbi"  # numba's index of the driver
-    index.parent.mkdir(parents=True)
-    index.write_bytes(b"")
-    assert probe()[0] == "True"
+
+
+# --------------------------------------------------------------------------- a cache that cannot brick an install
+
+#: The driver's cache as numba writes it, made by hand (nothing compiled): a whole index naming one data file;
+#: then the same with the index emptied and with the data file truncated (issue 35: True was said for both).
+CRAFTED_PROBE = """
+import os, pickle, sys
+from tofcore import compiled
+from tofcore.compiled import kernels
+cache = kernels.trace_pixels._cache
+index = cache._cache_file._index_path
+data = os.path.join(cache.cache_path, os.path.basename(index)[:-len(".nbi")] + ".1.nbc")
+cache._cache_file._save_index({("sig", "target"): os.path.basename(data)})   # numba's own index writer
+with open(data, "wb") as fh:
+    fh.write(pickle.dumps(("a compiled library", b"x" * 4096), protocol=4))
+whole = compiled.cpu_kernels_cached()
+size = os.path.getsize(data)
+os.truncate(data, 11)
+truncated = compiled.cpu_kernels_cached()
+os.truncate(data, 0)
+with open(data, "wb") as fh:
+    fh.write(pickle.dumps(("a compiled library", b"x" * 4096), protocol=4))
+open(index, "wb").close()
+emptied = compiled.cpu_kernels_cached()
+print(whole, truncated, emptied)
+"""
+
+
+@needs_numba
+def test_cpu_kernels_cached_is_true_only_for_a_whole_index_and_whole_data_files(tmp_path):
+    env = dict(os.environ, PYTHONPATH=str(ROOT), NUMBA_CACHE_DIR=str(tmp_path))
+    env.pop("TOFCORE_TRACER", None)
+    out = subprocess.run([sys.executable, "-c", CRAFTED_PROBE], env=env, capture_output=True, text=True,
+                         timeout=120, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["True", "False", "False"]
+
+
+@pytest.fixture(scope="module")
+def filled_cache(tmp_path_factory) -> Path:
+    """A numba cache holding the compiled ``uniform`` (and the functions it calls): a second or so to compile."""
+    folder = tmp_path_factory.mktemp("numba-cache")
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(folder), "PYTHONPATH": str(ROOT)}
+    subprocess.run([sys.executable, "-c", PROBE, "same"], env=env, capture_output=True, text=True, check=True,
+                   cwd=ROOT)
+    return folder
+
+
+def _probe_in(folder: Path) -> tuple[dict, str]:
+    env = {**os.environ, "NUMBA_CACHE_DIR": str(folder), "PYTHONPATH": str(ROOT)}
+    out = subprocess.run([sys.executable, "-c", PROBE, "same"], env=env, capture_output=True, text=True, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    return json.loads(out.stdout.strip().splitlines()[-1]), out.stderr
+
+
+@needs_numba
+@pytest.mark.parametrize("damage", ["truncated nbc", "emptied nbi"])
+def test_a_damaged_cache_file_is_set_aside_and_compiled_anew_once(filled_cache, tmp_path, damage):
+    """An 11-byte .nbc or an empty .nbi: an UnpicklingError/EOFError traceback in every later process before."""
+    import shutil
+
+    folder = Path(shutil.copytree(filled_cache, tmp_path / "cache"))
+    [index] = folder.glob("*/*/kernels.uniform-*.nbi")
+    [data] = index.parent.glob("kernels.uniform-*.nbc")
+    if damage == "truncated nbc":
+        os.truncate(data, 11)
+    else:
+        index.write_bytes(b"")
+    first, stderr = _probe_in(folder)
+    assert first["value"] == first["numpy"] and first["hits"] == 0
+    notes = [line for line in stderr.splitlines() if "CompiledWarning: " in line]
+    assert len(notes) == 1 and f"kernels.uniform-" in notes[0] and "set aside as *.damaged" in notes[0], stderr
+    assert sorted(p.name for p in index.parent.glob("kernels.uniform-*.damaged")) == sorted(
+        [index.name + ".damaged", data.name + ".damaged"])
+    again, stderr = _probe_in(folder)
+    assert again["hits"] == 1 and again["value"] == first["value"] and "damaged" not in stderr
+
+
+@needs_numba
+def test_an_unusable_cache_folder_is_named_once_with_its_cost(tmp_path):
+    """NUMBA_CACHE_DIR under a regular file (or read-only): every process compiles; tofcore says so, and
+    cpu_kernels_cached() is False (it said True, or "compiling once", before)."""
+    (tmp_path / "file").write_text("not a folder")
+    env = dict(os.environ, PYTHONPATH=str(ROOT), NUMBA_CACHE_DIR=str(tmp_path / "file" / "cache"))
+    env.pop("TOFCORE_TRACER", None)
+    code = "from tofcore import compiled; print(compiled.cpu_kernels_cached()); print(compiled.cache_problem())"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=120, cwd=ROOT)
+    assert out.returncode == 0, out.stderr
+    cached, problem = out.stdout.splitlines()
+    assert cached == "False"
+    assert problem.startswith(f"the compiled tracer's kernel cache NUMBA_CACHE_DIR={tmp_path / 'file' / 'cache'} "
+                              f"cannot be used (Not a directory): the kernels are compiled again in every process")
+    notes = [line for line in out.stderr.splitlines() if "CompiledWarning: " in line]
+    assert len(notes) == 1 and notes[0].endswith(f"CompiledWarning: {problem}"), out.stderr
+
+
+@needs_numba
+def test_a_cache_on_a_full_disk_never_stops_the_compile(filled_cache, tmp_path):
+    """A cache folder on a full file system: the function is compiled and runs, one note names the folder (an
+    OSError naming no path before)."""
+    import shutil
+
+    disk = tmp_path / "disk"
+    disk.mkdir()
+    if shutil.which("mount") is None or os.geteuid() != 0 or subprocess.run(
+            ["mount", "-t", "tmpfs", "-o", "size=64k", "tmpfs", str(disk)], capture_output=True).returncode != 0:
+        pytest.skip("needs root to mount a small tmpfs")
+    try:
+        code = ("import os\nfrom tofcore.compiled import kernels\n"  # the cache folder is made, then the disk fills
+                "fd = os.open(os.path.join(os.environ['NUMBA_CACHE_DIR'], 'filler'), os.O_WRONLY | os.O_CREAT)\n"
+                "try:\n    while True: os.write(fd, bytes(4096))\nexcept OSError: os.close(fd)\n" + PROBE)
+        env = {**os.environ, "NUMBA_CACHE_DIR": str(disk), "PYTHONPATH": str(ROOT)}
+        out = subprocess.run([sys.executable, "-c", code, "same"], env=env, capture_output=True, text=True, cwd=ROOT)
+        assert out.returncode == 0, out.stderr
+        result = json.loads(out.stdout.strip().splitlines()[-1])
+        assert result["value"] == result["numpy"]
+        notes = [line for line in out.stderr.splitlines() if "CompiledWarning: " in line]
+        assert len(notes) == 1 and f"{disk}/tofcore-" in notes[0] and "No space left on device" in notes[0], out.stderr
+    finally:
+        subprocess.run(["umount", "-l", str(disk)], capture_output=True)

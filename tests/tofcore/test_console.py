@@ -14,6 +14,7 @@ import sys
 import time
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from tofcore.console import ASCII_FALLBACK, ERRORS, say, use_safe_output
@@ -139,12 +140,54 @@ def test_auto_falling_back_to_the_cpu_says_which_device_ran_and_why(tmp_path):
 
 
 def _start_up_only(returncode: int, stderr: str) -> bool:
-    """A Ctrl-C during the interpreter's own start-up (site, encodings): no line of tofcore ran."""
+    """A Ctrl-C during the interpreter's own start-up (site and the .pth files it runs, such as an editable
+    install's finder; runpy finding the module): no line of tofcore or batch ran."""
+    if returncode == -signal.SIGINT:  # before Python installed its own handler
+        return True
     if "Fatal Python error: init_import_site" in stderr:  # the site module, importing the standard library
         return True
     frames = [line for line in stderr.splitlines() if line.strip().startswith("File ")]
-    return returncode != 0 and "KeyboardInterrupt" in stderr and all(
-        "<frozen" in f or "site-packages" in f and "tofcore" not in f for f in frames)
+    ours = (str(REPO / "tofcore"), str(REPO / "batch"), f"{os.sep}tofcore{os.sep}", f"{os.sep}tofcore_batch{os.sep}")
+    return returncode != 0 and "KeyboardInterrupt" in stderr and not any(p in f for f in frames for p in ours)
+
+
+def test_the_start_up_handlers_load_no_module_the_interpreter_has_not_loaded():
+    """tofcore._interrupt and batch.interrupt, which take Ctrl-C over first, use _signal and os only: the
+    signal module built its enums first (~7 ms in which a Ctrl-C was a traceback from our own import)."""
+    code = ("import importlib.util, sys\n"
+            "before = set(sys.modules)\n"
+            "for name in sys.argv[1:]:\n"
+            "    spec = importlib.util.spec_from_file_location(name.replace('/', '_'), name)\n"
+            "    spec.loader.exec_module(importlib.util.module_from_spec(spec))\n"
+            "print(sorted(set(sys.modules) - before - {'importlib.util'}))")
+    out = subprocess.run([sys.executable, "-c", code, str(REPO / "tofcore" / "_interrupt.py"),
+                          str(REPO / "batch" / "interrupt.py")], capture_output=True, text=True, cwd=REPO)
+    assert out.returncode == 0 and out.stdout.strip() == "[]", out.stdout + out.stderr
+
+
+@pytest.mark.parametrize("command", [["-m", "tofcore", "render", "--scene", "plane", "--preset", "kinect_v2",
+                                      "--spp", "1", "--formats", "json", "--quiet"],
+                                     ["-m", "batch", "run", "SET", "--quiet"]])
+def test_ctrl_c_in_the_start_up_window_is_one_line_or_before_any_line_of_ours(tmp_path, command):
+    """SIGINT at 20 - 150 ms, where the interpreter's start-up ends and the entry points take over."""
+    command = [sys.executable, *[str(tmp_path / "set.toml") if a == "SET" else a for a in command],
+               "--out", str(tmp_path / "out")]
+    (tmp_path / "set.toml").write_text('[[scenes]]\ndemo = "plane"\n[[scenes.poses]]\nsuggested = true\n')
+    ours = 0
+    for delay in np.arange(0.02, 0.155, 0.01):
+        proc = subprocess.Popen(command, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True, start_new_session=True)
+        time.sleep(delay)
+        os.killpg(proc.pid, signal.SIGINT)
+        _, stderr = proc.communicate(timeout=120)
+        if _start_up_only(proc.returncode, stderr):
+            continue
+        ours += 1
+        where = f"Ctrl-C after {delay:.2f} s: exit {proc.returncode}\n{stderr}"
+        assert proc.returncode == 130 and "Traceback" not in stderr, where
+        assert [line for line in stderr.splitlines() if line.strip()] == [
+            "interrupted (SIGINT): nothing was written"], where
+    assert ours > 0
 
 
 @pytest.mark.parametrize("entry", ["module", "script"])
@@ -178,3 +221,16 @@ def test_use_safe_output_leaves_a_stream_that_cannot_be_reconfigured_alone(monke
     monkeypatch.setattr(sys, "stdout", Plain())
     use_safe_output()
     assert sys.stdout.errors == "strict"
+
+
+@pytest.mark.parametrize("threads", ["abc", "0"])
+def test_a_malformed_numba_thread_count_is_one_note_and_the_frame_renders(tmp_path, threads):
+    """NUMBA_NUM_THREADS=abc: numba's parse traceback before; =0: a ValueError traceback from its thread pool."""
+    proc = _tofcore("render", "--scene", "plane", "--preset", str(tiny_preset(tmp_path)), "--out",
+                    str(tmp_path / "out"), "--spp", "1", "--max-depth", "1", "--formats", "json",
+                    env={"NUMBA_NUM_THREADS": threads, "TOFCORE_TRACER": None}, text=True)
+    assert proc.returncode == 0 and "Traceback" not in proc.stderr, proc.stderr
+    lines = [line for line in proc.stderr.splitlines() if "NUMBA_NUM_THREADS" in line]
+    assert lines == [f"note: environment: NUMBA_NUM_THREADS must be a positive integer, got {threads!r}: ignored "
+                     f"(numba then uses its default, one thread per CPU)"], proc.stderr
+    assert (tmp_path / "out" / "frame.json").is_file()

@@ -491,3 +491,53 @@ def test_a_frame_without_a_transient_histogram_says_how_to_get_one(dataset):
     ref = Dataset(dataset).frames()[0]
     with pytest.raises(DatasetError, match=r"no transient histogram \(set \[output\] transient_bin_m"):
         ref.transient
+
+
+# --------------------------------------------------------------------------- hostile frame files (issue 35)
+
+def _zip_bomb_first_chunk(path: Path, mib: int) -> None:
+    """Point the first chunk of ``path``'s offset table at a new chunk, appended, whose zlib stream inflates
+    to ``mib`` MiB (the chunk's lines hold a few kB)."""
+    import struct
+    import zlib
+
+    data = path.read_bytes()
+    end = tofcore.exr._Reader(data, str(path)).header()[1]
+    y = struct.unpack("<i", data[int.from_bytes(data[end:end + 8], "little"):][:4])[0]
+    packer = zlib.compressobj(9)
+    stream = b"".join(packer.compress(bytes(1 << 20)) for _ in range(mib)) + packer.flush()
+    path.write_bytes(data[:end] + struct.pack("<Q", len(data)) + data[end + 8:] + struct.pack("<ii", y, len(stream))
+                     + stream)
+
+
+def test_a_zip_bomb_in_frame_exr_is_one_line_in_bounded_memory(copy):
+    import tracemalloc
+
+    ref = Dataset(copy)[0]
+    _zip_bomb_first_chunk(ref.folder / "frame.exr", 64)
+    _record_files_again(copy, ref.id)
+    ref = Dataset(copy).frame(ref.id)
+    tracemalloc.start()
+    try:
+        with pytest.raises(DatasetError) as exc:
+            ref.load(["depth"])
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    message = _one_line(exc)
+    assert message.startswith(f"{ref.folder / 'frame.exr'}: cannot be read as EXR: damaged EXR: a ZIP chunk "
+                              f"inflates to more than the "), message
+    assert peak < 16 << 20, peak  # the old reader inflated all 64 MiB
+
+
+def test_a_uint_typed_depth_channel_is_refused_in_one_line(copy):
+    ref = Dataset(copy)[0]
+    stored = tofcore.exr.read(ref.folder / "frame.exr")
+    stored["depth"] = np.nan_to_num(stored["depth"] * 1000).astype(np.uint32)  # millimetres as integers
+    tofcore.exr.write(ref.folder / "frame.exr", stored)
+    _record_files_again(copy, ref.id)
+    with pytest.raises(DatasetError) as exc:
+        Dataset(copy).frame(ref.id).load(["depth"])
+    assert _one_line(exc) == (f"{ref.folder / 'frame.exr'}: cannot be read as EXR: channels ['depth'] are UINT "
+                              f"(integers); a tofcore frame's channels are FLOAT or HALF (metres, electrons, 0/1 "
+                              f"masks)")

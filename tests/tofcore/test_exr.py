@@ -11,6 +11,7 @@ import zlib
 import numpy as np
 import pytest
 
+import tofcore
 from tofcore.output import exr
 
 COMPRESSIONS = ("none", "zips", "zip")
@@ -215,3 +216,201 @@ def test_rejects_unsupported_compression_by_name(tmp_path):
     (tmp_path / "piz.exr").write_bytes(bytes(data))
     with pytest.raises(ValueError, match=r"piz\.exr: EXR compression 'piz' is not supported"):
         exr.read(tmp_path / "piz.exr")
+
+
+# --------------------------------------------------------------------------- hostile files (issue 35)
+
+def _rebuild(data: bytes, changes: dict[str, tuple[str, bytes] | None]) -> bytes:
+    """``data`` with header attributes replaced (``{name: (type, value bytes)}``; None removes one), the
+    offset table moved by the header's change in size."""
+    _, end, raw = exr._Reader(data, "x").header()
+    raw = {**raw, **changes}
+    head = bytearray(data[:8])
+    for name, item in raw.items():
+        if item is not None:
+            head += name.encode() + b"\0" + item[0].encode() + b"\0" + struct.pack("<i", len(item[1])) + item[1]
+    head += b"\0"
+    count = (len(data) - end) and _chunk_count(data)
+    offsets = np.frombuffer(data[end:end + 8 * count], "<u8").astype(np.int64) + (len(head) - end)
+    return bytes(head) + offsets.astype("<u8").tobytes() + data[end + 8 * count:]
+
+
+def _chunk_count(data: bytes) -> int:
+    reader = exr._Reader(data, "x")
+    layout = reader.layout()
+    return -(-layout.height // layout.lines)
+
+
+def _zip_bomb(mib: int) -> bytes:
+    """A 64 x 16 FLOAT image (4 KiB of pixels, one ZIP chunk) whose zlib stream inflates to ``mib`` MiB."""
+    good = exr.encode({"Y": np.zeros((16, 64), np.float32)}, compression="zip")
+    end = exr._Reader(good, "x").header()[1]
+    packer = zlib.compressobj(9)
+    stream = b"".join(packer.compress(bytes(1 << 20)) for _ in range(mib)) + packer.flush()
+    return good[:end] + struct.pack("<Q", end + 8) + struct.pack("<ii", 0, len(stream)) + stream
+
+
+def _one_line_naming(info: pytest.ExceptionInfo, path) -> str:
+    assert isinstance(info.value, tofcore.TofError) and isinstance(info.value, ValueError), type(info.value)
+    text = str(info.value)
+    assert text.startswith(f"{path}: ") and "\n" not in text, text
+    return text
+
+
+def test_a_zip_bomb_is_refused_after_the_declared_bytes_in_bounded_memory(tmp_path):
+    """16 MiB from a 16 KiB stream declared as 4 KiB: refused after inflating 4 KiB, not 16 MiB (the old
+    reader inflated it all: 0.56 GB at 256 MiB, 2.1 GB at 1 GiB)."""
+    import tracemalloc
+
+    path = tmp_path / "bomb.exr"
+    path.write_bytes(_zip_bomb(16))
+    tracemalloc.start()
+    try:
+        with pytest.raises(exr.ExrError) as info:
+            exr.read(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert "a ZIP chunk inflates to more than the 4,096 bytes its lines hold" in _one_line_naming(info, path)
+    assert peak < 8 * path.stat().st_size + (1 << 20), peak
+
+
+def test_declared_sizes_are_checked_against_the_file_before_allocating(tmp_path):
+    """A tiny file declaring 2^31 pixels x 40 channels (320 GiB: a MemoryError before)."""
+    names = [f"c{i:02d}" for i in range(40)]
+    for compression in ("none", "zip"):
+        good = exr.encode({n: np.zeros((1, 1), np.float32) for n in names}, compression=compression)
+        data = _rebuild(good, {"dataWindow": ("box2i", struct.pack("<4i", 0, 0, 2**31 - 1, 0))})
+        path = tmp_path / f"huge_{compression}.exr"
+        path.write_bytes(data)
+        with pytest.raises(exr.ExrError) as info:
+            exr.read(path)
+        text = _one_line_naming(info, path)
+        assert f"declares 343,597,383,680 bytes of pixels (2147483648 x 1, 40 channels), more than a " \
+               f"'{compression}' file of {len(data):,} bytes can hold" in text, text
+
+
+def test_the_size_limit_is_checked_before_reading(tmp_path, monkeypatch):
+    path = tmp_path / "a.exr"
+    exr.write(path, {"Y": np.zeros((37, 29), np.float32)})
+    monkeypatch.setenv("TOFCORE_MAX_EXR_BYTES", str(path.stat().st_size - 1))
+    with pytest.raises(exr.ExrError) as info:
+        exr.read(path)
+    assert "TOFCORE_MAX_EXR_BYTES" in _one_line_naming(info, path)
+    monkeypatch.setenv("TOFCORE_MAX_EXR_BYTES", str(path.stat().st_size))
+    with pytest.raises(exr.ExrError) as info:  # the file fits; its 37 x 29 x 4 bytes of pixels do not
+        exr.read(path)
+    assert "the header declares 4,292 bytes of pixels" in _one_line_naming(info, path)
+
+
+def test_a_folder_is_not_read_as_an_exr_file(tmp_path):
+    with pytest.raises(exr.ExrError) as info:
+        exr.read(tmp_path)
+    assert "not a regular file" in _one_line_naming(info, tmp_path)
+
+
+@pytest.mark.parametrize("name, kind, value", [
+    ("dataWindow", "int", struct.pack("<i", 7)),
+    ("dataWindow", "string", b"0 0 28 36"),
+    ("channels", "string", b"depth"),
+    ("compression", "int", struct.pack("<i", 3)),
+    ("lineOrder", "float", struct.pack("<f", 0.0)),
+    ("displayWindow", "v2i", struct.pack("<2i", 1, 1)),
+])
+def test_a_wrongly_typed_standard_attribute_is_refused_by_name(tmp_path, name, kind, value):
+    path = tmp_path / "typed.exr"
+    path.write_bytes(_rebuild(exr.encode(channels()), {name: (kind, value)}))
+    for reader in (exr.read, exr.read_header, exr.check):
+        with pytest.raises(exr.ExrError) as info:
+            reader(path)
+        text = _one_line_naming(info, path)
+        assert f"attribute {name!r} must be of type " in text and f"got {kind!r}" in text, text
+
+
+def test_check_reads_no_pixels_but_finds_what_read_finds(tmp_path):
+    path = tmp_path / "a.exr"
+    good = exr.encode(channels())
+    path.write_bytes(good)
+    exr.check(path)
+    end = exr._Reader(good, "x").header()[1]
+    path.write_bytes(good[:end] + struct.pack("<Q", len(good) + 5) + good[end + 8:])
+    with pytest.raises(exr.ExrError) as info:
+        exr.check(path)
+    assert "truncated EXR: a chunk's header runs past the end" in _one_line_naming(info, path)
+
+
+def _mutations(good: bytes, rng: np.random.Generator):
+    """Hostile variants of ``good``: header fields, the chunk table, the chunks' headers and streams."""
+    reader = exr._Reader(good, "x")
+    _, end, raw = reader.header()
+    count = _chunk_count(good)
+    offsets = np.frombuffer(good[end:end + 8 * count], "<u8").copy()
+    int32 = lambda: [0, 1, -1, 2**31 - 1, -2**31, 16, 2**16, int(rng.integers(-2**31, 2**31))][int(rng.integers(8))]
+
+    def patched(at: int, fmt: str, *values) -> bytes:
+        body = bytearray(good)
+        body[at:at + struct.calcsize(fmt)] = struct.pack(fmt, *values)
+        return bytes(body)
+
+    kind = int(rng.integers(9))
+    if kind == 0:  # the dataWindow
+        return _rebuild(good, {"dataWindow": ("box2i", struct.pack("<4i", *(int32() for _ in range(4))))})
+    if kind == 1:  # a standard attribute typed or sized otherwise
+        name = str(rng.choice(["channels", "compression", "dataWindow", "lineOrder", "displayWindow"]))
+        kinds = ["int", "string", "box2i", "chlist", "compression", "v2f", "float", "lineOrder"]
+        return _rebuild(good, {name: (str(rng.choice(kinds)), rng.bytes(int(rng.integers(0, 24))))})
+    if kind == 2:  # the channel list: pixel types, sampling, truncation
+        value = bytearray(raw["channels"][1])
+        value[int(rng.integers(len(value)))] = int(rng.integers(256))
+        return _rebuild(good, {"channels": ("chlist", bytes(value[:int(rng.integers(len(value) + 1))]))})
+    if kind == 3:  # the compression byte, the version and flags
+        if rng.random() < 0.5:
+            return _rebuild(good, {"compression": ("compression", bytes([int(rng.integers(12))]))})
+        return patched(4, "<i", int32())
+    if kind == 4:  # an offset
+        choices = [0, len(good), 2**64 - 1, int(rng.integers(len(good)))]
+        offsets[int(rng.integers(count))] = choices[int(rng.integers(4))]
+        return good[:end] + offsets.astype("<u8").tobytes() + good[end + 8 * count:]
+    if kind == 5:  # a chunk's line or size
+        at = int(offsets[int(rng.integers(count))]) + int(rng.integers(2)) * 4
+        return patched(at, "<i", int32())
+    if kind == 6:  # a chunk's stream: more (a bomb), less, or garbage
+        at = int(offsets[int(rng.integers(count))])
+        stream = zlib.compress(rng.bytes(int(rng.integers(0, 64))) + bytes(int(rng.integers(0, 1 << 20))))
+        return good[:at] + struct.pack("<ii", struct.unpack("<i", good[at:at + 4])[0], len(stream)) + stream
+    if kind == 7:  # an attribute's size
+        at = good.index(str(rng.choice(list(raw))).encode() + b"\0")
+        at = good.index(b"\0", good.index(b"\0", at) + 1) + 1
+        return patched(at, "<i", int32())
+    return good[:int(rng.integers(len(good)))]  # truncated anywhere
+
+
+@pytest.mark.parametrize("compression", COMPRESSIONS)
+def test_fuzzed_headers_and_chunk_tables_give_one_line_or_the_right_shapes(compression):
+    """Seeded: 300 mutations per compression of a 4-channel file (a few seconds in all). Every outcome is
+    arrays of the dataWindow's shape or one ExrError naming the file; memory stays bounded by the file."""
+    import tracemalloc
+
+    rng = np.random.default_rng(35)
+    good = exr.encode(channels(height=20, width=7), attributes={"note": "x"}, compression=compression)
+    outcomes = {"read": 0, "refused": 0}
+    for case in range(300):
+        data = _mutations(good, rng)
+        tracemalloc.start()
+        try:
+            try:
+                got = exr.decode(data, where="fuzz.exr")
+            except exr.ExrError as err:
+                text = str(err)
+                assert text.startswith("fuzz.exr: ") and "\n" not in text, (case, text)
+                outcomes["refused"] += 1
+            else:
+                window = exr._Reader(data, "x").header()[0]["dataWindow"]
+                shape = (int(window[3]) - int(window[1]) + 1, int(window[2]) - int(window[0]) + 1)
+                assert all(a.shape == shape for a in got.values()), case
+                outcomes["read"] += 1
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 16 * len(data) + (4 << 20), (case, peak)
+    assert outcomes["refused"] > 100, outcomes

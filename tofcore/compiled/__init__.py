@@ -23,6 +23,7 @@ stale code (:mod:`tofcore.compiled._target`): the first render of a fresh instal
 from __future__ import annotations
 
 import os
+import sys
 from pathlib import Path
 
 TRACER_ENV = "TOFCORE_TRACER"
@@ -30,7 +31,13 @@ TRACERS = ("auto", "numpy", "compiled")
 
 
 def numba_version() -> str | None:
-    """The installed numba's version, or None where it cannot be imported."""
+    """The installed numba's version, or None where it cannot be imported.
+
+    The first call, before numba is imported, checks ``NUMBA_NUM_THREADS``: a value that is not a positive
+    integer (``abc``, ``0``) is one note and is ignored (numba then uses every CPU), where numba itself would
+    print a parse traceback or refuse to run parallel code."""
+    if "numba" not in sys.modules:
+        _check_thread_variable()
     try:
         import numba
     except Exception:  # ImportError, or a numba that does not work with this NumPy
@@ -48,6 +55,18 @@ def cuda_unavailable() -> str:
     return "" if available else "numba finds no CUDA GPU (install numba-cuda beside CuPy)"
 
 
+def _check_thread_variable() -> None:
+    """``NUMBA_NUM_THREADS`` that is not a positive integer: removed from the environment, with one note."""
+    from ._target import note
+
+    text = os.environ.get("NUMBA_NUM_THREADS")
+    if text is None or (text.strip().isdigit() and int(text) > 0):
+        return
+    del os.environ["NUMBA_NUM_THREADS"]
+    note(f"environment: NUMBA_NUM_THREADS must be a positive integer, got {text!r}: ignored (numba then uses its "
+         f"default, one thread per CPU)")
+
+
 def thread_count(workers: int) -> int:
     """numba threads a render with ``workers`` uses: at most numba's pool (``NUMBA_NUM_THREADS``)."""
     import numba
@@ -56,17 +75,50 @@ def thread_count(workers: int) -> int:
 
 
 def cpu_kernels_cached() -> bool | None:
-    """Whether the CPU build of the kernels is in numba's cache (a render then loads it in about a second);
-    None where the compiled tracer will not run on the CPU (no numba, ``TOFCORE_TRACER=numpy``).
+    """Whether the CPU build of the kernels is in numba's cache and can be loaded (a render then loads it in
+    about a second); None where the compiled tracer will not run on the CPU (no numba, ``TOFCORE_TRACER=numpy``).
 
-    It looks for the index file numba writes for the driver, ``kernels.trace_pixels-*.nbi``, in the cache
-    folder of these kernels' constants; a driver cached for other argument types still compiles."""
+    True only when the driver's (``kernels.trace_pixels``) index file is numba's, of this numba version and of
+    these sources, and every data file it names is a whole pickle (:func:`tofcore.compiled._target.complete_pickle`):
+    an emptied index, a truncated data file or a cache folder that cannot be used (the kernels are then compiled
+    in every process) is False. A driver cached for other argument types still compiles."""
     if os.environ.get(TRACER_ENV, "").strip().lower() == "numpy" or numba_version() is None:
         return None
     from . import kernels  # decorating the kernels picks their cache folder; it compiles nothing
+    from ._target import CACHE_FOLDERS
 
-    folder = cache_location()
-    return any(Path(folder).glob("**/kernels.trace_pixels-*.nbi"))
+    if CACHE_FOLDERS.get(kernels.__name__) is None:
+        return False
+    return _index_is_whole(kernels.trace_pixels._cache)
+
+
+def _index_is_whole(cache) -> bool:
+    """Whether a numba function cache's index loads (version, source stamp) and names only whole data files."""
+    import pickle
+
+    import numba
+
+    cache_file = cache._cache_file
+    try:
+        with open(cache_file._index_path, "rb") as fh:
+            version = pickle.load(fh)
+            stamp, overloads = pickle.loads(fh.read())
+    except Exception:  # missing, emptied, truncated: numba would fail or compile
+        return False
+    from ._target import complete_pickle
+
+    return (version == numba.__version__ and stamp == cache._impl.locator.get_source_stamp() and bool(overloads)
+            and all(complete_pickle(os.path.join(cache.cache_path, name)) for name in overloads.values()))
+
+
+def cache_problem() -> str:
+    """Why the CPU kernels cannot be cached (their folder cannot be used: they are compiled in every process), or
+    "" (also where the compiled tracer does not run on the CPU)."""
+    if cpu_kernels_cached() is None:
+        return ""
+    from ._target import unusable_reason
+
+    return unusable_reason()
 
 
 def cache_location() -> str:

@@ -13,15 +13,29 @@ surface, sampler, layout), are frozen into that code, and numba's options are no
 either. So the code is cached in a folder named after :func:`constants_fingerprint` (a hash of every
 constant of the module and of :data:`CPU_DECORATORS`): changing a constant anywhere, or an option,
 compiles anew instead of loading stale code. (The CUDA build caches as numba does.)
+
+A cache that cannot be used never stops a render (issue 35):
+
+* a damaged file (a truncated ``.nbc``, an emptied ``.nbi``: a disk that filled up, a copy cut short) is
+  set aside — the function's index and data files renamed ``*.damaged`` beside them, not deleted — and
+  the function compiled anew and cached again (:func:`guarded_cache_class`);
+* a cache that cannot be written (a full disk, a folder made read-only) leaves the kernels compiled in
+  this process; the next process compiles them again;
+* a folder that cannot be used at all (``NUMBA_CACHE_DIR`` read-only or under a regular file) is named
+  with that cost: every process compiles the kernels again (:func:`cache_folder`).
+
+Each of these is said once per process, as a :class:`CompiledWarning` (:func:`note`).
 """
 
 from __future__ import annotations
 
 import contextlib
+import functools
 import hashlib
 import os
 import sys
 import tempfile
+import warnings
 
 import numpy as np
 
@@ -62,13 +76,37 @@ def _encode(value) -> bytes | None:
     return None
 
 
+class CompiledWarning(UserWarning):
+    """Something about the compiled tracer's environment a user should know (its cache, its threads); the
+    render goes on. Each message is warned once per process (:func:`note`)."""
+
+
+NOTES: list[str] = []
+"""What :func:`note` has said in this process, in order."""
+
+
+def note(message: str) -> None:
+    """Warn ``message`` as a :class:`CompiledWarning`, once per process."""
+    if message not in NOTES:
+        NOTES.append(message)
+        warnings.warn(message, CompiledWarning, stacklevel=2)
+
+
+RECOMPILE_COST = "about 40 s on 2 cores"
+"""What compiling the CPU kernels costs (docs/benchmarks.md), for the notes."""
+
+UNUSABLE: dict[str, str] = {}
+"""Cache folder (``NUMBA_CACHE_DIR``'s or the default ones) → why it cannot be used, for those tried and refused."""
+
+
 def cache_folder(source_file: str, fingerprint: str) -> str | None:
     """The writable folder for the machine code of ``source_file`` compiled with constants ``fingerprint``.
 
     ``$NUMBA_CACHE_DIR/tofcore-<fingerprint>`` where that variable is set, else
     ``__pycache__/numba-<fingerprint>`` beside the source, else (read-only install)
     ``$XDG_CACHE_HOME`` (``~/.cache``) ``/tofcore/numba-<fingerprint>``; None where none can be written
-    (the functions are then compiled in each process, never loaded stale).
+    (the functions are then compiled in each process, never loaded stale: said once, naming the folders
+    and that cost, :func:`note`).
     """
     import numba
 
@@ -84,9 +122,88 @@ def cache_folder(source_file: str, fingerprint: str) -> str | None:
             os.makedirs(folder, exist_ok=True)
             with tempfile.TemporaryFile(dir=folder):
                 return folder
-        except OSError:
-            continue
+        except OSError as exc:
+            UNUSABLE[folder] = exc.strerror or str(exc)
+    where = (f"NUMBA_CACHE_DIR={numba.config.CACHE_DIR}" if numba.config.CACHE_DIR
+             else " and ".join(candidates))
+    note(f"the compiled tracer's kernel cache {where} cannot be used ({UNUSABLE[candidates[-1]]}): the kernels are "
+         f"compiled again in every process ({RECOMPILE_COST} each); point NUMBA_CACHE_DIR at a writable folder")
     return None
+
+
+def unusable_reason() -> str:
+    """Why the CPU kernels are compiled in every process (their cache folder cannot be used), or ""."""
+    if "tofcore.compiled.kernels" in CACHE_FOLDERS and CACHE_FOLDERS["tofcore.compiled.kernels"] is None:
+        return next((n for n in NOTES if "cannot be used" in n), "their cache folder cannot be used")
+    return ""
+
+
+def set_aside(paths: list[str]) -> list[str]:
+    """Rename each existing file of ``paths`` to ``<name>.damaged`` (replacing an older one); the new names."""
+    moved = []
+    for path in paths:
+        try:
+            os.replace(path, path + ".damaged")
+            moved.append(path + ".damaged")
+        except FileNotFoundError:
+            continue
+        except OSError:  # a read-only folder: the damaged file stays, the function is compiled in each process
+            continue
+    return moved
+
+
+def complete_pickle(path: str) -> bool:
+    """Whether ``path`` holds a whole pickle as numba writes them (protocol 4+: its first frame's declared
+    length fits in the file, and the file ends with the STOP opcode) — read in two small pieces, not loaded."""
+    try:
+        with open(path, "rb") as fh:
+            head = fh.read(11)
+            size = os.fstat(fh.fileno()).st_size
+            if len(head) < 3 or head[0] != 0x80:
+                return False
+            if head[2] == 0x95 and (len(head) < 11 or 11 + int.from_bytes(head[3:11], "little") > size):
+                return False
+            fh.seek(size - 1)
+            return fh.read(1) == b"."
+    except OSError:
+        return False
+
+
+@functools.cache
+def guarded_cache_class():
+    """numba's ``FunctionCache`` guarded against damaged and unwritable files (made on first use: numba is
+    imported then)."""
+    from numba.core.caching import FunctionCache
+
+    class GuardedCache(FunctionCache):
+        """numba's per-function cache, where a damaged file is set aside and compiled anew, and a file that
+        cannot be written leaves the function compiled (module docstring)."""
+
+        def load_overload(self, sig, target_context):
+            try:
+                return super().load_overload(sig, target_context)
+            except Exception as exc:  # UnpicklingError, EOFError, ValueError, … of a damaged file
+                cache_file = self._cache_file
+                base = cache_file._index_path[:-len(".nbi")]
+                folder = os.path.dirname(base)
+                data = [os.path.join(folder, n) for n in os.listdir(folder)
+                        if n.startswith(os.path.basename(base) + ".") and n.endswith(".nbc")] \
+                    if os.path.isdir(folder) else []
+                moved = set_aside([cache_file._index_path, *data])
+                note(f"the compiled tracer's kernel cache {os.path.basename(base)}.* in {folder} was damaged "
+                     f"({type(exc).__name__}: {str(exc)[:80]}); {len(moved)} file(s) set aside as *.damaged, "
+                     f"compiled anew (up to {RECOMPILE_COST}) and cached again")
+                return None
+
+        def save_overload(self, sig, data):
+            try:
+                super().save_overload(sig, data)
+            except OSError as exc:  # a full disk, a folder made read-only meanwhile
+                note(f"the compiled tracer's kernel cache {self._cache_path} cannot be written "
+                     f"({exc.strerror or exc}): the kernels are compiled in this process and again in the next "
+                     f"({RECOMPILE_COST}); the render goes on")
+
+    return GuardedCache
 
 
 @contextlib.contextmanager
@@ -123,7 +240,9 @@ def _cpu_jit(module_name: str, kind: str):
         if folder is None:
             return numba.njit(**options)(function)
         with _numba_cache_dir(folder):
-            return numba.njit(cache=True, **options)(function)
+            dispatcher = numba.njit(cache=True, **options)(function)
+        dispatcher._cache.__class__ = guarded_cache_class()  # same state, guarded load and save
+        return dispatcher
 
     return decorate
 

@@ -52,12 +52,14 @@ def start() -> str:
 
     Returns '' when a child compiles now or none is needed, else why none could start.
     """
-    from . import cpu_kernels_cached
+    from . import cache_problem, cpu_kernels_cached
     from ..tracer.workers import python_executable
 
     with _lock:
         if running() or cpu_kernels_cached() is not False:
             return ""
+        if cache_problem():  # a child's compile could not be kept for this process
+            return cache_problem()
         python = python_executable()
         if python is None:
             return f"no Python interpreter beside {sys.executable!r} to compile in"

@@ -10,6 +10,7 @@ Layout read
 
     DATASET/
       index.jsonl            one JSON record per frame: job_id, status, scene, view, preset, seed, files, …
+      set.json               the set of the last run: its set file and its frames' job ids, in set order
       frames/<job_id>/       frame.exr, frame.json, record.json, PNG previews, points.ply
 
 The fields of a record are listed in ``batch/dataset.py``; what the files hold
@@ -33,6 +34,16 @@ dataset is opened, each indexed frame's ``record.json`` is read (a small file):
 * frame folders that the index does not list (an emptied or shortened
   index) are not listed, with one warning counting them: running the set
   again (``tofcore-batch run``) repairs the index without rendering them.
+
+When the set changed
+--------------------
+An edited set file (another spp or seed, a scene removed) gives its frames new
+job ids; a rerun renders them and keeps the earlier frames in the index and in
+``frames/``, so the index can hold two frames of one view with different
+settings, or a removed scene's frames. Each run writes ``set.json``: the set
+file and the job ids of the set it ran. Indexed frames that are not in it are
+counted in one warning when the dataset is opened (:attr:`Dataset.outside_set`);
+``Dataset(root, current_set=True)`` lists only the frames of that set.
 
 When a frame's file is opened (``frame.exr`` by :meth:`FrameRef.load`,
 ``frame.json`` for metadata), its size is compared with the record every time
@@ -109,11 +120,13 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import ConfigError
+from ..errors import ConfigError, ExrError
 
 INDEX = "index.jsonl"
 FRAMES = "frames"
 RECORD = "record.json"
+#: The set of the last run (``tofcore-batch run`` writes it): ``{"set_file": path or null, "jobs": [job ids]}``.
+CURRENT_SET = "set.json"
 FRAME_EXR = "frame.exr"
 FRAME_JSON = "frame.json"
 
@@ -364,8 +377,10 @@ class FrameRef:
 
         try:
             stored = read_exr(exr)
-        except (OSError, ValueError) as exc:  # tofcore.output.exr: a damaged or truncated file is a ValueError
-            raise DatasetError(f"{exr}: cannot be read as EXR ({type(exc).__name__}: {exc})") from None
+        except ExrError as exc:  # tofcore.output.exr: "{path}: {defect}", one line
+            raise DatasetError(f"{exr}: cannot be read as EXR: {str(exc).removeprefix(f'{exr}: ')}") from None
+        except OSError as exc:
+            raise DatasetError(f"{exr}: cannot be read as EXR ({exc.strerror or exc})") from None
         if names is None:
             names = [n for n in IMAGE_CHANNELS if n in stored] + ["raw", "distance_per_k"]
         out: dict[str, Any] = {}
@@ -453,6 +468,19 @@ def read_regular(path: Path) -> bytes:
         return fh.read()
 
 
+def read_current_set(root: Path) -> dict | None:
+    """``set.json`` of a dataset folder: ``{"set_file": str or None, "jobs": [job ids], …}``, or None where it is
+    missing or not of that form (a dataset written before it existed, or a damaged file)."""
+    try:
+        data = json.loads(read_regular(root / CURRENT_SET))
+    except (OSError, ValueError, RecursionError):
+        return None
+    if not isinstance(data, dict) or not isinstance(data.get("jobs"), list) \
+            or not all(isinstance(i, str) for i in data["jobs"]):
+        return None
+    return data
+
+
 def differing_keys(line: dict, stored: dict) -> list[str]:
     """Top-level keys in which an index line and its ``record.json`` differ (the index's ``record_file`` left out)."""
     missing = object()
@@ -499,19 +527,25 @@ class Dataset:
     checksum : {"sha256", "size"}
         How a frame's files are checked when opened: size every time and
         SHA-256 the first time (default), or size only.
+    current_set : bool
+        List only the frames of the set the last run rendered (``set.json``);
+        False (default): every indexed frame, with a warning counting those
+        not in that set (an earlier version of the set file, another set).
 
     Raises
     ------
     DatasetError
         ``root`` is missing, not a folder, or has no ``index.jsonl``/``frames/``
-        (one line naming the path).
+        (one line naming the path); ``current_set=True`` where there is no
+        readable ``set.json`` (a dataset of an older run).
 
     Warns
     -----
     UserWarning
         Index lines that are not records, lines that differ from their
         frame's ``record.json`` (which is used), frames refused (see the
-        module docstring) and frame folders the index does not list.
+        module docstring), frame folders the index does not list, and frames
+        not in the last run's set (unless ``current_set``).
 
     Notes
     -----
@@ -527,7 +561,7 @@ class Dataset:
     ...     depth = frame.load("depth")["depth"]
     """
 
-    def __init__(self, root: str | os.PathLike, checksum: str = "sha256"):
+    def __init__(self, root: str | os.PathLike, checksum: str = "sha256", current_set: bool = False):
         if checksum not in CHECKSUMS:
             raise DatasetError(f"Dataset: checksum must be one of {list(CHECKSUMS)}, got {checksum!r}")
         self.checksum = checksum
@@ -549,8 +583,13 @@ class Dataset:
         self.refused: dict[str, str] = {}
         #: Frame folders that the index does not list.
         self.unindexed: list[str] = []
+        #: The set of the last run (``set.json``): ``{"set_file": …, "jobs": [ids]}``, or None (an older dataset).
+        self.current_set: dict | None = read_current_set(self.root)
+        #: Indexed frames (any status) that are not in :attr:`current_set`, by id, in index order.
+        self.outside_set: list[str] = []
         self._read_index()
         self._check_against_folders()
+        self._check_against_set(current_set)
 
     def _read_index(self) -> None:
         """Fill ``_refs`` in index order (a job's last line wins); skip and warn about lines that are not records."""
@@ -622,6 +661,25 @@ class Dataset:
             warnings.warn(f"{self.root}: {len(self.unindexed)} frame folder(s) in {FRAMES}/ are not in {INDEX} and "
                           f"not listed (e.g. {self.unindexed[0]}); running the set again (tofcore-batch run) "
                           f"repairs the index", stacklevel=3)
+
+    def _check_against_set(self, only: bool) -> None:
+        """Set aside the frames not in the last run's set (``only``), else warn about them."""
+        if self.current_set is None:
+            if only:
+                raise DatasetError(f"{self.root / CURRENT_SET}: not found or not readable, so the frames of the "
+                                   f"current set are not known (a dataset of an older run: run the set again)")
+            return
+        in_set = set(self.current_set["jobs"])
+        self.outside_set = [i for i in self._refs if i not in in_set]
+        if only:
+            for job_id in self.outside_set:
+                del self._refs[job_id]
+        elif self.outside_set:
+            example = self._refs[self.outside_set[0]]
+            warnings.warn(f"{self.root}: {len(self.outside_set)} indexed frame(s) are not in the set of the last run "
+                          f"({self.current_set.get('set_file') or 'its set'}), e.g. {example.id} "
+                          f"({example.scene}/{example.view}/{example.preset}): an earlier version of the set file or "
+                          f"another set; Dataset(root, current_set=True) lists only that set's frames", stacklevel=3)
 
     def _refuse(self, job_id: str, why: str) -> None:
         self._refs.pop(job_id)

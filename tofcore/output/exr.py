@@ -51,9 +51,27 @@ NumPy (3, 3) / (4, 4) float32/64  m33f/d, m44f/d  float32 / float64 array
 :func:`read_header` returns every attribute: the types above, the standard ones (``channels``
 as ``{name: "FLOAT"|"HALF"|"UINT"}``, ``compression`` as its name, ``dataWindow``/
 ``displayWindow`` as int32 ``[x_min, y_min, x_max, y_max]``, ``lineOrder`` as its name), and any
-other type as ``bytes``. Not covered (a one-line ``ValueError`` naming the file): tiled,
+other type as ``bytes``. Not covered (a one-line error naming the file): tiled,
 multi-part and deep files, sub-sampled channels, and the RLE, PIZ, PXR24, B44, DWA compressions.
-Damaged or truncated files are ``ValueError`` naming the file and what is wrong.
+
+Reading hostile files
+---------------------
+Every file that cannot be read is one :class:`~tofcore.errors.ExrError` (a ``TofError`` and a
+``ValueError``), one line ``"{path}: {defect}"``: not an EXR file, truncated, damaged, of a kind
+not covered, or declaring more than it holds. A read takes memory bounded by what the file holds:
+
+* the file must be a regular file of at most :data:`tofcore.limits.MAX_EXR_BYTES` (4 GiB,
+  ``TOFCORE_MAX_EXR_BYTES``);
+* the standard attributes must have their standard types (``dataWindow`` a ``box2i``, …), named
+  when one does not;
+* the pixel bytes the header declares (dataWindow × channels) are checked before anything is
+  allocated: at most the file's size when stored as they are, at most :data:`DEFLATE_MAX_RATIO`
+  (1032, deflate's largest ratio) times it for ZIP/ZIPS, and at most ``MAX_EXR_BYTES``;
+* every chunk inflates at most the bytes of its lines (zlib's ``max_length``); a stream holding
+  more (a ZIP bomb) is refused there, so the peak is the image plus one chunk;
+* every offset, size and chunk line is checked against the file and the dataWindow.
+
+:func:`check` does all but the inflating (``tofcore-batch verify`` uses it).
 
 Example
 -------
@@ -68,11 +86,16 @@ from __future__ import annotations
 import math
 import os
 import secrets
+import stat
 import struct
 import zlib
 from collections.abc import Iterable, Mapping
+from dataclasses import dataclass
 
 import numpy as np
+
+from .. import limits
+from ..errors import ExrError
 
 MAGIC = b"\x76\x2f\x31\x01"
 VERSION = 2
@@ -115,6 +138,8 @@ def write(path: str | os.PathLike, channels: Mapping[str, np.ndarray], *,
     attributes : extra header attributes (table in the module docstring); not a standard name.
     compression : ``"zip"`` (default), ``"zips"`` or ``"none"``.
 
+    Notes
+    -----
     On any failure the temp file is removed and ``path`` is left as it was.
     """
     data = encode(channels, attributes=attributes, compression=compression)
@@ -137,21 +162,25 @@ def write(path: str | os.PathLike, channels: Mapping[str, np.ndarray], *,
 def read(path: str | os.PathLike, names: Iterable[str] | None = None) -> dict[str, np.ndarray]:
     """Channels of a scanline EXR as ``{name: (H, W) array}`` (float32, float16 or uint32).
 
-    ``names`` picks channels, in that order (a missing one is a ``ValueError`` naming the file and
-    the channels it holds); None reads all, in the file's (name) order.
+    ``names`` picks channels, in that order (a missing one is an ``ExrError`` naming the file and
+    the channels it holds); None reads all, in the file's (name) order. A file that cannot be read is
+    one :class:`~tofcore.errors.ExrError` (a ``ValueError``) naming it and the defect.
     """
     where = _where(path)
-    with open(path, "rb") as fh:
-        data = fh.read()
-    return decode(data, names, where=where)
+    return decode(_read_file(path, where), names, where=where)
 
 
 def read_header(path: str | os.PathLike) -> dict[str, object]:
     """Every header attribute of an EXR file (types in the module docstring)."""
     where = _where(path)
-    with open(path, "rb") as fh:
-        data = fh.read()
-    return _Reader(data, where).header()[0]
+    return _Reader(_read_file(path, where), where).header()[0]
+
+
+def check(path: str | os.PathLike) -> None:
+    """Raise :class:`~tofcore.errors.ExrError` unless ``path`` is an EXR file :func:`read` can read, as far
+    as its header, declared sizes, offset table and chunk headers tell (the pixels are not inflated)."""
+    where = _where(path)
+    _Reader(_read_file(path, where), where).check()
 
 
 def encode(channels: Mapping[str, np.ndarray], *, attributes: Mapping[str, object] | None = None,
@@ -276,17 +305,25 @@ def _compress(raw: bytes, code: int) -> bytes:
 
 
 def _uncompress(stored: bytes, size: int, code: int, where: str) -> np.ndarray:
-    """The chunk's ``size`` raw bytes (inverse of :func:`_compress`)."""
-    if code == 0 or len(stored) == size:
+    """The chunk's ``size`` raw bytes (inverse of :func:`_compress`); zlib inflates at most ``size`` bytes
+    (``max_length``), and a stream that holds more is refused before it is inflated further."""
+    if code == 0 or size == 0 or len(stored) == size:
         if len(stored) != size:
-            raise ValueError(f"{where}: damaged EXR: a chunk holds {len(stored)} bytes, expected {size}")
+            raise ExrError(f"{where}: damaged EXR: a chunk holds {len(stored)} bytes, expected {size}")
         return np.frombuffer(stored, np.uint8)
+    inflater = zlib.decompressobj()
     try:
-        d = np.frombuffer(zlib.decompress(stored, bufsize=size), np.uint8).copy()
+        d = inflater.decompress(stored, size)
+        more = b"" if inflater.eof else inflater.decompress(inflater.unconsumed_tail, 1)
     except zlib.error as err:
-        raise ValueError(f"{where}: damaged EXR: a ZIP chunk does not decompress ({err})") from None
-    if d.size != size:
-        raise ValueError(f"{where}: damaged EXR: a ZIP chunk holds {d.size} bytes, expected {size}")
+        raise ExrError(f"{where}: damaged EXR: a ZIP chunk does not decompress ({err})") from None
+    if more:
+        raise ExrError(f"{where}: damaged EXR: a ZIP chunk inflates to more than the {size:,} bytes its lines "
+                       f"hold (refused after {size:,})")
+    if len(d) != size or not inflater.eof:
+        raise ExrError(f"{where}: damaged EXR: a ZIP chunk holds {len(d)} bytes"
+                       f"{'' if inflater.eof else ' and no end of stream'}, expected {size}")
+    d = np.frombuffer(d, np.uint8).copy()
     d[1:] -= np.uint8(128)
     t = np.cumsum(d, dtype=np.uint8)  # mod 256
     b = np.empty_like(t)
@@ -302,17 +339,53 @@ def _where(path: str | os.PathLike) -> str:
     return os.fsdecode(path) if isinstance(path, bytes) else path
 
 
+def _read_file(path: str | os.PathLike, where: str) -> bytes:
+    """The bytes of a regular file of at most :data:`tofcore.limits.MAX_EXR_BYTES` (``/dev/zero`` or a FIFO
+    would never end); ``OSError`` (a missing file) reaches the caller."""
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | getattr(os, "O_BINARY", 0))  # a FIFO: no wait
+    try:
+        info = os.fstat(fd)
+        if not stat.S_ISREG(info.st_mode):
+            kind = "folder" if stat.S_ISDIR(info.st_mode) else "special file"
+            raise ExrError(f"{where}: not an OpenEXR file (a {kind}, not a regular file)")
+        if limits.MAX_EXR_BYTES.exceeded(info.st_size):
+            raise ExrError(f"{where}: an EXR file must be {limits.MAX_EXR_BYTES.describe()}, got "
+                           f"{info.st_size:,} bytes")
+        with open(fd, "rb", closefd=False) as fh:
+            return fh.read(info.st_size)
+    finally:
+        os.close(fd)
+
+
+#: Standard attributes and the one type each must have (OpenEXR's ``ImfStandardAttributes``); a file
+#: that types one otherwise is refused by name.
+_STANDARD_TYPES = {"channels": "chlist", "compression": "compression", "dataWindow": "box2i",
+                   "displayWindow": "box2i", "lineOrder": "lineOrder", "pixelAspectRatio": "float",
+                   "screenWindowCenter": "v2f", "screenWindowWidth": "float"}
+_REQUIRED = ("channels", "compression", "dataWindow", "lineOrder")
+#: Most bytes deflate can give per stored byte (RFC 1951: a 258-byte match in as little as 2 bits ⇒ 1032:1).
+DEFLATE_MAX_RATIO = 1032
+
+
 class _Reader:
-    """Bounds-checked parsing of one file's bytes; every problem is a ValueError naming ``where``."""
+    """Bounds-checked parsing of one file's bytes; every problem is an :class:`ExrError` naming ``where``.
+
+    Memory is bounded by the file: the pixel bytes the header declares are checked against the file's
+    size (stored as they are: equal; ZIP: at most :data:`DEFLATE_MAX_RATIO` times) and against
+    :data:`tofcore.limits.MAX_EXR_BYTES` before anything is allocated, and each chunk inflates at most
+    the bytes of its lines.
+    """
 
     def __init__(self, data: bytes, where: str) -> None:
         self.data, self.where = memoryview(data), where
 
-    def _fail(self, what: str):
-        return ValueError(f"{self.where}: {what}")
+    def _fail(self, what: str) -> ExrError:
+        return ExrError(f"{self.where}: {what}")
 
     def _take(self, position: int, size: int, what: str) -> bytes:
-        if size < 0 or position + size > len(self.data):
+        if size < 0:
+            raise self._fail(f"damaged EXR: {what} has a negative size ({size})")
+        if position + size > len(self.data):
             raise self._fail(f"truncated EXR: {what} runs past the end of the file ({len(self.data)} bytes)")
         return bytes(self.data[position:position + size])
 
@@ -345,9 +418,12 @@ class _Reader:
             size = struct.unpack("<i", self._take(position, 4, f"the size of attribute {name!r}"))[0]
             raw[name] = (kind, self._take(position + 4, size, f"attribute {name!r}"))
             position += 4 + size
-        missing = [name for name in ("channels", "compression", "dataWindow", "lineOrder") if name not in raw]
+        missing = [name for name in _REQUIRED if name not in raw]
         if missing:
             raise self._fail(f"damaged EXR: the header lacks {missing}")
+        for name, kind in _STANDARD_TYPES.items():
+            if name in raw and raw[name][0] != kind:
+                raise self._fail(f"damaged EXR: attribute {name!r} must be of type {kind}, got {raw[name][0]!r}")
         return {name: self._value(name, kind, value) for name, (kind, value) in raw.items()}, position, raw
 
     def _value(self, name: str, kind: str, value: bytes) -> object:
@@ -365,17 +441,19 @@ class _Reader:
                 return _COMPRESSION_NAMES.get(value[0], f"unknown ({value[0]})")
             if kind == "lineOrder":
                 return _LINE_ORDERS.get(value[0], f"unknown ({value[0]})")
-            if kind == "chlist":
-                return {name: _PIXEL_TYPES[code][1] for name, (code, _, _) in self._channels(value).items()}
         except (struct.error, ValueError, IndexError):
             raise self._fail(f"damaged EXR: attribute {name!r} of type {kind} holds {len(value)} bytes") from None
+        if kind == "chlist":
+            return {name: _PIXEL_TYPES[code][1] for name, (code, _, _) in self._channels(value).items()}
         return value
 
     def _channels(self, value: bytes) -> dict[str, tuple[int, int, int]]:
         """``{name: (pixel type, x sampling, y sampling)}`` of a chlist value."""
         channels, position = {}, 0
         while position < len(value) and value[position] != 0:
-            end = value.index(b"\0", position)
+            end = value.find(b"\0", position)
+            if end < 0 or end + 17 > len(value):
+                raise self._fail("damaged EXR: the channel list (attribute 'channels') ends inside an entry")
             name = value[position:end].decode("utf-8", "replace")
             code, _, xs, ys = struct.unpack("<iB3xii", value[end + 1:end + 17])
             if code not in _PIXEL_TYPES:
@@ -383,10 +461,11 @@ class _Reader:
             channels[name] = (code, xs, ys)
             position = end + 17
         if position >= len(value):
-            raise ValueError("chlist not terminated")
+            raise self._fail("damaged EXR: the channel list (attribute 'channels') is not NUL-terminated")
         return channels
 
-    def pixels(self, names: Iterable[str] | None) -> dict[str, np.ndarray]:
+    def layout(self) -> _Layout:
+        """The header's layout, the pixel bytes it declares checked against the file and the limit."""
         header, position, raw = self.header()
         channels = self._channels(raw["channels"][1])
         if any((xs, ys) != (1, 1) for _, xs, ys in channels.values()):
@@ -399,33 +478,75 @@ class _Reader:
         width, height = x_max - x_min + 1, y_max - y_min + 1
         if width < 1 or height < 1 or width * height > 2**31:
             raise self._fail(f"damaged EXR: dataWindow {[x_min, y_min, x_max, y_max]} is empty or too large")
+        line_bytes = width * sum(_PIXEL_TYPES[c][0].itemsize for c, _, _ in channels.values())
+        declared = height * line_bytes
+        if declared > len(self.data) * (1 if code == 0 else DEFLATE_MAX_RATIO):
+            raise self._fail(f"damaged EXR: the header declares {declared:,} bytes of pixels ({width} x {height}, "
+                             f"{len(channels)} channels), more than a {compression!r} file of {len(self.data):,} "
+                             f"bytes can hold")
+        if limits.MAX_EXR_BYTES.exceeded(declared):
+            raise self._fail(f"the header declares {declared:,} bytes of pixels ({width} x {height}, "
+                             f"{len(channels)} channels); an EXR read must be {limits.MAX_EXR_BYTES.describe()}")
+        return _Layout(position, channels, code, lines, y_min, width, height, line_bytes)
+
+    def chunks(self, layout: _Layout):
+        """``(index, offset of the stored data, its size)`` of every entry of the offset table, each checked to
+        lie in the file and to start one of the dataWindow's chunks; then that no chunk is missing."""
+        count = math.ceil(layout.height / layout.lines)
+        offsets = np.frombuffer(self._take(layout.position, 8 * count, "the offset table"), "<u8")
+        seen = np.zeros(count, bool)
+        for offset in offsets.tolist():
+            y, size = struct.unpack("<ii", self._take(offset, 8, "a chunk's header"))
+            index = (y - layout.y_min) // layout.lines
+            if (y - layout.y_min) % layout.lines or not 0 <= index < count:
+                raise self._fail(f"damaged EXR: a chunk starts at line {y}, outside the dataWindow's "
+                                 f"{layout.lines}-line chunks")
+            if size < 0 or offset + 8 + size > len(self.data):
+                self._take(offset + 8, size, f"the chunk of line {y}")  # raises, naming the defect
+            yield index, offset + 8, size
+            seen[index] = True
+        if not seen.all():
+            raise self._fail(f"damaged EXR: {int((~seen).sum())} of {count} chunks missing from the offset table")
+
+    def check(self) -> None:
+        """Everything but the pixels: header, declared sizes, offset table and chunk headers (no inflating)."""
+        for _ in self.chunks(self.layout()):
+            pass
+
+    def pixels(self, names: Iterable[str] | None) -> dict[str, np.ndarray]:
+        layout = self.layout()
+        channels, lines, line_bytes = layout.channels, layout.lines, layout.line_bytes
         wanted = list(channels) if names is None else list(names)
         unknown = [n for n in wanted if n not in channels]
         if unknown:
             raise self._fail(f"channels {unknown} not in the file; it holds {sorted(channels)}")
-        widths = [width * _PIXEL_TYPES[code_][0].itemsize for code_, _, _ in channels.values()]
-        line_bytes = sum(widths)
-        count = math.ceil(height / lines)
-        offsets = np.frombuffer(self._take(position, 8 * count, "the offset table"), "<u8")
-        rows = np.empty((height, line_bytes), np.uint8)
-        seen = np.zeros(count, bool)
-        for offset in offsets.tolist():
-            y, size = struct.unpack("<ii", self._take(offset, 8, "a chunk's header"))
-            index = (y - y_min) // lines
-            if (y - y_min) % lines or not 0 <= index < count:
-                raise self._fail(f"damaged EXR: a chunk starts at line {y}, outside the dataWindow's "
-                                 f"{lines}-line chunks")
+        rows = np.empty((layout.height, line_bytes), np.uint8)
+        for index, start, size in self.chunks(layout):
             first = index * lines
-            n = min(lines, height - first)
-            stored = self._take(offset + 8, size, f"the chunk of line {y}")
-            rows[first:first + n] = _uncompress(stored, n * line_bytes, code, self.where).reshape(n, line_bytes)
-            seen[index] = True
-        if not seen.all():
-            raise self._fail(f"damaged EXR: {int((~seen).sum())} of {count} chunks missing from the offset table")
+            n = min(lines, layout.height - first)
+            stored = bytes(self.data[start:start + size])
+            rows[first:first + n] = _uncompress(stored, n * line_bytes, layout.code, self.where).reshape(n, line_bytes)
         out, start = {}, 0
-        for (name, (code_, _, _)), size in zip(channels.items(), widths):
+        for name, (code, _, _) in channels.items():
+            dtype = _PIXEL_TYPES[code][0]
+            size = layout.width * dtype.itemsize
             if name in wanted:
-                dtype = _PIXEL_TYPES[code_][0]
                 out[name] = rows[:, start:start + size].copy().view(dtype).astype(dtype.newbyteorder("="), copy=False)
             start += size
         return {name: out[name] for name in wanted}
+
+
+@dataclass(frozen=True)
+class _Layout:
+    """Where a file's pixels are: the offset table's position, the channels ``{name: (pixel type, x and y
+    sampling)}``, the compression's code and lines per chunk, the dataWindow's first line, its size, and the
+    bytes of one line of every channel."""
+
+    position: int
+    channels: dict
+    code: int
+    lines: int
+    y_min: int
+    width: int
+    height: int
+    line_bytes: int

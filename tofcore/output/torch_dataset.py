@@ -46,6 +46,8 @@ transform : callable, optional
     Applied to each sample dict; its return value is the sample.
 allow_mixed : bool, default False
     Accept frames of several presets or image sizes.
+current_set : bool, default False
+    Only the frames of the set the last run rendered (``Dataset(root, current_set=True)``).
 
 Example
 -------
@@ -81,8 +83,9 @@ class TorchDataset(_TorchBase):
 
     def __init__(self, root: str | os.PathLike, channels: Iterable[str] = DEFAULT_CHANNELS, *,
                  scene=None, preset=None, view=None,
-                 transform: Callable[[dict], dict] | None = None, allow_mixed: bool = False):
-        self.dataset = Dataset(root)
+                 transform: Callable[[dict], dict] | None = None, allow_mixed: bool = False,
+                 current_set: bool = False):
+        self.dataset = Dataset(root, current_set=current_set)
         where = f"TorchDataset({str(self.dataset.root)!r})"
         self.channels = tuple(_check_channels(channels, where))
         self.refs: list[FrameRef] = self.dataset.frames(scene=scene, preset=preset, view=view)

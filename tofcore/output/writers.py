@@ -78,6 +78,7 @@ from pathlib import Path, PurePath
 
 import numpy as np
 
+from ..errors import ExrError
 from . import exr
 from .convergence_plot import convergence_png
 from .frame import Frame, Reason
@@ -215,8 +216,15 @@ def _write_pngs(frame: Frame, out: Path, prefix: str, written: dict, previews: d
 
 def read_exr(path: str | os.PathLike, names: Iterable[str] | None = None) -> dict[str, np.ndarray]:
     """Channels of a ``frame.exr`` (or ``depth.exr``) as ``{name: (H, W) float32 array}`` (half floats widened);
-    ``names`` picks some. A damaged file is a one-line ValueError naming it (:func:`tofcore.output.exr.read`)."""
-    return {name: np.asarray(image, dtype=np.float32) for name, image in exr.read(path, names).items()}
+    ``names`` picks some. A damaged file, or a channel of integers (UINT: tofcore writes FLOAT or HALF, and an
+    integer depth read as metres would be silently wrong), is a one-line :class:`~tofcore.errors.ExrError`
+    (a ValueError) naming the file (:func:`tofcore.output.exr.read`)."""
+    channels = exr.read(path, names)
+    integers = [name for name, image in channels.items() if image.dtype.kind != "f"]
+    if integers:
+        raise ExrError(f"{os.fsdecode(os.fspath(path))}: channels {integers} are UINT (integers); a tofcore frame's "
+                       f"channels are FLOAT or HALF (metres, electrons, 0/1 masks)")
+    return {name: np.asarray(image, dtype=np.float32) for name, image in channels.items()}
 
 
 def exr_channel_names(raw_labels: Iterable[str], bounces: int) -> list[str]:

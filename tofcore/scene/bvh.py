@@ -48,7 +48,11 @@ pairs as soon as it is occluded.
 from __future__ import annotations
 
 import functools
+import hashlib
+import threading
 import time
+import warnings
+from collections import OrderedDict
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
@@ -65,6 +69,10 @@ WIDTH = 4
 
 N_BINS = 32
 """SAH bins per axis and node."""
+
+COMPILED_BUILD_MIN = 4096
+"""Meshes with fewer triangles are built by the NumPy levels alone (:func:`_split_level`): milliseconds,
+less than importing numba for the compiled levels (:mod:`tofcore.scene.bvh_build`)."""
 
 RAY_CHUNK = 8192
 """Rays traversed together; keeps the per-level temporaries in L2."""
@@ -349,11 +357,57 @@ def _half_area(lo, hi):
     return ext[0] * ext[1] + ext[1] * ext[2] + ext[2] * ext[0]
 
 
-def _build_binary(lo, hi, leaf_size, n_bins):
+def _split_level(lo, hi, cen, order, lvl_start, lvl_count, leaf_size, n_bins):
+    """Split every node of one level in NumPy (the reference of :func:`tofcore.scene.bvh_build.split_level`).
+
+    Node ``k`` holds triangles ``order[lvl_start[k]:lvl_start[k] + lvl_count[k]]``; ``order`` is
+    partitioned in place (lefts first, each side in its previous order). Returns ``(node_lo, node_hi,
+    n_left)``: (K, 3) float32 node boxes and (K,) int64 triangles sent left (0 for a leaf). Nodes are
+    split in batches of `_BUILD_BATCH` to bound the memory.
+    """
+    k = lvl_count.size
+    node_lo = np.empty((k, 3), np.float32)
+    node_hi = np.empty((k, 3), np.float32)
+    split = lvl_count > leaf_size
+    n_left = np.zeros(k, np.int64)
+    for b0 in range(0, k, _BUILD_BATCH):
+        b1 = min(k, b0 + _BUILD_BATCH)
+        st, ct = lvl_start[b0:b1], lvl_count[b0:b1]
+        offs = np.cumsum(ct) - ct
+        seg = np.repeat(np.arange(b1 - b0), ct)
+        pos = np.arange(int(ct.sum())) + np.repeat(st - offs, ct)
+        tri = order[pos]
+        e_lo, e_hi = lo[:, tri], hi[:, tri]
+        node_lo[b0:b1] = np.minimum.reduceat(e_lo, offs, axis=1).T
+        node_hi[b0:b1] = np.maximum.reduceat(e_hi, offs, axis=1).T
+        sp = split[b0:b1]
+        if not sp.any():
+            continue
+        inner = sp[seg]
+        seg_i = np.cumsum(sp)[seg[inner]] - 1  # index among the splitting nodes
+        n_i = int(sp.sum())
+        go_left, ok = _sah_split(e_lo[:, inner], e_hi[:, inner], cen[:, tri[inner]], seg_i, n_i, n_bins)
+        local = np.arange(len(seg_i)) - (np.cumsum(ct[sp]) - ct[sp])[seg_i]
+        go_left = np.where(ok[seg_i], go_left, local < (ct[sp] // 2)[seg_i])
+        # stable partition within each node: lefts first, in their current order
+        c_left = np.cumsum(go_left)
+        before = (c_left - go_left)[np.cumsum(ct[sp]) - ct[sp]]  # lefts before each node
+        rank_left = c_left - 1 - before[seg_i]
+        nl = np.bincount(seg_i, weights=go_left, minlength=n_i).astype(np.int64)
+        new_local = np.where(go_left, rank_left, nl[seg_i] + local - (rank_left + 1))
+        order[st[sp][seg_i] + new_local] = tri[inner]
+        n_left[b0:b1][sp] = nl
+    return node_lo, node_hi, n_left
+
+
+def _build_binary(lo, hi, leaf_size, n_bins, *, compiled=None):
     """Top-down binned-SAH binary tree over triangle boxes, one tree level at a time.
 
     ``lo, hi`` are (3, M) float32 triangle boxes.  All nodes of a level are
-    split together (in batches of `_BUILD_BATCH` nodes); a node with at most
+    split together (:func:`_split_level`, or its compiled twin
+    :func:`tofcore.scene.bvh_build.split_level` — the same tree — where numba
+    runs and the mesh has at least `COMPILED_BUILD_MIN` triangles;
+    ``compiled`` True/False overrides the size rule); a node with at most
     ``leaf_size`` triangles is a leaf; a node whose centroids cannot be
     separated by the bins is cut at its middle.  Triangles of a node stay
     contiguous in ``order`` (stable partition in place).
@@ -364,6 +418,23 @@ def _build_binary(lo, hi, leaf_size, n_bins):
     """
     m = lo.shape[1]
     cen = (lo + hi) * np.float32(0.5)
+    if m >= COMPILED_BUILD_MIN if compiled is None else compiled:
+        from . import bvh_build  # imports numba: only for meshes that need it
+        if bvh_build.available():
+            try:
+                records = np.ascontiguousarray(np.concatenate([lo, hi, cen]).T)  # (M, 9), in the order of `order`
+                return _levels(m, functools.partial(bvh_build.split_level, records), leaf_size, n_bins)
+            except Exception as exc:  # noqa: BLE001 — numba's compile and cache errors have no common base
+                # numba could not compile or load the level split (e.g. a damaged cache file: an
+                # UnpicklingError or EOFError): the NumPy levels build the same tree
+                warnings.warn(f"the compiled BVH build failed ({type(exc).__name__}: {exc}); building in NumPy",
+                              RuntimeWarning, stacklevel=2)
+    return _levels(m, functools.partial(_split_level, lo, hi, cen), leaf_size, n_bins)
+
+
+def _levels(m, split_level, leaf_size, n_bins):
+    """The level loop of :func:`_build_binary`; ``split_level(order, starts, counts, leaf_size, n_bins)``
+    splits the nodes of one level."""
     order = np.arange(m)
     lvl_start = np.zeros(1, np.int64)  # first position in `order` of each node of the level
     lvl_count = np.full(1, m, np.int64)  # triangle count of each node of the level
@@ -371,37 +442,8 @@ def _build_binary(lo, hi, leaf_size, n_bins):
     n_done = 0  # nodes of the levels above
     while lvl_count.size:
         k = lvl_count.size
-        node_lo = np.empty((k, 3), np.float32)
-        node_hi = np.empty((k, 3), np.float32)
         split = lvl_count > leaf_size
-        n_left = np.zeros(k, np.int64)
-        for b0 in range(0, k, _BUILD_BATCH):
-            b1 = min(k, b0 + _BUILD_BATCH)
-            st, ct = lvl_start[b0:b1], lvl_count[b0:b1]
-            offs = np.cumsum(ct) - ct
-            seg = np.repeat(np.arange(b1 - b0), ct)
-            pos = np.arange(int(ct.sum())) + np.repeat(st - offs, ct)
-            tri = order[pos]
-            e_lo, e_hi = lo[:, tri], hi[:, tri]
-            node_lo[b0:b1] = np.minimum.reduceat(e_lo, offs, axis=1).T
-            node_hi[b0:b1] = np.maximum.reduceat(e_hi, offs, axis=1).T
-            sp = split[b0:b1]
-            if not sp.any():
-                continue
-            inner = sp[seg]
-            seg_i = np.cumsum(sp)[seg[inner]] - 1  # index among the splitting nodes
-            n_i = int(sp.sum())
-            go_left, ok = _sah_split(e_lo[:, inner], e_hi[:, inner], cen[:, tri[inner]], seg_i, n_i, n_bins)
-            local = np.arange(len(seg_i)) - (np.cumsum(ct[sp]) - ct[sp])[seg_i]
-            go_left = np.where(ok[seg_i], go_left, local < (ct[sp] // 2)[seg_i])
-            # stable partition within each node: lefts first, in their current order
-            c_left = np.cumsum(go_left)
-            before = (c_left - go_left)[np.cumsum(ct[sp]) - ct[sp]]  # lefts before each node
-            rank_left = c_left - 1 - before[seg_i]
-            nl = np.bincount(seg_i, weights=go_left, minlength=n_i).astype(np.int64)
-            new_local = np.where(go_left, rank_left, nl[seg_i] + local - (rank_left + 1))
-            order[st[sp][seg_i] + new_local] = tri[inner]
-            n_left[b0:b1][sp] = nl
+        node_lo, node_hi, n_left = split_level(order, lvl_start, lvl_count, leaf_size, n_bins)
         ids = n_done + k + 2 * (np.cumsum(split) - 1)
         out_lo.append(node_lo)
         out_hi.append(node_hi)
@@ -450,23 +492,45 @@ def _collapse(left, right, area):
     return np.concatenate(levels), len(levels)
 
 
-def _leaf_records(corners, order, start, count, leaf_size: int) -> np.ndarray:
+def _leaf_records(corner_rows, order, start, count, leaf_size: int) -> np.ndarray:
     """(L, _LEAF_ROWS, leaf_size) int32 leaf records: v0, v1, v2 per axis (float32 bits, NaN padding), then
-    the triangle index (−1 padding); leaf i holds triangles order[start[i]:start[i] + count[i]]."""
+    the triangle index (−1 padding); leaf i holds triangles order[start[i]:start[i] + count[i]].
+    ``corner_rows`` is (9, M) float32: v0 x, y, z, v1 x, y, z, v2 x, y, z of each triangle."""
     k = np.arange(leaf_size)
     valid = k[None, :] < count[:, None]
-    prim = np.where(valid, order[np.minimum(start[:, None] + k, len(corners) - 1)], -1)
-    pv = np.where(valid[..., None, None], corners[np.maximum(prim, 0)], np.float32(np.nan))
+    prim = np.where(valid, order[np.minimum(start[:, None] + k, corner_rows.shape[1] - 1)], -1)
     leaf_rec = np.empty((len(start), _LEAF_ROWS, leaf_size), np.int32)
-    leaf_rec[:, :_PRIM_ROW].view(np.float32)[...] = pv.reshape(len(start), leaf_size, 9).transpose(0, 2, 1)
+    rows = leaf_rec[:, :_PRIM_ROW].view(np.float32)
+    safe = np.maximum(prim, 0)
+    for r in range(_PRIM_ROW):  # row by row: one (L, leaf_size) gather each
+        rows[:, r] = np.where(valid, corner_rows[r][safe], np.float32(np.nan))
     leaf_rec[:, _PRIM_ROW] = prim
     return leaf_rec
+
+
+CACHED_TREES = 2
+"""Trees :meth:`BVH.cached` keeps, the most recently used first (a render and a preview of another scene)."""
+
+_trees: OrderedDict[bytes, "BVH"] = OrderedDict()
+_trees_lock = threading.Lock()
+
+
+def geometry_key(vertices: np.ndarray, triangles: np.ndarray, leaf_size: int) -> bytes:
+    """A digest of the triangles as `BVH.build` reads them (float32 vertices, int64 indices, leaf size):
+    equal for equal geometry, whatever object or array holds it (BLAKE2b, ≈ 20 ms per 1M triangles)."""
+    digest = hashlib.blake2b(digest_size=20)
+    v = np.ascontiguousarray(vertices, np.float32)
+    t = np.ascontiguousarray(triangles, np.int64)
+    digest.update(repr((v.shape, t.shape, int(leaf_size))).encode())
+    digest.update(v.data)
+    digest.update(t.data)
+    return digest.digest()
 
 
 class BVH:
     """4-wide binned-SAH bounding volume hierarchy over a triangle mesh.
 
-    Build with `BVH.build`; query with `intersect` (closest hit) and
+    Build with `BVH.build` (or `BVH.cached`, which reuses the tree of the same triangles); query with `intersect` (closest hit) and
     `occluded` (any hit).  Instances are read-only, so one BVH may be queried
     from several threads.
     """
@@ -511,12 +575,15 @@ class BVH:
         if v.ndim != 2 or v.shape[1] != 3 or tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0:
             raise SceneError(f"BVH.build: vertices and triangles must be (N, 3) and (M >= 1, 3), "
                              f"got {v.shape} and {tri.shape}")
-        corners = v[tri]  # (M, 3 vertices, 3 axes)
-        lo = np.ascontiguousarray(corners.min(axis=1).T)
-        hi = np.ascontiguousarray(corners.max(axis=1).T)
+        axes = np.ascontiguousarray(v.T)  # (3, N)
+        corner_rows = np.concatenate([axes[:, tri[:, j]] for j in range(3)])  # (9, M): v0 xyz, v1 xyz, v2 xyz
+        v0, v1, v2 = corner_rows[0:3], corner_rows[3:6], corner_rows[6:9]
+        lo = np.minimum(np.minimum(v0, v1), v2)  # elementwise: far faster than a reduction over the corners
+        hi = np.maximum(np.maximum(v0, v1), v2)
         order, b_lo, b_hi, left, right, start, count = _build_binary(lo, hi, leaf_size, N_BINS)
-        pad = BOX_PAD * (np.maximum(np.abs(b_lo), np.abs(b_hi)).max(axis=1)
-                         + (b_hi - b_lo).max(axis=1))
+        magnitude, extent = np.maximum(np.abs(b_lo), np.abs(b_hi)), b_hi - b_lo
+        pad = BOX_PAD * (np.maximum(np.maximum(magnitude[:, 0], magnitude[:, 1]), magnitude[:, 2])
+                         + np.maximum(np.maximum(extent[:, 0], extent[:, 1]), extent[:, 2]))
         b_lo = b_lo - pad[:, None]
         b_hi = b_hi + pad[:, None]
         slots, depth = _collapse(left, right, _half_area(b_lo.T, b_hi.T))
@@ -538,7 +605,7 @@ class BVH:
         nodes[:, _CHILD_ROW] = np.where(is_leaf[safe] & used[..., 0], ~(leaf_id[safe] * _LEAF_ROWS), to_node)
 
         leaves = np.flatnonzero(is_leaf)
-        leaf_rec = _leaf_records(corners, order, start[leaves], count[leaves], leaf_size)
+        leaf_rec = _leaf_records(corner_rows, order, start[leaves], count[leaves], leaf_size)
         sizes = count[leaves]
         stats = {
             "triangles": len(tri),
@@ -553,6 +620,28 @@ class BVH:
             "build_time_s": time.perf_counter() - t0,
         }
         return cls(nodes=nodes.reshape(-1, WIDTH), leaves=leaf_rec.reshape(-1, leaf_size), stats=stats)
+
+    @classmethod
+    def cached(cls, vertices: np.ndarray, triangles: np.ndarray, *, leaf_size: int = 2) -> "BVH":
+        """`build`, or the tree already built for the same triangles (:func:`geometry_key`).
+
+        A camera, sensor or setting change leaves the geometry as it was, so renders and live-preview
+        updates of one scene share one tree even when the scene is exported or loaded again (the add-on
+        exports it for every preview update). The last `CACHED_TREES` trees are kept.
+        """
+        key = geometry_key(vertices, triangles, leaf_size)
+        with _trees_lock:
+            tree = _trees.get(key)
+            if tree is not None:
+                _trees.move_to_end(key, last=False)
+                return tree
+        tree = cls.build(vertices, triangles, leaf_size=leaf_size)
+        with _trees_lock:
+            _trees[key] = tree
+            _trees.move_to_end(key, last=False)
+            while len(_trees) > CACHED_TREES:
+                _trees.popitem()
+        return tree
 
     @property
     def stats(self) -> dict:

@@ -49,7 +49,7 @@ from __future__ import annotations
 import math
 import operator
 from dataclasses import dataclass
-from functools import cached_property
+from functools import cached_property, lru_cache
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -67,6 +67,12 @@ _NEWTON_STEP_TOL = 1e-10
 _NEWTON_MAX_ITER = 50
 #: Rays generated per block: small enough for the temporaries to stay in cache.
 _RAY_BLOCK = 16384
+#: Pixel centres per block while the undistortion table is built (temporaries stay in cache).
+_TABLE_BLOCK = 8192
+#: Distinct cameras whose undistortion table and invertibility check a process keeps (40 bytes a
+#: pixel each): a batch parent checks a preset, then its overrides and scaling; a batch worker or the
+#: add-on builds the same camera for every frame. Equal cameras share the table (it is read-only).
+_TABLE_CACHE_SIZE = 4
 
 
 @dataclass(frozen=True, kw_only=True)
@@ -310,10 +316,39 @@ class Camera:
         started at the distorted position itself; NaN where it did not
         converge, which the construction check rejects); ``inv_xx, inv_xy,
         inv_yy`` are the entries of the (symmetric) inverse of
-        ∂(x_d, y_d)/∂(x, y) there.
+        ∂(x_d, y_d)/∂(x, y) there. Built once per process for equal cameras
+        (:func:`_shared_centre_table`).
+        """
+        return _shared_centre_table(self)
+
+    def _build_centre_table(self) -> tuple[NDArray[np.float64], ...]:
+        """:attr:`_centre_table`, computed: Newton's method over the pixel centres in cache-sized blocks.
+
+        Every block takes the same steps as the whole image would (the iterations stop when the largest
+        step of all pixels is below the tolerance), so the table does not depend on the block size.
         """
         xd, yd = self._distorted_centres()
-        x, y = self._newton_undistort(xd, yd, xd, yd)
+        n = xd.size
+        x, y = xd.copy(), yd.copy()
+        blocks = [slice(i, min(i + _TABLE_BLOCK, n)) for i in range(0, n, _TABLE_BLOCK)]
+        step = np.empty(n)
+        for _ in range(_NEWTON_MAX_ITER):
+            for b in blocks:  # the steps of _newton_undistort, block by block
+                fxd, fyd, j_xx, j_xy, j_yy = self._distort_with_jacobian(x[b], y[b])
+                rx = fxd - xd[b]
+                ry = fyd - yd[b]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    inv_det = 1.0 / (j_xx * j_yy - j_xy * j_xy)
+                    step_x = (j_yy * rx - j_xy * ry) * inv_det
+                    step_y = (j_xx * ry - j_xy * rx) * inv_det
+                x[b] = x[b] - step_x
+                y[b] = y[b] - step_y
+                step[b] = np.maximum(np.abs(step_x), np.abs(step_y))
+            if n == 0 or step.max() < _NEWTON_STEP_TOL:  # NaN never compares below: not converged
+                break
+        else:
+            failed = ~(step < _NEWTON_STEP_TOL)
+            x, y = np.where(failed, np.nan, x), np.where(failed, np.nan, y)
         _, _, j_xx, j_xy, j_yy = self._distort_with_jacobian(x, y)
         with np.errstate(divide="ignore"):  # det = 0 only for a camera the construction check rejects
             inv_det = 1.0 / (j_xx * j_yy - j_xy * j_xy)
@@ -334,7 +369,14 @@ class Camera:
         Checked on the pixel grid, at every pixel centre and on the image border (pixel edges):
         Newton converged, the Jacobian determinant is positive, and undistorted
         centres are strictly increasing in x along each row and in y down each column.
+        Checked once per process for equal cameras (:func:`_shared_invertibility_problem`).
         """
+        problem = _shared_invertibility_problem(self)
+        if problem is not None:
+            raise ConfigError(problem)
+
+    def _invertibility_problem(self) -> str | None:
+        """The message of :meth:`_check_invertible`'s error, or None when the distortion is invertible."""
         w, h = self.width, self.height
         x, y, *_ = self._centre_table
         det_centres = self._jacobian_determinant(x, y)
@@ -359,11 +401,11 @@ class Camera:
                 where = f"at pixel (u={i % w}, v={i // w})"
             else:
                 where = "inside the image (undistorted pixel centres out of order)"
-            raise ConfigError(
-                f"Camera: distortion (k1={self.k1!r}, k2={self.k2!r}, p1={self.p1!r}, p2={self.p2!r}, "
-                f"k3={self.k3!r}) must be invertible over the {w}x{h} image "
-                f"(fx={self.fx:g}, fy={self.fy:g}, cx={self.cx:g}, cy={self.cy:g}), "
-                f"but it folds over or has no inverse {where}")
+            return (f"Camera: distortion (k1={self.k1!r}, k2={self.k2!r}, p1={self.p1!r}, p2={self.p2!r}, "
+                    f"k3={self.k3!r}) must be invertible over the {w}x{h} image "
+                    f"(fx={self.fx:g}, fy={self.fy:g}, cx={self.cx:g}, cy={self.cy:g}), "
+                    f"but it folds over or has no inverse {where}")
+        return None
 
     def _jacobian_determinant(self, x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[np.float64]:
         """det ∂(x_d, y_d)/∂(x, y) at undistorted normalized positions (NaN in, NaN out)."""
@@ -505,3 +547,15 @@ def _unit_directions(x: NDArray[np.float64], y: NDArray[np.float64]) -> NDArray[
     """(x, y, 1) normalized to unit length: the direction of normalized image position (x, y)."""
     inv_norm = 1.0 / np.sqrt(x * x + y * y + 1.0)
     return np.stack([x * inv_norm, y * inv_norm, inv_norm], axis=-1)
+
+
+@lru_cache(maxsize=_TABLE_CACHE_SIZE)
+def _shared_centre_table(camera: Camera) -> tuple[NDArray[np.float64], ...]:
+    """The undistortion table of ``camera``, built once per process for equal cameras (read-only arrays)."""
+    return camera._build_centre_table()
+
+
+@lru_cache(maxsize=_TABLE_CACHE_SIZE)
+def _shared_invertibility_problem(camera: Camera) -> str | None:
+    """:meth:`Camera._invertibility_problem`, once per process for equal cameras."""
+    return camera._invertibility_problem()

@@ -172,9 +172,10 @@ class Scene:
 
     @cached_property
     def bvh(self):
-        """The bounding volume hierarchy, built on first use."""
+        """The bounding volume hierarchy, built on first use, or shared with any scene of the same triangles
+        built before (`BVH.cached`: a scene loaded or exported again for another camera builds nothing)."""
         from .bvh import BVH
-        return BVH.build(self.vertices, self.triangles)
+        return BVH.cached(self.vertices, self.triangles)
 
     # -------------------------------------------------------------------- I/O
     def save(self, path: str | os.PathLike) -> Path:

@@ -563,6 +563,9 @@ class Sensor:
         cam = self.camera
         if (width, height) == (cam.width, cam.height):
             return self
+        # Before the camera of that size checks its distortion over per-pixel tables (a minute and GBs at
+        # 4096 x 4096): a size that even a max_depth 1 render cannot hold is refused now.
+        limits.check_render_size(width, height, self.modulation.raw_count, max_depth=1, where="Sensor.resized")
         sx, sy = width / cam.width, height / cam.height
         return self.replace(**{
             "camera.width": width, "camera.height": height, "camera.fx": cam.fx * sx, "camera.fy": cam.fy * sy,
@@ -571,13 +574,17 @@ class Sensor:
     def scaled(self, factor: float) -> Sensor:
         """A copy with width and height times ``factor`` (rounded half up, at least 1 px) and the intrinsics
         scaled to the actual size ratios (:meth:`resized`); ``scaled(0.25)`` is a quarter of each side."""
+        return self.resized(*self.scaled_size(factor))
+
+    def scaled_size(self, factor: float) -> tuple[int, int]:
+        """(width, height) of :meth:`scaled` ``(factor)``, without making the sensor."""
         if not isinstance(factor, (int, float)) or isinstance(factor, bool) or not 0 < factor < math.inf:
             raise ConfigError(f"Sensor.scaled: factor must be a finite number > 0, got {factor!r}")
         cam = self.camera
         exact_w, exact_h = cam.width * factor, cam.height * factor
         if exact_w * exact_h > 4 * limits.MAX_PIXELS.value:  # refuse before rounding a huge product
             limits.MAX_PIXELS.check(math.inf, "Sensor.scaled", "width x height", f"{exact_w:.4g} x {exact_h:.4g}")
-        return self.resized(max(1, int(math.floor(exact_w + 0.5))), max(1, int(math.floor(exact_h + 0.5))))
+        return max(1, int(math.floor(exact_w + 0.5))), max(1, int(math.floor(exact_h + 0.5)))
 
 
 def _source_keys() -> set[str]:

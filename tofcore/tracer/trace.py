@@ -192,8 +192,10 @@ def trace_progressive(scene: Scene, camera: Camera, leds: Sequence[LED], *,
         :func:`tofcore.trace_progressive` passes :func:`tofcore.compiled.tracer.choose`, the compiled tracer
         wherever it can run the trace.
 
-    Returns :class:`Passes`: iterate it; the yielded object is the live accumulator, so copy what you keep
-    between passes.
+    Returns
+    -------
+    Passes
+        Iterate it; the yielded object is the live accumulator, so copy what you keep between passes.
     """
     settings = TraceSettings(
         world_from_sensor=world_from_sensor, correlations=correlations, ambient=ambient, max_depth=max_depth,

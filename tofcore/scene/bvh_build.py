@@ -1,0 +1,250 @@
+"""The binned-SAH split of :func:`tofcore.scene.bvh._build_binary`, one tree level at a time, compiled (numba).
+
+`tofcore.scene.bvh` builds its binary tree level by level in NumPy (the readable reference,
+``_sah_split``); this module computes the same levels in compiled loops, nodes of a level in parallel on
+numba's threads, and gives the same tree bit for bit (tests/tofcore/test_bvh.py compares every array).
+For each node with more than ``leaf_size`` triangles, on each axis in turn (x, y, z):
+
+* its triangles' centroids ``c`` are cut into ``n_bins`` equal bins over the centroid bounds
+  ``[c_min, c_max]``: ``bin = ⌊(c − c_min) · s⌋`` clipped to ``[0, n_bins − 1]``, with the float32 scale
+  ``s = n_bins (1 − 10⁻⁶) / (c_max − c_min)`` (0 for a flat extent);
+* a cut after bin ``i`` costs ``A(bins 0..i) · N(0..i) + A(bins i+1..) · N(i+1..)`` in float64, with
+  ``A`` the half surface area ``ex·ey + ey·ez + ez·ex`` of the union of the bins' triangle boxes in
+  float32 (0 for none), and ``+∞`` where a side is empty;
+* the cheapest cut of the first axis that has the lowest cost wins (strictly lower replaces).
+
+Triangles with ``bin ≤ cut`` go left; a node with no finite cut is split at its middle (the first
+``⌊n/2⌋`` left). The partition is stable: lefts, then rights, each in their previous order. All float32
+arithmetic is the reference's own (no fused multiply-adds: numba compiles without fast-math), so the
+cuts are the same.
+
+The cost is linear in the triangles of a level (three binning sweeps, one partition), so the build is
+``O(M log M)`` in compiled loops instead of NumPy's scatter-adds (``ufunc.at``), sorts and gathers per
+level: ``bench/bench_bvh.py --build-only`` measures both.
+"""
+
+from __future__ import annotations
+
+import os
+
+import numpy as np
+
+try:
+    import numba
+except Exception:  # ImportError, or a numba that does not work with this NumPy
+    numba = None
+
+SMALL_NODE = 32
+"""Nodes of at most this many triangles evaluate only the cuts between their occupied bins (:func:`_small_cut`):
+the same cut, without sweeping every bin."""
+
+PARALLEL_LEVEL = 65536
+"""Meshes of fewer triangles split their levels on one thread: waking numba's threads for every level costs
+more there than it saves (and on a busy machine a thread may wait a scheduler slice for its core)."""
+
+_NODES_PER_TASK = 64  # nodes of a level one thread takes at a time (its bin arrays are allocated once)
+
+_OPTIONS = dict(cache=True, nogil=True, error_model="numpy", fastmath=False)
+if numba is not None:
+    _compiled, _compiled_parallel, prange = numba.njit(**_OPTIONS), numba.njit(parallel=True, **_OPTIONS), numba.prange
+else:
+    _compiled = _compiled_parallel = (lambda function: function)
+    prange = range
+
+
+def available() -> bool:
+    """Whether numba runs here and is allowed to (``TOFCORE_TRACER=numpy`` keeps everything in NumPy)."""
+    return numba is not None and os.environ.get("TOFCORE_TRACER", "").strip().lower() != "numpy"
+
+
+def split_level(records, order, starts, counts, leaf_size: int, n_bins: int):
+    """Split every node of one level (compiled): ``records`` and ``order`` are partitioned in place; returns
+    ``(node_lo, node_hi, n_left)``: (K, 3) float32 node boxes and (K,) int64 triangles sent left (0 for a
+    leaf).
+
+    ``records`` is (M, 9) float32, per position of ``order``: the triangle's box minimum, maximum and
+    centroid (xyz each), so every pass reads its triangles in sequence; node ``k`` holds positions
+    ``starts[k]:starts[k] + counts[k]``.
+    """
+    k = len(starts)
+    node_lo = np.empty((k, 3), np.float32)
+    node_hi = np.empty((k, 3), np.float32)
+    n_left = np.zeros(k, np.int64)
+    scale_numerator = np.float32(n_bins * (1 - 1e-6))
+    split = _split_level_parallel if len(order) >= PARALLEL_LEVEL else _split_level_serial
+    split(records, order, np.empty_like(records), np.empty_like(order), starts, counts, leaf_size, n_bins,
+          scale_numerator, node_lo, node_hi, n_left)
+    return node_lo, node_hi, n_left
+
+
+def _split_level(records, order, records_scratch, order_scratch, starts, counts, leaf_size, n_bins,
+                 scale_numerator, node_lo, node_hi, n_left):
+    """The nodes of a level in tasks of up to `_NODES_PER_TASK` on numba's threads (see :func:`split_level`)."""
+    n_nodes = len(starts)
+    per_task = min(_NODES_PER_TASK, max(1, n_nodes // 64))
+    n_tasks = (n_nodes + per_task - 1) // per_task
+    for task in prange(n_tasks):
+        count = np.empty((3, n_bins), np.int64)
+        bins = np.empty((3, 6, n_bins), np.float32)  # per axis: the bins' box minimum and maximum (xyz each)
+        area_right = np.empty(n_bins, np.float32)
+        c_min = np.empty(3, np.float32)
+        scale = np.empty(3, np.float32)
+        keys = np.empty(SMALL_NODE, np.int64)
+        for node in range(task * per_task, min(n_nodes, (task + 1) * per_task)):
+            n_left[node] = _node_split(records, order, records_scratch, order_scratch, starts[node], counts[node],
+                                       leaf_size, n_bins, scale_numerator, node_lo, node_hi, node, count, bins,
+                                       area_right, c_min, scale, keys)
+
+
+_split_level_parallel = _compiled_parallel(_split_level)
+_split_level_serial = _compiled(_split_level)  # prange is range here
+
+
+@_compiled
+def _half_area(lo0, lo1, lo2, hi0, hi1, hi2):
+    """Half the surface area of a box in float32, 0 for an empty (inverted) box."""
+    zero = np.float32(0.0)
+    e0, e1, e2 = max(hi0 - lo0, zero), max(hi1 - lo1, zero), max(hi2 - lo2, zero)
+    return e0 * e1 + e1 * e2 + e2 * e0
+
+
+@_compiled
+def _bin_of(records, j, a, c_min, scale, n_bins):
+    """The bin of the triangle at position ``j`` along axis ``a``: ⌊(c − c_min)·s⌋ clipped, in float32."""
+    return min(max(np.int64((records[j, 6 + a] - c_min[a]) * scale[a]), 0), n_bins - 1)
+
+
+@_compiled
+def _node_split(records, order, records_scratch, order_scratch, start, n, leaf_size, n_bins, scale_numerator,
+                node_lo, node_hi, node, count, bins, area_right, c_min, scale, keys):
+    """One node: its box into row ``node`` of ``node_lo, node_hi``; for an inner node, the binned-SAH cut and
+    the stable partition of positions ``start:start + n``. Returns the number of triangles sent left (0 for a
+    leaf). The other arrays are the task's scratch."""
+    inf = np.float32(np.inf)
+    for a in range(3):
+        b_lo, b_hi, cmin, cmax = inf, -inf, inf, -inf
+        for j in range(start, start + n):
+            b_lo, b_hi = min(b_lo, records[j, a]), max(b_hi, records[j, 3 + a])
+            cmin, cmax = min(cmin, records[j, 6 + a]), max(cmax, records[j, 6 + a])
+        node_lo[node, a], node_hi[node, a], c_min[a] = b_lo, b_hi, cmin
+        extent = cmax - cmin
+        scale[a] = scale_numerator / extent if extent > np.float32(0.0) else np.float32(0.0)
+    if n <= leaf_size:
+        return 0
+    if n <= SMALL_NODE:
+        best_cost, best_axis, best_cut = _small_cut(records, start, n, n_bins, c_min, scale, keys, area_right)
+    else:
+        best_cost, best_axis, best_cut = _binned_cut(records, start, n, n_bins, c_min, scale, count, bins,
+                                                     area_right)
+    return _partition(records, order, records_scratch, order_scratch, start, n, n_bins, c_min, scale, best_cost,
+                      best_axis, best_cut)
+
+
+@_compiled
+def _binned_cut(records, start, n, n_bins, c_min, scale, count, bins, area_right):
+    """The cheapest cut (cost, axis, bin) of the node at positions ``start:start + n``, over all bins: the
+    bins' counts and boxes, then a sweep from each side. Cost +∞ where no cut leaves both sides occupied."""
+    inf = np.float32(np.inf)
+    count[:, :] = 0
+    bins[:, :3, :] = inf
+    bins[:, 3:, :] = -inf
+    for j in range(start, start + n):
+        for a in range(3):
+            b = _bin_of(records, j, a, c_min, scale, n_bins)
+            count[a, b] += 1
+            for k in range(3):
+                bins[a, k, b] = min(bins[a, k, b], records[j, k])
+                bins[a, 3 + k, b] = max(bins[a, 3 + k, b], records[j, 3 + k])
+    best_cost, best_axis, best_cut = np.inf, 0, 0
+    for a in range(3):
+        box = bins[a]
+        r0, r1, r2, s0, s1, s2 = inf, inf, inf, -inf, -inf, -inf  # bins i.. (right sweep)
+        for i in range(n_bins - 1, -1, -1):
+            r0, r1, r2 = min(r0, box[0, i]), min(r1, box[1, i]), min(r2, box[2, i])
+            s0, s1, s2 = max(s0, box[3, i]), max(s1, box[4, i]), max(s2, box[5, i])
+            area_right[i] = _half_area(r0, r1, r2, s0, s1, s2)
+        l0, l1, l2, m0, m1, m2 = inf, inf, inf, -inf, -inf, -inf  # bins ..i (the cuts, from the left)
+        n_l = 0
+        for i in range(n_bins - 1):
+            l0, l1, l2 = min(l0, box[0, i]), min(l1, box[1, i]), min(l2, box[2, i])
+            m0, m1, m2 = max(m0, box[3, i]), max(m1, box[4, i]), max(m2, box[5, i])
+            n_l += count[a, i]
+            n_r = n - n_l
+            if n_l == 0 or n_r == 0:
+                continue
+            cost = (np.float64(_half_area(l0, l1, l2, m0, m1, m2)) * np.float64(n_l)
+                    + np.float64(area_right[i + 1]) * np.float64(n_r))
+            if cost < best_cost:
+                best_cost, best_axis, best_cut = cost, a, i
+    return best_cost, best_axis, best_cut
+
+
+@_compiled
+def _small_cut(records, start, n, n_bins, c_min, scale, keys, area_right):
+    """:func:`_binned_cut` for a node of at most `SMALL_NODE` triangles: the same (cost, axis, bin).
+
+    Per axis the triangles are sorted by bin (a stable insertion sort of the positions, in ``keys``); a cut
+    after bin i leaves the same two sides for every i between two occupied bins, so only the cut after
+    each occupied bin is evaluated — the first of its equals, as the sweep over all bins finds it — with
+    the same boxes (min/max are exact) and the same float64 cost.
+    """
+    inf = np.float32(np.inf)
+    best_cost, best_axis, best_cut = np.inf, 0, 0
+    for a in range(3):
+        for i in range(n):  # insertion sort of the positions by bin, stable
+            j, b = i, _bin_of(records, start + i, a, c_min, scale, n_bins)
+            while j > 0 and _bin_of(records, start + keys[j - 1], a, c_min, scale, n_bins) > b:
+                keys[j] = keys[j - 1]
+                j -= 1
+            keys[j] = i
+        r0, r1, r2, s0, s1, s2 = inf, inf, inf, -inf, -inf, -inf  # sorted triangles i.. (right sweep)
+        for i in range(n - 1, -1, -1):
+            e = start + keys[i]
+            r0, r1, r2 = min(r0, records[e, 0]), min(r1, records[e, 1]), min(r2, records[e, 2])
+            s0, s1, s2 = max(s0, records[e, 3]), max(s1, records[e, 4]), max(s2, records[e, 5])
+            area_right[i] = _half_area(r0, r1, r2, s0, s1, s2)
+        l0, l1, l2, m0, m1, m2 = inf, inf, inf, -inf, -inf, -inf
+        for i in range(n - 1):
+            e = start + keys[i]
+            l0, l1, l2 = min(l0, records[e, 0]), min(l1, records[e, 1]), min(l2, records[e, 2])
+            m0, m1, m2 = max(m0, records[e, 3]), max(m1, records[e, 4]), max(m2, records[e, 5])
+            b = _bin_of(records, e, a, c_min, scale, n_bins)
+            if b == _bin_of(records, start + keys[i + 1], a, c_min, scale, n_bins):
+                continue  # not the last triangle of its bin
+            cost = (np.float64(_half_area(l0, l1, l2, m0, m1, m2)) * np.float64(i + 1)
+                    + np.float64(area_right[i + 1]) * np.float64(n - i - 1))
+            if cost < best_cost:
+                best_cost, best_axis, best_cut = cost, a, b
+    return best_cost, best_axis, best_cut
+
+
+@_compiled
+def _partition(records, order, records_scratch, order_scratch, start, n, n_bins, c_min, scale, best_cost,
+               best_axis, best_cut):
+    """Stable partition of positions ``start:start + n`` by the cut (bin ≤ cut goes left; without a finite
+    cut the first ⌊n/2⌋ go left): lefts in place from the start, rights through the scratch, then copied
+    back. Returns the number sent left."""
+    n_l, n_r = 0, 0
+    for j in range(start, start + n):
+        if best_cost < np.inf:
+            left = _bin_of(records, j, best_axis, c_min, scale, n_bins) <= best_cut
+        else:
+            left = j - start < n // 2
+        if left:
+            _move(order, records, j, order, records, start + n_l)
+            n_l += 1
+        else:
+            _move(order, records, j, order_scratch, records_scratch, start + n_r)
+            n_r += 1
+    for j in range(n_r):
+        _move(order_scratch, records_scratch, start + j, order, records, start + n_l + j)
+    return n_l
+
+
+@_compiled
+def _move(order, records, j, to_order, to_records, k):
+    """Position ``j``'s triangle and record to position ``k`` of the other arrays (element by element: a
+    row slice would make an array view per triangle)."""
+    to_order[k] = order[j]
+    for c in range(records.shape[1]):
+        to_records[k, c] = records[j, c]
