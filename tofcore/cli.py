@@ -267,12 +267,17 @@ def _check_aspect(args: argparse.Namespace, cam, width: int, height: int) -> Non
 
 def _convergence_table(log: list[dict]) -> str:
     has_ref = any("rms_error_m" in r for r in log)
-    head = "| pass | spp | seconds | est. depth error mm |" + (" RMS error vs reference mm |" if has_ref else "")
-    rule = "|---|---|---|---|" + ("---|" if has_ref else "")
+    has_flips = any("unwrap_flip_share" in r for r in log)
+    head = ("| pass | spp | seconds | est. depth error mm |" + (" unwrap flips possible % |" if has_flips else "")
+            + (" RMS error vs reference mm |" if has_ref else ""))
+    rule = "|---|---|---|---|" + ("---|" if has_flips else "") + ("---|" if has_ref else "")
     lines = [head, rule]
     for r in log:
         est = f"{r['est_depth_error_m'] * 1000:.2f}" if r["est_depth_error_m"] is not None else "–"
         line = f"| {r['pass']} | {r['spp']} | {r['seconds']:.1f} | {est} |"
+        if has_flips:
+            share = r.get("unwrap_flip_share")
+            line += f" {100 * share:.2f} |" if share is not None else " – |"
         if has_ref:
             ref = r.get("rms_error_m")
             line += f" {ref * 1000:.2f} |" if ref is not None else " – |"
@@ -425,6 +430,7 @@ def summary(frame) -> str:
     rms = f"{float(np.sqrt(np.mean(err ** 2))) * 1000:.1f} mm" if with_gt.any() else \
         "– (no valid pixel with a ground truth)"
     est = stats["convergence"][-1]["est_depth_error_m"] if stats.get("convergence") else None
+    flips = stats["convergence"][-1].get("unwrap_flip_share") if stats.get("convergence") else None
     noise = (stats.get("plan") or {}).get("raw_noise") or (stats.get("plan") or {}).get("distance_noise")
     reasons = ", ".join(f"{r.name.lower().replace('_', ' ')} {100 * np.mean(frame.reason == r):.1f} %"
                         for r in Reason if r and np.any(frame.reason == r)) or "none"
@@ -436,7 +442,8 @@ def summary(frame) -> str:
         f"M rays/s)" + (f", {100 * stats['seconds'] / stats['time_budget_s']:.0f} % of the {stats['time_budget_s']:g} s "
                         f"budget" if stats.get("time_budget_s") else ""),
         f"render noise (estimated):   {'–' if est is None else f'{est * 1000:.2f} mm'} RMS Monte Carlo error of the "
-        f"depth over the pixels that see a surface",
+        f"depth over the pixels that see a surface" + (
+            f" (a wrap flip possible at {100 * flips:.1f} % of them, counted apart)" if flips else ""),
         f"sensor noise:               {'on (shot and read noise, as the preset says)' if noise else 'off'}",
         f"valid pixels:               {100 * valid.mean():.1f} % of all, "
         f"{100 * valid[seen].mean() if seen.any() else 0:.1f} % of those that see a surface",

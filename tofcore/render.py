@@ -137,6 +137,47 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     return sigma
 
 
+FLIP_FRACTION = 1.0 / 8.0
+"""Replicates whose decoded distances spread by more than this fraction of the smallest ambiguity distance
+unwrapped to different intervals (:func:`unwrap_flips`): for the Kinect v2 1.25 m / 8 = 0.156 m, below the
+0.205 m by which the nearest wrong combination of its wraps lies from consistent data, and far above the
+continuous spread of the replicates (a few mm at 16 spp)."""
+
+
+def unwrap_flips(transport: Transport, sensor, n_raw: int):
+    r"""(H, W) bool: pixels whose R independent replicates unwrap to different ambiguity intervals.
+
+    Notes
+    -----
+    Each replicate's mean raw images :math:`Q^{(r)}` (as in :func:`depth_standard_error`) are decoded by
+    the camera's own phase estimation, phasor filter and unwrapping (no thresholds); where the decoded
+    distances spread by more than :data:`FLIP_FRACTION` of the smallest ambiguity distance, the replicates
+    disagree on the wrap, and the pixel mean can land on either: an error of a whole wrap combination
+    (for the Kinect v2 ≥ 0.2 m, typically 1.2 m), which the linearised standard error cannot describe. Such
+    pixels are counted apart (the share in the convergence log, the map in ``frame.unwrap_flip``). A
+    single-frequency camera flips across its unambiguous range (0 ↔ U). A pulsed camera does not unwrap:
+    all False. False where a replicate has no sample yet.
+    """
+    mod = sensor.modulation
+    means, counts = transport.replicate_means()
+    xp = namespace(means)
+    r, _, h, w = means.shape
+    if not mod.is_cw or r < 2:
+        return xp.zeros((h, w), dtype=bool)
+    stacked = raw_images(means[:, 1:1 + n_raw].transpose(1, 0, 2, 3).reshape(n_raw, r * h, w),
+                         means[:, -1].reshape(r * h, w), sensor)
+    raw = np.nan_to_num(stacked.reshape(n_raw, r, h, w))                      # (J, R, H, W)
+    cw = decoding.decode_cw(raw, mod, check=False)
+    if sensor.processing.phasor_filter == "bilateral":
+        cw = decoding.filtered_phases(cw, mod, sensor.invalid.min_amplitude_e)
+    distance = decoding.unwrap(cw, mod, tolerance_m=sensor.invalid.unwrap_tolerance_m,
+                               weights=sensor.processing.unwrap_weights).distance   # (R, H, W)
+    signal = ~np.any(cw.amplitude <= decoding.NO_RETURN_RELATIVE_AMPLITUDE * cw.offset, axis=0).any(axis=0)
+    threshold = FLIP_FRACTION * float(np.min(mod.ambiguity_distances_m()))
+    spread = distance.max(axis=0) - distance.min(axis=0)
+    return (spread > threshold) & signal & (counts.min(axis=0) >= 1)
+
+
 def _filtered_deviation(delta, centre, sensor):
     r"""(R, H, W) distance deviation of each replicate, through the camera's phasor filter, linearised.
 
@@ -349,9 +390,9 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
         for transport in passes:
             elapsed = _clock() - start
             counts = backend.to_host(transport.sample_count)
-            sigma = _depth_error(transport, sensor, n_raw, counts)
+            sigma, flips = _depth_error(transport, sensor, n_raw, counts)
             estimate_s = _clock() - start - elapsed
-            row = _convergence_row(transport, sensor, n_raw, sigma, counts, reference, elapsed, setup)
+            row = _convergence_row(transport, sensor, n_raw, sigma, counts, reference, elapsed, setup, flips)
             log.append(row)
             if s.progress is not None:
                 s.progress(dict(row, spp_max=s.spp))
@@ -364,6 +405,7 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
             if transport.transient_sum is not None:
                 frame.transient = backend.to_host(transport.transient()).astype(np.float32)
                 frame.transient_bin_m = float(transport.transient_bin_m)
+            frame.unwrap_flip = flips.astype(np.uint8)
             _add_render_stats(frame, transport, sigma, counts, dict(s.__dict__, final=done, trace_seconds=elapsed,
                                                             seconds=_clock() - start, plan=plan.as_dict(),
                                                             convergence=list(log), device=device.as_dict()))
@@ -377,12 +419,17 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
         passes.close()
 
 
-def _depth_error(transport: Transport, sensor, n_raw: int, counts: np.ndarray) -> np.ndarray:
-    """(H, W) host :func:`depth_standard_error` of the transport so far; NaN while no pixel has a sample in
-    every replicate (the 1 and 2 spp passes: ~1.5 s saved)."""
+def _depth_error(transport: Transport, sensor, n_raw: int, counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(H, W) host :func:`depth_standard_error` and :func:`unwrap_flips` of the transport so far, read back in
+    one copy; NaN and False while no pixel has a sample in every replicate (the 1 and 2 spp passes: ~1.5 s
+    saved)."""
+    shape = (sensor.camera.height, sensor.camera.width)
     if counts.max() < REPLICATES:
-        return np.full((sensor.camera.height, sensor.camera.width), np.nan)
-    return backend.to_host(depth_standard_error(transport, sensor, n_raw))
+        return np.full(shape, np.nan), np.zeros(shape, dtype=bool)
+    sigma = depth_standard_error(transport, sensor, n_raw)
+    flips = unwrap_flips(transport, sensor, n_raw)
+    both = backend.to_host(namespace(sigma).stack([sigma, flips.astype(sigma.dtype)]))
+    return both[0], both[1] > 0.5
 
 
 _clock = time.perf_counter  # the render's clock (seconds); tests replace it to check the budgeted passes
@@ -412,10 +459,17 @@ def _checked_reference(reference_distance, sensor) -> np.ndarray | None:
 
 
 def _convergence_row(transport: Transport, sensor, n_raw: int, sigma: np.ndarray, counts: np.ndarray, reference,
-                     elapsed: float, setup: FrameSetup) -> dict:
-    """One row of the convergence log: pass, seconds, spp, RMS estimated depth error, rays (and RMS error)."""
+                     elapsed: float, setup: FrameSetup, flips: np.ndarray | None = None) -> dict:
+    """One row of the convergence log: pass, seconds, spp, RMS estimated depth error (the continuous part, over
+    the pixels that see a surface and whose replicates agree on the unwrapping), the share and count of the
+    pixels whose replicates unwrap to different intervals (:func:`unwrap_flips`), rays (and RMS error)."""
+    seen = np.isfinite(transport.first_hit.distance_m)
+    flips = np.zeros(seen.shape, dtype=bool) if flips is None else flips
     row = {"pass": transport.stats.passes, "seconds": elapsed, "spp": int(round(counts.mean())),
-           "est_depth_error_m": rms_error(sigma, transport.first_hit.distance_m), "rays": transport.stats.rays}
+           "est_depth_error_m": rms_error(np.where(flips, np.nan, sigma), transport.first_hit.distance_m),
+           "unwrap_flips": int((flips & seen).sum()),
+           "unwrap_flip_share": float((flips & seen).sum() / seen.sum()) if seen.any() else 0.0,
+           "rays": transport.stats.rays}
     if reference is not None:
         current = backend.to_host(_decode_clean(transport, sensor, n_raw, setup).distance)
         both = np.isfinite(current) & np.isfinite(reference)
@@ -502,7 +556,10 @@ def frame_setup(sensor, plan: Plan, xp=np) -> FrameSetup:
         saturation_e=full_well if sensor.invalid.invalidate_saturated else None, range_m=tuple(sensor.range_m),
         range_scale=None if scale is None else xp.asarray(scale),
         unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m, unwrap_weights=sensor.processing.unwrap_weights,
-        phasor_filter=sensor.processing.phasor_filter)
+        phasor_filter=sensor.processing.phasor_filter, amplitude_test=sensor.invalid.amplitude_test,
+        dealias_tolerance_rad=sensor.invalid.dealias_tolerance_rad, edge_filter=sensor.invalid.edge_filter,
+        edge_delta_scale=1.0 if sensor.invalid.edge_filter_fx_px is None
+        else sensor.invalid.edge_filter_fx_px / sensor.camera.fx)
     clean = decoding.DecodeSettings(unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
                                     unwrap_weights=sensor.processing.unwrap_weights)
     psf = None

@@ -313,7 +313,8 @@ def test_exr_half_and_a_channel_subset(frame, tmp_path):
         writers.write_frame(frame, tmp_path / "bad", ("exr",), exr_channels=["dpeth"])
     assert not (tmp_path / "bad").exists()
     names = writers.exr_channel_names(LABELS, K)
-    assert names[:-2] == list(writers._exr_channels(frame)) and names[-2:] == ["render_error", "samples"]
+    assert names[:-3] == list(writers._exr_channels(frame)) and names[-3:] == ["render_error", "samples",
+                                                                               "unwrap_flip"]
 
 
 def test_ir_png_is_16_bit_amplitude_exposed_for_display(frame, tmp_path):

@@ -73,6 +73,9 @@ name                   shape        unit        content
 ``object_id``          (H, W)       index       first-hit object, −1 where none
 ``render_error``       (H, W)       m           estimated Monte Carlo standard error of depth (when written)
 ``samples``            (H, W)       spp         samples traced per pixel (when written)
+``unwrap_flip``        (H, W)       0/1         the render's replicates unwrap to different intervals (when
+                                                written): a whole-wrap error is possible, ``render_error``
+                                                does not describe it
 ``raw``                (R, H, W)    e⁻          the raw images stacked in the order of ``raw_labels``
 ``raw_labels``         tuple of R   –           e.g. ``("f80MHz_s0", …)``; given whenever ``raw`` is asked
 ``distance_per_k``     (K, H, W)    m           decoded distance using bounces ≤ k, k = 1..K
@@ -136,7 +139,8 @@ FRAME_JSON = "frame.json"
 
 #: Channels stored one EXR channel each under the same name.
 IMAGE_CHANNELS = ("depth", "distance", "amplitude", "intensity", "offset", "confidence", "valid", "reason",
-                  "gt_distance", "gt_depth", "direct_distance", "object_id", "render_error", "samples")
+                  "gt_distance", "gt_depth", "direct_distance", "object_id", "render_error", "samples",
+                  "unwrap_flip")
 #: Channels built from several EXR channels or from frame.json.
 STACKED_CHANNELS = ("raw", "distance_per_k", "ray_directions")
 #: Channels of ``labels.npz`` (training labels, when the set asked for them).

@@ -37,6 +37,10 @@ field                  unit            meaning
 ``render_error``       m               (H, W) estimated Monte Carlo standard error of ``depth`` (the
                                        render's own noise, before sensor noise), NaN where unknown
 ``samples``            –               (H, W) int samples traced per pixel (adaptive sampling varies it)
+``unwrap_flip``        –               (H, W) uint8 1 where the render's replicates unwrap to different
+                                       ambiguity intervals (an error of a whole wrap is possible there,
+                                       which ``render_error`` does not describe); share and count in
+                                       ``stats["convergence"]`` (``unwrap_flip_share``, ``unwrap_flips``)
 ``transient``          W m⁻² sr⁻¹      (H, W, B) float32 transient histogram: mean radiance at the lens per
                                        optical-path-length bin, bin b centred at (b + ½)·``transient_bin_m``;
                                        None unless asked for (``render(transient_bin_m=…)``)
@@ -78,6 +82,7 @@ class Frame:
     world_from_sensor: np.ndarray = field(default_factory=lambda: np.eye(4))
     render_error: np.ndarray | None = None
     samples: np.ndarray | None = None
+    unwrap_flip: np.ndarray | None = None
     transient: np.ndarray | None = None
     transient_bin_m: float | None = None
     material_id: np.ndarray | None = None

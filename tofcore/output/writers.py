@@ -95,7 +95,7 @@ _EXR_IMAGES = ("depth", "distance", "amplitude", "intensity", "offset", "confide
 UNITS = {
     "depth": "m", "distance": "m", "render_error": "m", "gt_distance": "m", "gt_depth": "m", "direct_distance": "m",
     "distance_k<k>": "m", "amplitude": "e-", "offset": "e-", "intensity": "e-", "raw.<label>": "e-",
-    "samples": "samples per pixel", "confidence": "1", "valid": "0/1", "reason": "Reason code", "object_id": "object index, -1 none",
+    "samples": "samples per pixel", "unwrap_flip": "0/1", "confidence": "1", "valid": "0/1", "reason": "Reason code", "object_id": "object index, -1 none",
     "depth_mm.png": "mm", "points.ply": "m, sensor frame (x right, y down, z forward)",
 }
 
@@ -103,6 +103,7 @@ UNITS = {
 _REASON_RGB = {
     Reason.VALID: (200, 200, 200), Reason.NO_RETURN: (0, 0, 0), Reason.LOW_AMPLITUDE: (40, 90, 220),
     Reason.SATURATED: (230, 30, 30), Reason.OUT_OF_RANGE: (220, 0, 220), Reason.UNWRAPPING_FAILED: (255, 160, 0),
+    Reason.EDGE_FILTERED: (0, 170, 160),
 }
 
 _DEPTH_MM_MAX = 65535
@@ -229,9 +230,10 @@ def read_exr(path: str | os.PathLike, names: Iterable[str] | None = None) -> dic
 
 def exr_channel_names(raw_labels: Iterable[str], bounces: int) -> list[str]:
     """The channels ``frame.exr`` holds for a frame with these raw images and ``bounces`` distance_k images
-    (what ``exr_channels`` may choose from); ``render_error`` and ``samples`` come with every render."""
+    (what ``exr_channels`` may choose from); ``render_error``, ``samples`` and ``unwrap_flip`` come with every
+    render."""
     return [*_EXR_IMAGES, *(f"raw.{label}" for label in raw_labels),
-            *(f"distance_k{k}" for k in range(1, bounces + 1)), "render_error", "samples"]
+            *(f"distance_k{k}" for k in range(1, bounces + 1)), "render_error", "samples", "unwrap_flip"]
 
 
 def opencv_yaml(intrinsics: Mapping) -> str:
@@ -328,7 +330,7 @@ def _exr_channels(frame: Frame) -> dict[str, np.ndarray]:
     images = {name: getattr(frame, name) for name in _EXR_IMAGES}
     images.update({f"raw.{label}": raw for label, raw in zip(frame.raw_labels, frame.raw)})
     images.update({f"distance_k{k}": d for k, d in enumerate(frame.distance_per_k, start=1)})
-    images.update({name: getattr(frame, name) for name in ("render_error", "samples")
+    images.update({name: getattr(frame, name) for name in ("render_error", "samples", "unwrap_flip")
                    if getattr(frame, name) is not None})
     for name, image in images.items():
         if np.shape(image) != (frame.height, frame.width):

@@ -75,9 +75,18 @@ name                    unit    default     meaning
 ``min_amplitude_snr``      1     0.0      CW: pixels with A below this many σ_A, the amplitude noise of their
                                           offset under ``[noise]`` read_noise_e and gain_noise, are invalid; a
                                           pixel with no return passes with probability exp(−k²/2)
-                                          (:func:`tofcore.sensor.decode.amplitude_noise_e`)
+                                          (:func:`tofcore.sensor.decode.amplitude_noise_e`); pulsed: Q1 + Q2
+                                          below this many √2 σ_read (a dark pixel's noise) is invalid
 ``invalidate_saturated``   –     true     pixels with a raw image at full well are invalid
 ``unwrap_tolerance_m``     m     None     largest disagreement between frequencies; None: the decoder's default
+``amplitude_test``         –     highest  CW: ``"highest"`` (the amplitude tests read the highest frequency) or
+                                          ``"every"`` (every frequency must pass them, libfreenect2)
+``dealias_tolerance_rad``  rad   None     CW: also invalid where the unwrapped phases are farther than this from
+                                          agreeing (libfreenect2's dealiasing confidence); None: off
+``edge_filter``            –     false    CW with the bilateral filter: the camera's edge-aware filter removes
+                                          flying pixels and incoherent neighbourhoods (libfreenect2)
+``edge_filter_fx_px``      px    None     the focal length at which the edge filter's depth thresholds hold
+                                          (the native camera's); a resized camera scales them by this / fx
 =========================  ====  =======  ===================================================================
 
 Every class checks its fields in ``__post_init__`` and parses a plain dict in
@@ -355,11 +364,23 @@ class InvalidRules(_Table):
     min_amplitude_snr: float = 0.0
     invalidate_saturated: bool = True
     unwrap_tolerance_m: float | None = None
+    amplitude_test: str = "highest"
+    dealias_tolerance_rad: float | None = None
+    edge_filter: bool = False
+    edge_filter_fx_px: float | None = None
 
     @staticmethod
     def _normalised(values: dict[str, Any], where: str) -> dict[str, Any]:
         tolerance = values["unwrap_tolerance_m"]
+        dealias = values["dealias_tolerance_rad"]
         return {
+            "amplitude_test": _choice(values["amplitude_test"], where, "amplitude_test", ("highest", "every")),
+            "dealias_tolerance_rad": None if dealias is None else _number(
+                dealias, where, "dealias_tolerance_rad", "a finite number > 0 (radians) or absent", _finite_positive),
+            "edge_filter": _typed(values["edge_filter"], where, "edge_filter", bool, "true or false"),
+            "edge_filter_fx_px": None if values["edge_filter_fx_px"] is None else _number(
+                values["edge_filter_fx_px"], where, "edge_filter_fx_px", "a finite number > 0 (pixels) or absent",
+                _finite_positive),
             "min_amplitude_e": _scale(values["min_amplitude_e"], where, "min_amplitude_e",
                                       "a finite number >= 0 (electrons)", _finite_non_negative, "electrons"),
             "min_amplitude_snr": _number(values["min_amplitude_snr"], where, "min_amplitude_snr",

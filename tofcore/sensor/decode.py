@@ -11,7 +11,9 @@ name                        unit  default    meaning
 ``min_amplitude_e``         e⁻    0          LOW_AMPLITUDE below this amplitude (A of the highest frequency;
                                              pulsed: Q1 + Q2)
 ``min_amplitude_snr``       1     0          LOW_AMPLITUDE also below this many σ_A, the amplitude noise of the
-                                             pixel's own offset (:func:`amplitude_noise_e`); CW only
+                                             pixel's own offset (:func:`amplitude_noise_e`); pulsed: Q1 + Q2
+                                             below this many σ of a dark pixel's, √2 σ_read (the ambient charge
+                                             in Q1 + Q2 cannot be told from signal with two buckets)
 ``read_noise_e``            e⁻    0          σ_read of :func:`amplitude_noise_e`
 ``gain_noise``              1     0          Keller's β of :func:`amplitude_noise_e`
 ``saturation_e``            e⁻    None       SATURATED where any raw image reaches it (None: never)
@@ -23,12 +25,26 @@ name                        unit  default    meaning
                                   variance"
 ``phasor_filter``           –     "none"     the camera's filter of each frequency's phasors before unwrapping
                                              (:mod:`tofcore.sensor.processing`)
+``amplitude_test``          –     "highest"  which amplitudes the two LOW_AMPLITUDE tests read: ``"highest"``
+                                             (the highest frequency's) or ``"every"`` (every frequency's, each
+                                             against its own noise floor; libfreenect2's
+                                             ``individual_ab_threshold`` on the minimum over the frequencies);
+                                             with the phasor filter on, the filtered amplitudes (libfreenect2)
+``dealias_tolerance_rad``   rad   None       UNWRAPPING_FAILED also where the unwrapped phases lie farther than
+                                             this from the line on which the frequencies agree (libfreenect2's
+                                             dealiasing confidence, :func:`dealias_distance_rad`); None: off
+``edge_filter``             –     False      EDGE_FILTERED where the camera's edge-aware filter removes the
+                                             pixel (:func:`tofcore.sensor.processing.edge_filter`; only with the
+                                             bilateral phasor filter, whose edge test it uses)
+``edge_delta_scale``        1     1          the edge filter's depth thresholds times this (the native over the
+                                             rendered focal length: :attr:`InvalidRules.edge_filter_fx_px`)
 ==========================  ====  =========  ==================================================================
 
 Reason precedence (the first that applies wins): SATURATED, NO_RETURN, LOW_AMPLITUDE, UNWRAPPING_FAILED,
-OUT_OF_RANGE (fields of :class:`DecodeSettings`) — from "data clipped" (saturation flattens every bucket to full
-well, which would otherwise read as no modulation, i.e. no return), through "no data" and "too weak to
-trust", to "a trusted distance that the sensor does not report".
+OUT_OF_RANGE, EDGE_FILTERED (fields of :class:`DecodeSettings`) — from "data clipped" (saturation flattens every
+bucket to full well, which would otherwise read as no modulation, i.e. no return), through "no data" and "too
+weak to trust", to "a trusted distance that the sensor does not report" and "a distance its neighbours do not
+support" (libfreenect2 tests the range before its edge filter).
 """
 
 from __future__ import annotations
@@ -44,8 +60,11 @@ from ..backend import asarray, namespace
 from ..constants import SPEED_OF_LIGHT_M_S
 from ..errors import ConfigError
 from .modulation import Modulation, ideal_raw
-from .processing import PHASOR_FILTERS, UNWRAP_WEIGHTS, bilateral_phasor_filter, check_choice, frequency_weights
+from .processing import (BILATERAL_MAX_EDGE, PHASOR_FILTERS, UNWRAP_WEIGHTS, bilateral_weights, check_choice,
+                         frequency_weights, neighbour_mean)
+from .processing import edge_filter as processing_edge_filter
 
+AMPLITUDE_TESTS = ("highest", "every")
 NO_RETURN_RELATIVE_AMPLITUDE = 1e-9
 """A ≤ this · B counts as A = 0 (atan2(0, 0)): far above float64 round-off of the DFT sums (~1e-16 N B),
 far below any physical modulation contrast."""
@@ -66,6 +85,7 @@ class Reason(enum.IntEnum):
     SATURATED = 3          # a raw image reached full well
     OUT_OF_RANGE = 4       # decoded distance outside the sensor's range
     UNWRAPPING_FAILED = 5  # the frequencies disagree on the distance
+    EDGE_FILTERED = 6      # the camera's edge-aware filter removed it (flying pixel, incoherent neighbourhood)
 
 
 @dataclass(frozen=True)
@@ -86,6 +106,8 @@ class Unwrapped:
     residual: np.ndarray    # m, weighted RMS disagreement of the frequencies at the chosen wraps
     confidence: np.ndarray  # 1, clip(1 − residual / tolerance, 0, 1)
     failed: np.ndarray      # bool, residual > tolerance
+    dealias_rad: np.ndarray | None = None  # rad, :func:`dealias_distance_rad` at the chosen wraps
+    wrap: np.ndarray | None = None         # int, the chosen wrap n of the highest frequency (D = d_h + n d_amb,h)
 
 
 @dataclass(frozen=True)
@@ -229,23 +251,56 @@ def unwrap(cw: CwDecoding, modulation: Modulation, *, tolerance_m: float | None 
     d_amb_i = xp.asarray(d_amb)[None, :, None]                             # (1, F, 1)
     pixels = wrapped.shape[1]
     block = max(1, UNWRAP_BLOCK_VALUES["numpy" if xp is np else "device"] // (n_candidates * n_freq))
+    unit = _agreement_direction(modulation, xp)
     if pixels <= block:
-        best_r2, best_d = _best_wrap(wrapped, weight, output, offsets, d_amb_i, h)
+        best_r2, best_d, dealias, wrap = _best_wrap(wrapped, weight, output, offsets, d_amb_i, h, unit)
     else:
-        best_r2, best_d = xp.empty(pixels), xp.empty(pixels)
+        best_r2, best_d, dealias = xp.empty(pixels), xp.empty(pixels), xp.empty(pixels)
+        wrap = xp.empty(pixels, dtype=np.int64)
         for first in range(0, pixels, block):
             part = slice(first, first + block)
-            best_r2[part], best_d[part] = _best_wrap(wrapped[:, part], weight[:, part], output[:, part], offsets,
-                                                     d_amb_i, h)
+            best_r2[part], best_d[part], dealias[part], wrap[part] = _best_wrap(
+                wrapped[:, part], weight[:, part], output[:, part], offsets, d_amb_i, h, unit)
     best_r2, best_d = best_r2.reshape(shape), best_d.reshape(shape)
     residual = np.sqrt(best_r2)
     return Unwrapped(distance=np.mod(best_d, unambiguous), residual=residual,
-                     confidence=np.clip(1.0 - residual / tolerance_m, 0.0, 1.0), failed=residual > tolerance_m)
+                     confidence=np.clip(1.0 - residual / tolerance_m, 0.0, 1.0), failed=residual > tolerance_m,
+                     dealias_rad=dealias.reshape(shape), wrap=wrap.reshape(shape))
 
 
-def _best_wrap(wrapped, weight, output, offsets, d_amb_i, h: int):
-    """(r², D̄) of the best candidate of :func:`unwrap` for pixels (F, P), all N candidates at once: the
-    candidate with the least r² under ``weight``, and its distances averaged with ``output`` (F, P).
+def _agreement_direction(modulation: Modulation, xp):
+    """(F, 1) unit vector f / |f|: the direction in the space of unwrapped phases (4π f_i D / c) along which
+    the frequencies agree on one distance."""
+    f = np.asarray(modulation.frequencies_hz, dtype=np.float64)
+    return xp.asarray((f / np.linalg.norm(f))[:, None])
+
+
+def dealias_distance_rad(unwrapped_m, modulation: Modulation):
+    r"""How far (rad) the frequencies' unwrapped distances D_i (F, ...) are from agreeing on one distance.
+
+    Notes
+    -----
+    libfreenect2 (``processPixelStage2``) turns the unwrapped distances into phases
+    :math:`\Phi_i = 4\pi f_i D_i / c` and takes the cross product of :math:`\Phi` with the unit vector
+    :math:`u = f/|f|` (its constants 0.551318, 0.110264, 0.826977 are 80, 16, 120 / 145.1): the distance of
+    :math:`\Phi` from the line of consistent phases, :math:`\sqrt{|\Phi|^2 - (\Phi\cdot u)^2}`. It accepts
+    a pixel where this is at most its dealiasing confidence, 0.349–0.611 rad (``min_dealias_confidence`` …
+    ``max_dealias_confidence``, the looser bound for weaker pixels). One frequency: 0.
+    """
+    xp = namespace(unwrapped_m)
+    f = xp.asarray(np.asarray(modulation.frequencies_hz, dtype=np.float64)).reshape(
+        (-1,) + (1,) * (unwrapped_m.ndim - 1))
+    phi = 4.0 * np.pi * f * unwrapped_m / SPEED_OF_LIGHT_M_S
+    u = f / float(np.linalg.norm(np.asarray(modulation.frequencies_hz, dtype=np.float64)))
+    along = (phi * u).sum(axis=0)
+    return np.sqrt(np.maximum((phi * phi).sum(axis=0) - along * along, 0.0))
+
+
+def _best_wrap(wrapped, weight, output, offsets, d_amb_i, h: int, unit):
+    """(r², D̄, dealias, n) of the best candidate of :func:`unwrap` for pixels (F, P), all N candidates at once:
+    the candidate with the least r² under ``weight``, its distances averaged with ``output`` (F, P), the
+    distance of its unwrapped phases from agreement (:func:`dealias_distance_rad`, ``unit`` = f/|f| (F, 1))
+    and its index n.
 
     Arrays (N, F, P): every candidate's nearest wrap of every frequency; the candidate axis is
     reduced by ``argmin``, whose first minimum is the first candidate with the smallest r² (as a
@@ -260,7 +315,12 @@ def _best_wrap(wrapped, weight, output, offsets, d_amb_i, h: int):
     best = xp.argmin(r2, axis=0)[None]
     if output is not weight:
         mean = (output[None] * unwrapped).sum(axis=1)
-    return xp.take_along_axis(r2, best, axis=0)[0], xp.take_along_axis(mean, best, axis=0)[0]
+    chosen = xp.take_along_axis(unwrapped, best[:, None], axis=0)[0]           # (F, P)
+    phi = chosen * (4.0 * np.pi / SPEED_OF_LIGHT_M_S) / (2.0 * d_amb_i[0]) * SPEED_OF_LIGHT_M_S
+    along = (phi * unit).sum(axis=0)
+    dealias = np.sqrt(np.maximum((phi * phi).sum(axis=0) - along * along, 0.0))
+    return (xp.take_along_axis(r2, best, axis=0)[0], xp.take_along_axis(mean, best, axis=0)[0], dealias,
+            best[0])
 
 
 def unwrap_weights(cw: CwDecoding, modulation: Modulation, scheme: str = "inverse_variance") -> np.ndarray:
@@ -390,6 +450,10 @@ class DecodeSettings:
     unwrap_tolerance_m: float | None = None
     unwrap_weights: str = "inverse_variance"
     phasor_filter: str = "none"
+    amplitude_test: str = "highest"
+    dealias_tolerance_rad: float | None = None
+    edge_filter: bool = False
+    edge_delta_scale: float = 1.0
 
     def __post_init__(self) -> None:
         for name in ("min_amplitude_e", "min_amplitude_snr", "read_noise_e", "gain_noise"):
@@ -407,6 +471,15 @@ class DecodeSettings:
             raise ConfigError(f"DecodeSettings: unwrap_tolerance_m must be > 0 (metres) or None, got {tolerance!r}")
         check_choice(self.unwrap_weights, UNWRAP_WEIGHTS, "DecodeSettings", "unwrap_weights")
         check_choice(self.phasor_filter, PHASOR_FILTERS, "DecodeSettings", "phasor_filter")
+        check_choice(self.amplitude_test, AMPLITUDE_TESTS, "DecodeSettings", "amplitude_test")
+        tol = self.dealias_tolerance_rad
+        if tol is not None and not (isinstance(tol, (int, float, np.number)) and 0 < tol < math.inf):
+            raise ConfigError(f"DecodeSettings: dealias_tolerance_rad must be > 0 (radians) or None, got {tol!r}")
+        if not (isinstance(self.edge_delta_scale, (int, float, np.number)) and 0 < self.edge_delta_scale < math.inf):
+            raise ConfigError(f"DecodeSettings: edge_delta_scale must be a finite number > 0, "
+                              f"got {self.edge_delta_scale!r}")
+        if not isinstance(self.edge_filter, bool):
+            raise ConfigError(f"DecodeSettings: edge_filter must be True or False, got {self.edge_filter!r}")
 
     def replace(self, **changes) -> DecodeSettings:
         """A copy with ``changes`` (checked again)."""
@@ -436,24 +509,37 @@ def decode(raw: np.ndarray, modulation: Modulation, settings: DecodeSettings | N
     raw = _check_raw(raw, modulation, finite=check)
     range_min, range_max = s.range_m
     xp = namespace(raw)
+    edge_ok = None
     if modulation.is_cw:
         cw = decode_cw(raw, modulation, check=False)
+        tested = cw.amplitude  # the amplitudes the thresholds read: the camera's filtered ones where it filters
         if s.phasor_filter == "bilateral":
-            cw = filtered_phases(cw, modulation, s.min_amplitude_e)
+            cw, tested, edge_ok = filtered_phases(cw, modulation, s.min_amplitude_e, edge_test=True)
         result = unwrap(cw, modulation, tolerance_m=s.unwrap_tolerance_m, weights=s.unwrap_weights)
         h = int(np.argmax(modulation.frequencies_hz))
         distance, amplitude, offset = result.distance, cw.amplitude[h], cw.offset[h]
         confidence, unwrap_failed = result.confidence, result.failed
+        if s.dealias_tolerance_rad is not None:
+            unwrap_failed = unwrap_failed | (result.dealias_rad > s.dealias_tolerance_rad)
         no_return = np.any(cw.amplitude <= NO_RETURN_RELATIVE_AMPLITUDE * cw.offset, axis=0)
-        noise_floor = s.min_amplitude_snr * amplitude_noise_e(offset, modulation.phase_steps[h], s.read_noise_e,
-                                                              s.gain_noise)
-        low_amplitude = (amplitude < s.min_amplitude_e) | (amplitude < noise_floor)
+        if s.amplitude_test == "every":
+            low_amplitude = xp.zeros(amplitude.shape, dtype=bool)
+            for i, steps in enumerate(modulation.phase_steps):
+                floor = s.min_amplitude_snr * amplitude_noise_e(cw.offset[i], steps, s.read_noise_e, s.gain_noise)
+                low_amplitude = low_amplitude | (tested[i] < s.min_amplitude_e) | (tested[i] < floor)
+        else:
+            noise_floor = s.min_amplitude_snr * amplitude_noise_e(offset, modulation.phase_steps[h],
+                                                                  s.read_noise_e, s.gain_noise)
+            low_amplitude = (tested[h] < s.min_amplitude_e) | (tested[h] < noise_floor)
     else:
         distance = decode_pulsed(raw, modulation, check=False)
         amplitude = raw[0] + raw[1]
         offset = 0.5 * amplitude
         no_return = ~(amplitude > 0)
-        low_amplitude = amplitude < s.min_amplitude_e
+        # Q1 + Q2 holds the ambient charge too, which two buckets cannot tell from signal: the noise floor is
+        # that of a dark pixel (read noise of both buckets), min_amplitude_snr of it
+        low_amplitude = (amplitude < s.min_amplitude_e) | (amplitude < s.min_amplitude_snr * math.sqrt(2.0)
+                                                           * s.read_noise_e)
         confidence = xp.ones(amplitude.shape)
         unwrap_failed = xp.zeros(amplitude.shape, dtype=bool)
     saturated = (np.any(raw >= s.saturation_e, axis=0) if s.saturation_e is not None
@@ -461,9 +547,16 @@ def decode(raw: np.ndarray, modulation: Modulation, settings: DecodeSettings | N
     ranged = distance if s.range_scale is None else distance * xp.asarray(s.range_scale)
     with np.errstate(invalid="ignore"):  # NaN distances of no-return pixels compare False
         out_of_range = ~((ranged >= range_min) & (ranged <= range_max))
-    reason = _first_reason([(saturated, Reason.SATURATED), (no_return, Reason.NO_RETURN),
-                            (low_amplitude, Reason.LOW_AMPLITUDE),
-                            (unwrap_failed, Reason.UNWRAPPING_FAILED), (out_of_range, Reason.OUT_OF_RANGE)])
+    checks = [(saturated, Reason.SATURATED), (no_return, Reason.NO_RETURN), (low_amplitude, Reason.LOW_AMPLITUDE),
+              (unwrap_failed, Reason.UNWRAPPING_FAILED), (out_of_range, Reason.OUT_OF_RANGE)]
+    if s.edge_filter and edge_ok is not None:
+        # libfreenect2 filterPixelStage2: the depth of every pixel whose phases passed (out of range or not)
+        # is a neighbour's evidence; the IR sum is the frequencies' filtered amplitudes summed
+        phase_ok = ~(saturated | no_return | low_amplitude | unwrap_failed)
+        raw_depth = np.where(phase_ok, ranged, np.nan)
+        checks.append((processing_edge_filter(raw_depth, tested.sum(axis=0), edge_ok,
+                                              delta_scale=s.edge_delta_scale), Reason.EDGE_FILTERED))
+    reason = _first_reason(checks)
     valid = reason == int(Reason.VALID)
     return Decoded(distance=np.where(valid, distance, np.nan).astype(np.float32),
                    amplitude=amplitude.astype(np.float32), offset=offset.astype(np.float32),
@@ -471,16 +564,25 @@ def decode(raw: np.ndarray, modulation: Modulation, settings: DecodeSettings | N
                    confidence=np.where(valid, confidence, 0.0).astype(np.float32), valid=valid, reason=reason)
 
 
-def filtered_phases(cw: CwDecoding, modulation: Modulation, min_amplitude_e: float) -> CwDecoding:
+def filtered_phases(cw: CwDecoding, modulation: Modulation, min_amplitude_e: float, *, edge_test: bool = False):
     """``cw`` with every frequency's phase from its bilateral-filtered phasor A e^{iφ}; amplitude and offset
-    stay the pixel's own (libfreenect2 keeps them for the IR image and the thresholds)."""
-    real, imag = bilateral_phasor_filter(cw.amplitude * np.cos(cw.phase), cw.amplitude * np.sin(cw.phase),
-                                         min_amplitude=min_amplitude_e)
+    stay the pixel's own (the IR image and the offset the camera reports).
+
+    ``edge_test``: return ``(cw, filtered_amplitude, edge_ok)`` instead: the filtered phasors' amplitudes
+    (F, *shape), which libfreenect2's amplitude thresholds read (``transformMeasurements`` after
+    ``filterPixelStage1``), and where every frequency passed the filter's edge test (the neighbours'
+    phase distances summing below :data:`tofcore.sensor.processing.BILATERAL_MAX_EDGE`)."""
+    re, im = cw.amplitude * np.cos(cw.phase), cw.amplitude * np.sin(cw.phase)
+    weights, dist_sum = bilateral_weights(re, im, min_amplitude=min_amplitude_e, edge_sum=True)
+    real, imag = neighbour_mean(re, weights), neighbour_mean(im, weights)
     phase = np.mod(np.arctan2(imag, real), 2.0 * np.pi)
     phase = np.where(phase < 2.0 * np.pi, phase, 0.0)
     f_hz = namespace(phase).asarray(modulation.frequencies_hz).reshape((-1,) + (1,) * (phase.ndim - 1))
-    return CwDecoding(phase=phase, amplitude=cw.amplitude, offset=cw.offset,
-                      wrapped_distance=SPEED_OF_LIGHT_M_S * phase / (4.0 * np.pi * f_hz))
+    out = CwDecoding(phase=phase, amplitude=cw.amplitude, offset=cw.offset,
+                     wrapped_distance=SPEED_OF_LIGHT_M_S * phase / (4.0 * np.pi * f_hz))
+    if not edge_test:
+        return out
+    return out, np.hypot(real, imag), np.all(dist_sum < BILATERAL_MAX_EDGE, axis=0)
 
 
 def _first_reason(checks: list) -> np.ndarray:
