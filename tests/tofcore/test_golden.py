@@ -164,7 +164,9 @@ def _golden() -> dict[str, dict[str, str]]:
 
 @pytest.mark.parametrize("name", sorted(CASES))
 def test_frame_hashes_are_unchanged(name):
-    expected = _golden()[name]
+    expected = _golden().get(name)
+    if expected is None:  # a case changed on purpose and not yet re-recorded on this kind of CPU
+        pytest.skip(f"golden case {name!r} has no hashes for {signature()!r}; record them with --add on such a CPU")
     got = hashes(name)
     changed = sorted(k for k in expected.keys() | got.keys() if expected.get(k) != got.get(k))
     assert not changed, (f"golden case {name!r}: arrays changed bit for bit: {changed} (an intentional physics "
