@@ -38,6 +38,7 @@ from typing import Any
 
 import numpy as np
 
+from .file_hashes import file_sha256
 from .setfile import PoseSpec, SceneSpec, SetFileError, SetSpec
 
 #: Bumped when the meaning of a job definition or the frame folder changes.
@@ -129,18 +130,6 @@ def derive_seed(set_seed: int, job_id: str) -> int:
     """The render seed of a job: 48 bits of SHA-256(set seed, job id); the same inputs, the same seed."""
     return int.from_bytes(hashlib.sha256(f"tofbatch-seed/{set_seed}/{job_id}".encode()).digest()[:6], "big")
 
-
-_HASHES: dict[tuple[str, int, int], str] = {}
-
-
-def file_sha256(path: str | Path) -> str:
-    """SHA-256 of a file's content, cached per (path, size, mtime) for this process."""
-    st = os.stat(path)
-    key = (str(path), st.st_size, st.st_mtime_ns)
-    if key not in _HASHES:
-        with open(path, "rb") as fh:
-            _HASHES[key] = hashlib.file_digest(fh, "sha256").hexdigest()
-    return _HASHES[key]
 
 
 def source_of(scene: SceneSpec) -> dict:

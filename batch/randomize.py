@@ -99,8 +99,10 @@ import numpy as np
 from tofcore.errors import TofError, is_number
 
 from . import distributions as dists
+from .file_hashes import file_sha256
 from .image_files import SUFFIXES as IMAGE_SUFFIXES
 from .image_files import read_grey
+from .set_checks import check_keys, integer
 
 TOP_KEYS = ("count", "materials", "objects", "camera", "ambient", "sensor")
 MATERIAL_KEYS = ("match", "reflectance", "roughness", "metallic", "ior", "extinction", "coat", "coat_roughness",
@@ -121,8 +123,6 @@ class RandomizeError(TofError):
 
 def _folder(ctx, value, path, suffixes, what) -> dict:
     """``{"folder": absolute path, "files": [[name, sha256], …]}`` of a folder of ``suffixes`` files."""
-    from .jobs import file_sha256
-
     if not isinstance(value, str) or not value.strip():
         raise ctx.fail(path, f"a folder of {what} (a path relative to the set file)", value)
     folder = (ctx.base / value).resolve()
@@ -141,15 +141,11 @@ def _dist(ctx, value, path, valid=(-math.inf, math.inf), unit="") -> dict:
 
 
 def _check(ctx, value, path, keys, what) -> dict:
-    from .setfile import _check_keys
-
-    return _check_keys(ctx, value, path, keys, what)
+    return check_keys(ctx, value, path, keys, what)
 
 
 def _attempts(ctx, table, path, default) -> int:
-    from .setfile import _int
-
-    return _int(ctx, table["max_attempts"], path + ["max_attempts"], 1) if "max_attempts" in table else default
+    return integer(ctx, table["max_attempts"], path + ["max_attempts"], 1) if "max_attempts" in table else default
 
 
 def _materials(ctx, value, path) -> list[dict]:
@@ -319,14 +315,12 @@ def _ends(dist: dists.Distribution) -> list[float]:
 
 def parse_randomize(ctx, value, path: list, presets) -> dict:
     """The plain (JSON-ready) randomize spec of a ``[scenes.randomize]`` table; SetFileError naming the key."""
-    from .setfile import _int
-
     table = _check(ctx, value, path, TOP_KEYS, "a randomize table")
     if "count" not in table:
         raise ctx.error(path, "missing key 'count' (randomized views of this scene)")
     objects = _objects(ctx, table["objects"], path + ["objects"]) if "objects" in table else None
     return {
-        "count": _int(ctx, table["count"], path + ["count"], 1),
+        "count": integer(ctx, table["count"], path + ["count"], 1),
         "materials": _materials(ctx, table["materials"], path + ["materials"]) if "materials" in table else [],
         "objects": objects,
         "camera": _camera(ctx, table.get("camera", {}), path + ["camera"], presets, objects is not None),

@@ -154,6 +154,9 @@ import numpy as np
 from tofcore import limits
 from tofcore.errors import ConfigError, LimitError, SceneError, is_number
 
+from .set_checks import check_keys as _check_keys
+from .set_checks import integer as _int
+
 #: Formats a frame can be written in (``tofcore.write_frame``).
 FORMATS = ("exr", "png", "ply", "json")
 #: Mesh-file suffixes a ``mesh`` scene may have (read by tofcore.scene.mesh_files through trimesh).
@@ -338,23 +341,6 @@ class _Context:
 
 
 # --------------------------------------------------------------------------- value checks
-
-def _check_keys(ctx: _Context, data: object, path: list, valid: Sequence[str], what: str = "a table") -> dict:
-    if not isinstance(data, Mapping):
-        raise ctx.fail(path, f"{what} with keys {list(valid)}", data)
-    for key in data:
-        if key not in valid:
-            close = difflib.get_close_matches(key, valid, n=1)
-            hint = f" (did you mean {close[0]!r}?)" if close else ""
-            raise ctx.error(path + [key], f"unknown key {key!r}{hint}; valid keys are {list(valid)}")
-    return dict(data)
-
-
-def _int(ctx: _Context, value: object, path: list, minimum: int) -> int:
-    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
-        raise ctx.fail(path, f"an integer >= {minimum}", value)
-    return value
-
 
 def _limit(ctx: _Context, limit: limits.Limit, value: int, path: list, what: str = "") -> None:
     """SetFileError naming the key, the limit and how to raise it, if ``value`` is above ``limit``."""

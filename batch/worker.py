@@ -82,7 +82,8 @@ import numpy as np
 
 from . import dataset as ds
 from .devices import VISIBLE_ENV, gpu_error_line, is_gpu_error, render_device
-from .jobs import Job, ViewTask, file_sha256
+from .file_hashes import file_sha256
+from .jobs import Job, ViewTask
 from .writer import FrameWriter
 
 FAIL_ENV = "TOF_BATCH_FAIL"
