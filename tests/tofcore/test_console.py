@@ -26,6 +26,13 @@ LOCALES = {"ascii": {"LC_ALL": "C", "PYTHONUTF8": "0", "PYTHONIOENCODING": None}
            "latin-1": {"PYTHONIOENCODING": "latin-1", "PYTHONUTF8": "0"}}
 
 
+def _default_sigint() -> None:
+    """In the child before exec: SIGINT's default action, as a terminal's foreground job has it. A test run
+    started in the background of a non-interactive shell (``.ci/run &``) inherits SIGINT ignored, and Python
+    then keeps ignoring it: a Ctrl-C test would test nothing."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _env(extra: dict | None = None) -> dict:
     env = dict(os.environ, PYTHONPATH=str(REPO))
     for key, value in (extra or {}).items():
@@ -188,7 +195,7 @@ def test_ctrl_c_in_the_start_up_window_is_one_line_or_before_any_line_of_ours(tm
     ours = 0
     for delay in np.arange(0.02, 0.155, 0.01):
         proc = subprocess.Popen(command, cwd=REPO, env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE,
-                                text=True, start_new_session=True)
+                                text=True, start_new_session=True, preexec_fn=_default_sigint)
         time.sleep(delay)
         os.killpg(proc.pid, signal.SIGINT)
         _, stderr = proc.communicate(timeout=120)
@@ -213,7 +220,7 @@ def test_ctrl_c_while_importing_or_rendering_is_one_line_and_exit_130(tmp_path, 
             "--formats", "json", "--quiet"]
     for delay in (0.3, 0.8, 1.5, 2.5):
         proc = subprocess.Popen(command + argv, cwd=REPO, env=_env(), stdout=subprocess.PIPE,
-                                stderr=subprocess.PIPE, text=True, start_new_session=True)
+                                stderr=subprocess.PIPE, text=True, start_new_session=True, preexec_fn=_default_sigint)
         time.sleep(delay)
         os.killpg(proc.pid, signal.SIGINT)
         _, stderr = proc.communicate(timeout=120)
