@@ -21,14 +21,19 @@ arrays.
 The same cases also run on the compiled tracer (the one users get with numba installed), compared with
 the NumPy frame of the same machine at test_compiled.py's tolerance: that guard holds on any machine.
 
-Bit-level hashes hold on one kind of machine: NumPy's SIMD loops for sin, cos, exp and log differ in the
-last bits between CPUs, and float64 sums show it (on the H100 host, an Intel CPU with NumPy 2.5, the three
-``trace`` cases differed while every ``render`` case, rounded to float32, hashed the same). The file
-holds one set of hashes per kind of CPU and NumPy major version (:func:`signature`): an AMD EPYC's (the
-same for NumPy 1 and 2), and an Intel Xeon's for each NumPy, added on 2026-11-28 from the frames of commit
-e64b074 (identical to this commit's, checked on that machine with both NumPys). Elsewhere the hash cases
-skip, saying so, and the worker/chunk case compares against the same frame rendered in this process
-instead.
+Bit-level hashes hold for one set of NumPy's SIMD loops: its float64 sin, cos, exp and log differ in the
+last bits between its AVX-512 loops and the C library's (which it calls below AVX-512), and between NumPy 1
+and 2 with AVX-512, and float64 sums show it (the three ``trace`` cases differ; every ``render`` case, rounded
+to float32, hashes the same). The file holds one set of hashes per architecture, SIMD level and NumPy
+major version (:func:`signature`). Until 2026-12-01 the sets were named by the CPU's make ("AMD EPYC",
+"Intel Xeon"), which is not what decides: an AMD EPYC with AVX-512 gave the Intel Xeon's hashes, and with
+``NPY_DISABLE_CPU_FEATURES`` set to the AVX-512 features the older EPYCs' (AVX2); the sets were renamed
+accordingly. Elsewhere the hash cases skip, saying so, and the worker/chunk case compares against the same
+frame rendered in this process instead.
+
+The hashes are those of the NumPy reference tracer: ``--regenerate``, ``--add`` and ``--show`` trace with
+it (``TOFCORE_TRACER=numpy``, as the test suite does), never with the compiled tracer, whose frames agree
+with it only within test_compiled.py's tolerance.
 """
 
 from __future__ import annotations
@@ -36,6 +41,7 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
+import os
 import platform
 import sys
 from pathlib import Path
@@ -129,23 +135,25 @@ def hashes(name: str, **overrides) -> dict[str, str]:
 BY_CPU = "by_cpu"
 
 
-def cpu_signature() -> str:
-    """The machine's architecture and CPU vendor/model (what NumPy's SIMD loops depend on)."""
-    model = platform.processor() or ""
+def simd_level() -> str:
+    """The widest SIMD loops NumPy dispatches to on this machine ("AVX512_SKX", "AVX2", or "baseline"): what its
+    float64 sin, cos, exp and log round by (NumPy 1.26 has AVX-512 versions of its own; below AVX-512 it calls
+    the C library's). ``NPY_DISABLE_CPU_FEATURES`` lowers it."""
     try:
-        for line in Path("/proc/cpuinfo").read_text(encoding="utf-8", errors="replace").splitlines():
-            if line.startswith("model name"):
-                model = line.split(":", 1)[1].strip()
-                break
-    except OSError:
-        pass
-    return f"{platform.machine()} {model}".strip()
+        from numpy._core._multiarray_umath import __cpu_features__ as features
+    except ImportError:  # NumPy 1
+        from numpy.core._multiarray_umath import __cpu_features__ as features
+    for level in ("AVX512_SKX", "AVX2"):
+        if features.get(level):
+            return level
+    return "baseline"
 
 
 def signature() -> str:
-    """What a set of hashes holds on: the CPU and NumPy's major version (NumPy 1 and 2 sum alike on the AMD
-    EPYC, not on the Intel Xeon: its three ``trace`` cases differ)."""
-    return f"{cpu_signature()} NumPy {np.__version__.split('.')[0]}"
+    """What a set of hashes holds on: the architecture, NumPy's SIMD level (:func:`simd_level`) and NumPy's
+    major version. Not the CPU's make: an AMD EPYC with AVX-512 hashes as the Intel Xeon does, and the same
+    EPYC with NumPy's AVX-512 loops disabled as the EPYCs without it (checked on 2026-12-01)."""
+    return f"{platform.machine()} {simd_level()} NumPy {np.__version__.split('.')[0]}"
 
 
 def _all_golden() -> dict[str, dict[str, dict[str, str]]]:
@@ -235,6 +243,7 @@ def _show() -> None:
 
 
 if __name__ == "__main__":
+    os.environ["TOFCORE_TRACER"] = "numpy"  # the reference's hashes, as under pytest (tests/conftest.py)
     if "--regenerate" in sys.argv[1:] or "--add" in sys.argv[1:]:
         _regenerate(keep_others="--add" in sys.argv[1:])
     elif "--show" in sys.argv[1:]:
