@@ -36,8 +36,10 @@ image when one is given.
 from __future__ import annotations
 
 import dataclasses
+import os
 import time
 from collections.abc import Callable, Iterator
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 
 import numpy as np
@@ -107,34 +109,7 @@ def depth_standard_error(transport: Transport, sensor, n_raw: int) -> np.ndarray
     deviation over the 3 × 3 neighbours too, frequency by frequency, with the filter's weights at the
     replicates' mean (:func:`_filtered_deviation`).
     """
-    means, counts = transport.replicate_means()         # (R, J+2, H, W), (R, H, W)
-    replicates = means.shape[0]
-    xp = namespace(means)
-    r, _, h, w = means.shape
-    # all replicates as one (J, R·H, W) image stack: one raw_images call instead of R
-    stacked = raw_images(means[:, 1:1 + n_raw].transpose(1, 0, 2, 3).reshape(n_raw, r * h, w),
-                         means[:, -1].reshape(r * h, w), sensor)
-    raw = stacked.reshape(n_raw, r, h, w).transpose(1, 0, 2, 3)             # (R, J, H, W)
-    centre = raw.mean(axis=0)
-    grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation, sensor.processing.unwrap_weights,
-                                      check=False)
-    if sensor.processing.phasor_filter == "none" or not sensor.modulation.is_cw:
-        deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
-    else:
-        deviation = _filtered_deviation(raw - centre[None], np.nan_to_num(centre), sensor)
-    var = (deviation**2).sum(axis=0) / (replicates * (replicates - 1))
-    ok = (counts.min(axis=0) >= 1) & (np.abs(grad).sum(axis=0) > 0)
-    if sensor.modulation.is_cw:
-        unambiguous = sensor.modulation.unambiguous_range_m()
-        d = np.nan_to_num(backend.device_copy(xp, transport.first_hit.distance_m), nan=0.5 * unambiguous)
-        sd = np.sqrt(var)
-        with np.errstate(divide="ignore", invalid="ignore"):
-            wrap = _normal_tail(d / sd) + _normal_tail((unambiguous - d) / sd)
-        var = var + np.where(sd > 0, wrap, 0.0) * unambiguous**2
-    sigma = np.where(ok, np.sqrt(var), np.nan)
-    if sensor.depth_output == "z":
-        sigma = sigma * np.abs(backend.device_copy(xp, sensor.camera.pixel_center_directions())[..., 2])
-    return sigma
+    return render_error(transport, sensor, n_raw)[0]
 
 
 FLIP_FRACTION = 1.0 / 8.0
@@ -158,20 +133,106 @@ def unwrap_flips(transport: Transport, sensor, n_raw: int):
     single-frequency camera flips across its unambiguous range (0 ↔ U). A pulsed camera does not unwrap:
     all False. False where a replicate has no sample yet.
     """
-    mod = sensor.modulation
-    means, counts = transport.replicate_means()
+    return render_error(transport, sensor, n_raw)[1]
+
+
+BAND_MIN_ROWS = 32
+"""Fewest rows of an image band :func:`render_error` hands a thread of its own (a band carries two rows of
+halo: smaller bands would spend more on the halo than a thread saves)."""
+
+
+def render_error(transport: Transport, sensor, n_raw: int, threads: int | None = None):
+    """(:func:`depth_standard_error`, :func:`unwrap_flips`) of the transport so far, both from one computation
+    of the replicates' raw images, on the transport's device.
+
+    On the CPU the image is cut into bands of rows, one per thread (``threads``: default the CPUs this
+    process may run on), each band with one row of its neighbours above and below, which the 3 × 3 phasor
+    filter reads and which are dropped afterwards: every step of both estimates is per pixel but for that
+    one filter, so each pixel's numbers are those of the whole image, bit for bit
+    (tests/tofcore/test_render_error.py). NumPy releases the interpreter while it computes, so the bands run
+    on all cores: the estimate after every pass is serial work the tracer's threads wait for.
+    """
+    means, counts = transport.replicate_means()          # (R, J+2, H, W), (R, H, W)
     xp = namespace(means)
+    distance = backend.device_copy(xp, transport.first_hit.distance_m)
+    z = None
+    if sensor.depth_output == "z":
+        z = np.abs(backend.device_copy(xp, sensor.camera.pixel_center_directions())[..., 2])
+    height = means.shape[-2]
+    bands = 1 if xp is not np else max(1, min(threads or _cpu_count(), height // BAND_MIN_ROWS))
+    if bands == 1:
+        return _band_error(means, counts, distance, z, sensor, n_raw)
+    edges = [round(b * height / bands) for b in range(bands + 1)]
+
+    def band(b: int):
+        lo, hi = max(edges[b] - 1, 0), min(edges[b + 1] + 1, height)
+        rows = slice(lo, hi)
+        sigma, flips = _band_error(means[..., rows, :], counts[..., rows, :], distance[rows],
+                                   None if z is None else z[rows], sensor, n_raw)
+        keep = slice(edges[b] - lo, edges[b + 1] - lo)
+        return sigma[keep], flips[keep]
+
+    with ThreadPoolExecutor(bands) as pool:
+        parts = list(pool.map(band, range(bands)))
+    return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
+
+
+def _cpu_count() -> int:
+    """CPUs this process may run on."""
+    try:
+        return len(os.sched_getaffinity(0))
+    except AttributeError:  # not on Linux
+        return os.cpu_count() or 1
+
+
+def _band_error(means, counts, distance, z, sensor, n_raw: int):
+    """(σ, flips) of :func:`render_error` for the rows of ``means`` (R, J+2, h, W), ``counts`` (R, h, W), the
+    first-hit ``distance`` (h, W) and the pixel rays' |z| (h, W) of a z-depth sensor (else None)."""
     r, _, h, w = means.shape
-    if not mod.is_cw or r < 2:
-        return xp.zeros((h, w), dtype=bool)
+    # all replicates as one (J, R·h, W) image stack: one raw_images call instead of R
     stacked = raw_images(means[:, 1:1 + n_raw].transpose(1, 0, 2, 3).reshape(n_raw, r * h, w),
-                         means[:, -1].reshape(r * h, w), sensor)
-    raw = np.nan_to_num(stacked.reshape(n_raw, r, h, w))                      # (J, R, H, W)
+                         means[:, -1].reshape(r * h, w), sensor).reshape(n_raw, r, h, w)
+    sigma = _standard_error(stacked.transpose(1, 0, 2, 3), counts, distance, sensor)
+    if z is not None:
+        sigma = sigma * z
+    return sigma, _flips(np.nan_to_num(stacked), counts, sensor)
+
+
+def _standard_error(raw, counts, distance, sensor):
+    """:func:`depth_standard_error` of the replicates' raw images ``raw`` (R, J, h, W)."""
+    replicates = raw.shape[0]
+    xp = namespace(raw)
+    centre = raw.mean(axis=0)
+    grad = decoding.distance_gradient(np.nan_to_num(centre), sensor.modulation, sensor.processing.unwrap_weights,
+                                      check=False)
+    if sensor.processing.phasor_filter == "none" or not sensor.modulation.is_cw:
+        deviation = (grad[None] * (raw - centre[None])).sum(axis=1)
+    else:
+        deviation = _filtered_deviation(raw - centre[None], np.nan_to_num(centre), sensor)
+    var = (deviation**2).sum(axis=0) / (replicates * (replicates - 1))
+    ok = (counts.min(axis=0) >= 1) & (np.abs(grad).sum(axis=0) > 0)
+    if sensor.modulation.is_cw:
+        unambiguous = sensor.modulation.unambiguous_range_m()
+        d = np.nan_to_num(distance, nan=0.5 * unambiguous)
+        sd = np.sqrt(var)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            wrap = _normal_tail(d / sd) + _normal_tail((unambiguous - d) / sd)
+        var = var + np.where(sd > 0, wrap, 0.0) * unambiguous**2
+    return np.where(ok, np.sqrt(var), np.nan)
+
+
+def _flips(raw, counts, sensor):
+    """:func:`unwrap_flips` of the replicates' raw images ``raw`` (J, R, h, W), NaN set to 0."""
+    mod = sensor.modulation
+    xp = namespace(raw)
+    r = raw.shape[1]
+    if not mod.is_cw or r < 2:
+        return xp.zeros(raw.shape[2:], dtype=bool)
     cw = decoding.decode_cw(raw, mod, check=False)
     if sensor.processing.phasor_filter == "bilateral":
         cw = decoding.filtered_phases(cw, mod, sensor.invalid.min_amplitude_e)
     distance = decoding.unwrap(cw, mod, tolerance_m=sensor.invalid.unwrap_tolerance_m,
-                               weights=sensor.processing.unwrap_weights).distance   # (R, H, W)
+                               weights=sensor.processing.unwrap_weights).distance   # (R, h, W)
     signal = ~np.any(cw.amplitude <= decoding.NO_RETURN_RELATIVE_AMPLITUDE * cw.offset, axis=0).any(axis=0)
     threshold = FLIP_FRACTION * float(np.min(mod.ambiguity_distances_m()))
     spread = distance.max(axis=0) - distance.min(axis=0)
@@ -426,8 +487,7 @@ def _depth_error(transport: Transport, sensor, n_raw: int, counts: np.ndarray) -
     shape = (sensor.camera.height, sensor.camera.width)
     if counts.max() < REPLICATES:
         return np.full(shape, np.nan), np.zeros(shape, dtype=bool)
-    sigma = depth_standard_error(transport, sensor, n_raw)
-    flips = unwrap_flips(transport, sensor, n_raw)
+    sigma, flips = render_error(transport, sensor, n_raw)
     both = backend.to_host(namespace(sigma).stack([sigma, flips.astype(sigma.dtype)]))
     return both[0], both[1] > 0.5
 
@@ -618,12 +678,11 @@ def _read_back(images: dict) -> dict:
     return out
 
 
-def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int, n_raw: int,
-           setup: FrameSetup, per_k: bool = True) -> Frame:
-    """The frame of the transport so far, computed on the transport's device and read back once; without
-    ``direct_distance`` and ``distance_per_k`` (a preview frame) unless ``per_k``."""
+def _camera_images(transport: Transport, sensor, plan: Plan, seed: int, n_raw: int, setup: FrameSetup,
+                   directions: np.ndarray) -> dict:
+    """The camera's images of the transport so far, on its device: raw images with scattering, noise and
+    saturation, decoded (depth, distance, amplitude, offset, intensity, confidence, reason, raw)."""
     mod = sensor.modulation
-    cam = sensor.camera
     raw = raw_images(transport.correlation()[:n_raw], transport.ambient(), sensor)
     xp = namespace(raw)
     if setup.psf is not None:
@@ -645,15 +704,32 @@ def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int
                                         max(mod.frequencies_hz), sensor.noise.modulation_contrast)
         distance = np.where(decoded.valid, noise_models.add_distance_noise(distance, sigma, stream, check=False),
                             np.nan)
-    directions = cam.pixel_center_directions()
     depth = decoding.radial_to_z(distance, backend.device_copy(xp, directions)) if sensor.depth_output == "z" \
         else distance.astype(np.float32)
-    images = {
+    return {
         "depth": depth, "distance": distance.astype(np.float32), "amplitude": decoded.amplitude,
         "offset": decoded.offset, "intensity": decoded.intensity, "confidence": decoded.confidence,
         "reason": decoded.reason, "raw": raw.astype(np.float32)}
-    if per_k:
-        images["per_k"] = _decode_clean_per_k(transport, sensor, n_raw, setup).astype(np.float32)
+
+
+def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int, n_raw: int,
+           setup: FrameSetup, per_k: bool = True) -> Frame:
+    """The frame of the transport so far, computed on the transport's device and read back once; without
+    ``direct_distance`` and ``distance_per_k`` (a preview frame) unless ``per_k``."""
+    mod = sensor.modulation
+    cam = sensor.camera
+    directions = cam.pixel_center_directions()
+    if per_k and namespace(transport.correlation_sum) is np and _cpu_count() > 1:
+        # On the CPU the per-k ground truth (K decodes of the clean images) is decoded on a thread of its own
+        # beside the camera's images: NumPy leaves the interpreter while it computes, so both cores work.
+        with ThreadPoolExecutor(1) as pool:
+            ground_truth = pool.submit(_decode_clean_per_k, transport, sensor, n_raw, setup)
+            images = _camera_images(transport, sensor, plan, seed, n_raw, setup, directions)
+            images["per_k"] = ground_truth.result().astype(np.float32)
+    else:
+        images = _camera_images(transport, sensor, plan, seed, n_raw, setup, directions)
+        if per_k:
+            images["per_k"] = _decode_clean_per_k(transport, sensor, n_raw, setup).astype(np.float32)
     images = _read_back(images)
     reason = images["reason"].astype(np.uint8)
     per_k = images.get("per_k")

@@ -14,6 +14,7 @@ errors are heavy-tailed near depth edges; measured spread of the ratio over seed
 from __future__ import annotations
 
 import dataclasses
+import importlib
 
 import numpy as np
 import pytest
@@ -79,3 +80,32 @@ def test_estimate_tracks_actual_error(preset, scene_name):
     for spp, ratio in estimate_over_actual(preset, scene_name).items():
         lo, hi = BOUNDS.get((preset, scene_name, spp), (0.8, 1.25))
         assert lo <= ratio <= hi, f"{preset} {scene_name} {spp} spp: estimated / actual RMS = {ratio:.2f}"
+
+
+@pytest.mark.parametrize("preset", ["kinect_v2", "o3d303", "xtion2"])
+def test_banded_estimate_equals_whole_image(preset, monkeypatch):
+    """render.render_error cuts the image into row bands on threads (issue 32, item 2): every pixel's σ and
+    flip flag are those of the whole image, bit for bit, for any number of bands — the Kinect v2 with its
+    3 × 3 phasor filter (the one step that reads neighbours: the bands' halo rows), the radial O3D303 and the
+    pulsed Xtion 2. Bands of 4 rows and more here, so that seams fall on rows of every kind (edges, floor,
+    wall) of the 64-pixel-wide room."""
+    module = importlib.import_module("tofcore.render")  # the module (tofcore.render is the function)
+    sensor = tofcore.load_preset(preset)
+    cam = sensor.camera
+    s = 64 / cam.width
+    h = round(cam.height * s)
+    cam = dataclasses.replace(cam, width=64, height=h, fx=cam.fx * s, fy=cam.fy * h / cam.height,
+                              cx=cam.cx * s, cy=cam.cy * h / cam.height)
+    sensor = sensor.replace(camera=cam)
+    scene = tofcore.demo_scene("room")
+    transport = tofcore.trace(scene, cam, sensor.leds, world_from_sensor=tofcore.suggested_pose(scene, sensor),
+                              correlations=sensor.modulation.correlation_bank(), spp=8, max_depth=3, seed=1,
+                              ambient=tofcore.Ambient(radiance_w_m2_sr=0.05))
+    n_raw = len(sensor.modulation.correlation_bank())
+    sigma, flips = module.render_error(transport, sensor, n_raw, threads=1)
+    assert np.isfinite(sigma).mean() > 0.5
+    monkeypatch.setattr(module, "BAND_MIN_ROWS", 4)
+    for threads in (2, 3, 7):
+        banded = module.render_error(transport, sensor, n_raw, threads=threads)
+        np.testing.assert_array_equal(banded[0], sigma)
+        np.testing.assert_array_equal(banded[1], flips)
