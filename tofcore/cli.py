@@ -481,7 +481,7 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     sensor = load_preset("kinect_v2")
     sensor = sensor.scaled(16 / sensor.camera.width)
     start = time.perf_counter()
-    frame = render(demo_scene("corner"), sensor, spp=1, device=args.device)
+    frame = render(demo_scene("corner"), sensor, spp=4, device=args.device)  # 4 spp: the error estimate runs too
     transport, device = frame.stats["transport"], frame.stats["device"]["name"]
     where = ""
     if transport["tracer"] == "compiled" and device == "cpu":

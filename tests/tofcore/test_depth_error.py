@@ -1,0 +1,167 @@
+"""The compiled render-error estimate (tofcore.compiled.depth_error) against the NumPy one (tofcore.render).
+
+Both compute σ of the output depth and the unwrap flips from the same replicate sums; the compiled one takes
+its DFT sums in order where NumPy's go through BLAS, and rebuilds the flips' filtered phasors from the DFT
+bin where NumPy goes through A cos φ, A sin φ: the two agree to rounding. Tolerance: σ to 1e-9 relative (the
+differences are a few ulp, ~1e-14, amplified at most by the 1/|Z|² of weak pixels); the flips exactly, as
+a spread exactly at the threshold does not occur in these frames (if one did, one pixel could differ).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import importlib
+import os
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import tofcore
+
+render_module = importlib.import_module("tofcore.render")  # the module (tofcore.render is the function)
+numba = pytest.importorskip("numba")
+
+
+def small_sensor(preset: str, width: int = 48, **overrides):
+    sensor = tofcore.load_preset(preset)
+    cam = sensor.camera
+    s = width / cam.width
+    h = round(cam.height * s)
+    cam = dataclasses.replace(cam, width=width, height=h, fx=cam.fx * s, fy=cam.fy * h / cam.height,
+                              cx=cam.cx * s, cy=cam.cy * h / cam.height)
+    return sensor.replace(camera=cam, **overrides)
+
+
+def transport_of(sensor, scene_name: str = "room", spp: int = 8):
+    scene = tofcore.demo_scene(scene_name)
+    return tofcore.trace(scene, sensor.camera, sensor.leds, world_from_sensor=tofcore.suggested_pose(scene, sensor),
+                         correlations=sensor.modulation.correlation_bank(), spp=spp, max_depth=3, seed=3,
+                         ambient=tofcore.Ambient(radiance_w_m2_sr=0.05))
+
+
+SENSORS = {
+    "kinect_v2": ("kinect_v2", {}),                                     # 3 frequencies, bilateral, f/Σf output
+    "kinect_v2_unfiltered": ("kinect_v2", {"processing.phasor_filter": "none",
+                                           "processing.unwrap_weights": "inverse_variance"}),
+    "o3d303": ("o3d303", {}),                                           # one 30 MHz frequency, 4 steps, radial
+    "two_sine_frequencies": ("o3d303", {"modulation.kind": "cw_sine", "modulation.frequencies_hz": [20e6, 50e6],
+                                        "modulation.phase_steps": [3, 5], "modulation.exposure_s": [5e-4, 5e-4]}),
+}
+
+
+@pytest.mark.parametrize("name", sorted(SENSORS))
+def test_compiled_estimate_equals_the_numpy_estimate(name):
+    from tofcore.compiled import depth_error
+
+    preset, overrides = SENSORS[name]
+    sensor = small_sensor(preset, **overrides)
+    assert depth_error.supports(sensor) == ""
+    transport = transport_of(sensor)
+    n_raw = len(sensor.modulation.correlation_bank())
+    sigma, flips = render_module.render_error(transport, sensor, n_raw)  # the NumPy reference traced it
+    assert transport.stats.tracer == "numpy"
+    fast_sigma, fast_flips = depth_error.render_error(transport, sensor, n_raw, render_module.flip_threshold_m(sensor))
+    assert fast_sigma.shape == sigma.shape and fast_flips.dtype == bool
+    np.testing.assert_array_equal(np.isnan(fast_sigma), np.isnan(sigma))
+    seen = ~np.isnan(sigma)
+    assert seen.mean() > 0.5
+    np.testing.assert_allclose(fast_sigma[seen], sigma[seen], rtol=1e-9, atol=0)
+    np.testing.assert_array_equal(fast_flips, flips)
+
+
+def test_compiled_estimate_sees_the_flips_of_a_noisy_pass():
+    """At 4 spp the Kinect v2's replicates disagree on the wrap at a share of the pixels (the demo frame: 2.5 %
+    at 16 spp): both estimates flag the same pixels, so the test above is not won by an all-False map."""
+    from tofcore.compiled import depth_error
+
+    sensor = small_sensor("kinect_v2")
+    transport = transport_of(sensor, spp=4)
+    n_raw = len(sensor.modulation.correlation_bank())
+    _, flips = render_module.render_error(transport, sensor, n_raw)
+    _, fast_flips = depth_error.render_error(transport, sensor, n_raw, render_module.flip_threshold_m(sensor))
+    assert flips.sum() >= 5
+    np.testing.assert_array_equal(fast_flips, flips)
+
+
+def test_a_pulsed_sensor_keeps_the_array_program():
+    from tofcore.compiled import depth_error
+
+    assert "pulsed" in depth_error.supports(tofcore.load_preset("xtion2"))
+
+
+SIMULATED_GPU_ESTIMATE = r"""
+import numpy as np, tofcore, importlib, sys
+sys.path.insert(0, sys.argv[1])
+from test_depth_error import small_sensor, transport_of
+from tofcore.compiled import depth_error
+render_module = importlib.import_module("tofcore.render")
+sensor = small_sensor("kinect_v2", width=16)
+transport = transport_of(sensor)
+n_raw = len(sensor.modulation.correlation_bank())
+threshold = render_module.flip_threshold_m(sensor)
+sigma, flips = depth_error.render_error(transport, sensor, n_raw, threshold)       # the CPU build
+build = depth_error.cuda_build()
+from tofcore.tracer.estimator import replicate_counts
+h, w = transport.height, transport.width
+counts = replicate_counts(transport.sample_count).astype(np.int64)
+channels, freqs, settings = depth_error.tables(sensor, n_raw, threshold)
+scale = np.abs(sensor.camera.pixel_center_directions()[..., 2]).reshape(-1).astype(np.float64)
+table = np.empty((counts.shape[0] + 1, freqs.shape[0], 6, h * w))
+g_sigma, g_flips = np.empty(h * w), np.zeros(h * w, dtype=np.bool_)
+blocks = (h * w + 127) // 128
+build.phasors_kernel[blocks, 128](transport.replicate_sum, counts, channels, freqs, table)
+build.error_kernel[blocks, 128](table, counts, transport.first_hit.distance_m.reshape(-1).astype(np.float64), scale,
+                                freqs, settings, w, g_sigma, g_flips)
+assert np.array_equal(np.isnan(g_sigma.reshape(h, w)), np.isnan(sigma))
+seen = ~np.isnan(sigma)
+assert np.allclose(g_sigma.reshape(h, w)[seen], sigma[seen], rtol=1e-12, atol=0)
+assert np.array_equal(g_flips.reshape(h, w), flips)
+print("ok", int(np.isfinite(sigma).sum()))
+"""
+
+
+def test_cuda_build_of_the_estimate_in_the_simulator(tmp_path):
+    """The same file compiled for CUDA, run by numba's CUDA simulator: the CPU build's flips, and its σ to 1e-12
+    relative (the simulator runs the scalar functions in Python, whose math.hypot is CPython's own, not the
+    C library's that the CPU build calls: an ulp apart). tests/tofcore/test_gpu.py checks the device."""
+    env = dict(os.environ, NUMBA_ENABLE_CUDASIM="1", NUMBA_CACHE_DIR=str(tmp_path))
+    here = os.path.dirname(os.path.abspath(__file__))
+    run = subprocess.run([sys.executable, "-W", "ignore", "-c", SIMULATED_GPU_ESTIMATE, here], env=env,
+                         capture_output=True, text=True, timeout=600)
+    assert run.returncode == 0, run.stderr[-3000:]
+    assert run.stdout.startswith("ok")
+
+
+def _no_numba_cuda() -> str:
+    from tofcore import backend, compiled
+
+    try:
+        backend.select_device("gpu")
+    except backend.GpuUnavailable as exc:
+        return str(exc)
+    return compiled.cuda_unavailable() or ""
+
+
+@pytest.mark.gpu
+@pytest.mark.skipif(bool(_no_numba_cuda()), reason=f"needs numba-cuda and a CUDA GPU: {_no_numba_cuda()}")
+def test_cuda_estimate_equals_the_cpu_estimate():
+    """The two CUDA kernels on the device against the CPU build on the same sums (a 128-pixel-wide Kinect v2
+    room): the same flips, σ to 1e-9 relative (CUDA's exp, atan2 and hypot are an ulp from glibc's)."""
+    import cupy
+
+    from tofcore.compiled import depth_error
+
+    sensor = small_sensor("kinect_v2", width=128)
+    transport = transport_of(sensor)
+    n_raw = len(sensor.modulation.correlation_bank())
+    threshold = render_module.flip_threshold_m(sensor)
+    sigma, flips = depth_error.render_error(transport, sensor, n_raw, threshold)
+    on_device = dataclasses.replace(transport, replicate_sum=cupy.asarray(transport.replicate_sum),
+                                    sample_count=cupy.asarray(transport.sample_count))
+    g_sigma, g_flips = (cupy.asnumpy(a) for a in depth_error.render_error(on_device, sensor, n_raw, threshold))
+    np.testing.assert_array_equal(np.isnan(g_sigma), np.isnan(sigma))
+    seen = ~np.isnan(sigma)
+    np.testing.assert_allclose(g_sigma[seen], sigma[seen], rtol=1e-9, atol=0)
+    assert (g_flips != flips).sum() <= 1
