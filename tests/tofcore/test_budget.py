@@ -15,7 +15,8 @@ from tofcore import Camera, ConfigError, load_preset, render
 from tofcore.sensor.config import Noise, Scattering
 from tofcore.tracer.budget import TimeBudget, budgeted_pass, pass_cost_model
 from tofcore.tracer.estimator import allocate_samples
-from tofcore.tracer.trace import PassPolicy, PassReport, next_pass_size, pass_schedule, trace_progressive
+from tofcore.tracer.trace import (PassPolicy, PassReport, next_pass_size, pass_schedule, samples_to_target,
+                                  trace_progressive)
 from tofcore.scene.led import LED
 
 render_module = __import__("tofcore.render", fromlist=["_clock"])
@@ -153,6 +154,23 @@ def test_the_policy_stops_at_the_reported_target_error_and_the_report_says_so():
         passes.report(PassReport(error_m=np.zeros((6, 8))))
     with pytest.raises(ConfigError, match="spp and progressive go into the policy when one is given"):
         trace_progressive(scene, cam, [LED()], spp=4, policy=PassPolicy(spp=8))
+
+
+def test_a_target_errors_last_pass_is_cut_to_the_samples_it_needs():
+    """32 spp at 2.2 mm towards 2 mm: ⌈32 · 1.1²⌉ = 39 spp at σ ∝ n^−½, so the next pass has 7 samples, not the
+    schedule's 16; an error far above the target keeps the schedule's pass; NaN (no estimate yet) too."""
+    assert samples_to_target(32, 0.0022, 0.002) == 7
+    assert samples_to_target(32, 0.0020001, 0.002) == 1
+    scene, cam = tofcore.demo_scene("corner"), Camera.from_fov(8, 6, 60.0)
+    pose = tofcore.suggested_pose(scene)
+    passes = trace_progressive(scene, cam, [LED()], world_from_sensor=pose, max_depth=1,
+                               policy=PassPolicy(spp=256, target_error_m=0.002))
+    spp = []
+    for transport in passes:
+        spp.append(int(transport.sample_count[0]))
+        error = {1: np.nan, 2: np.nan}.get(spp[-1], 0.02 if spp[-1] < 32 else 0.0022 if spp[-1] == 32 else 0.0019)
+        passes.report(PassReport(error_m=np.full((6, 8), error)))
+    assert spp == [1, 2, 4, 8, 16, 32, 39]
 
 
 def test_the_adaptive_policy_allocates_by_the_reported_error():

@@ -16,6 +16,7 @@ sees the sensor model).
 
 from __future__ import annotations
 
+import math
 import time
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, replace
@@ -365,6 +366,8 @@ class PassSchedule:
         rms = None if target is None else rms_error(self._error_m, distance_m)
         if rms is not None and rms <= target:
             self.next_n = 0
+        elif rms is not None and math.isfinite(rms) and self.next_n:
+            self.next_n = min(self.next_n, samples_to_target(self.nominal, rms, target))
         return self.next_n == 0
 
     def _decide(self, report: PassReport | None) -> None:
@@ -437,6 +440,17 @@ def next_pass_size(done: int, spp: int, progressive: bool = True) -> int:
     passes double, 1, 1, 2, 4, 8, 16, 16, …), else 16; never more than the ``spp − done`` left."""
     size = min(max(done, 1), _MAX_PASS) if progressive else _MAX_PASS
     return min(size, spp - done)
+
+
+def samples_to_target(done: int, error: float, target: float) -> int:
+    r"""Samples per pixel a pass needs to bring the RMS error ``error`` of ``done`` samples per pixel down to
+    ``target``, at the Monte Carlo rate :math:`\sigma \propto n^{-1/2}`:
+    :math:`\lceil n (\sigma/\sigma_t)^2 \rceil - n`, at least 1. The rate is the slowest the estimator
+    shows (adaptive sampling makes the error fall faster: the demo frame's fell as :math:`n^{-0.57}` to
+    :math:`n^{-0.62}` from 16 to 48 spp), so the pass rarely falls short; where it does, the next (small) one
+    follows. A target error's last pass is cut to this instead of overshooting by up to a whole scheduled
+    pass of 16."""
+    return max(1, math.ceil(done * (error / target) ** 2) - done)
 
 
 def pass_schedule(spp: int, progressive: bool = True) -> list[int]:
