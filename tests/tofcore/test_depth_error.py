@@ -118,6 +118,13 @@ assert np.array_equal(np.isnan(g_sigma.reshape(h, w)), np.isnan(sigma))
 seen = ~np.isnan(sigma)
 assert np.allclose(g_sigma.reshape(h, w)[seen], sigma[seen], rtol=1e-12, atol=0)
 assert np.array_equal(g_flips.reshape(h, w), flips)
+per_k = depth_error.clean_per_k(transport, sensor, n_raw)                           # the CPU build
+g_per_k = np.empty((transport.max_depth, h * w))
+build.clean_kernel[blocks, 128](np.ascontiguousarray(transport.correlation_sum[:, :n_raw]), transport.ambient_sum,
+                                transport.sample_count, channels, freqs, settings, g_per_k)
+g_per_k = g_per_k.reshape(per_k.shape).astype(np.float32)
+assert np.array_equal(np.isnan(g_per_k), np.isnan(per_k))
+assert np.allclose(g_per_k[~np.isnan(per_k)], per_k[~np.isnan(per_k)], rtol=0, atol=1e-6)
 print("ok", int(np.isfinite(sigma).sum()))
 """
 
@@ -147,9 +154,9 @@ def _no_numba_cuda() -> str:
 @pytest.mark.gpu
 @pytest.mark.skipif(bool(_no_numba_cuda()), reason=f"needs numba-cuda and a CUDA GPU: {_no_numba_cuda()}")
 def test_cuda_estimate_equals_the_cpu_estimate(monkeypatch):
-    """The two CUDA kernels on the wavefront's transport (a 128-pixel-wide Kinect v2 room) against the CPU build
-    on the same sums read back: the same flips, σ to 1e-9 relative (CUDA's exp, atan2 and hypot are an ulp
-    from glibc's)."""
+    """The CUDA kernels on the wavefront's transport (a 128-pixel-wide Kinect v2 room) against the CPU build on
+    the same sums read back: the same flips, σ to 1e-9 relative (CUDA's exp, atan2 and hypot are an ulp from
+    glibc's); the per-k ground truth to a micrometre, with at most one pixel's validity on the tolerance's edge."""
     from tofcore import backend
     from tofcore.compiled import depth_error
 
@@ -172,3 +179,33 @@ def test_cuda_estimate_equals_the_cpu_estimate(monkeypatch):
     assert seen.mean() > 0.5
     np.testing.assert_allclose(g_sigma[seen], sigma[seen], rtol=1e-9, atol=0)
     assert (g_flips != flips).sum() <= 1
+    on_host_sums = dataclasses.replace(on_host, correlation_sum=backend.to_host(on_device.correlation_sum),
+                                       ambient_sum=backend.to_host(on_device.ambient_sum))
+    per_k = depth_error.clean_per_k(on_host_sums, sensor, n_raw)
+    g_per_k = backend.to_host(depth_error.clean_per_k(on_device, sensor, n_raw))
+    assert (np.isnan(g_per_k) != np.isnan(per_k)).sum() <= 1
+    both = ~np.isnan(g_per_k) & ~np.isnan(per_k)
+    np.testing.assert_allclose(g_per_k[both], per_k[both], rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("name", sorted(SENSORS))
+def test_compiled_per_k_ground_truth_equals_the_decoders(name):
+    """depth_error.clean_per_k (the GPU's per-k ground truth) against render._decode_clean_per_k (decode.decode
+    with the clean settings): the same NaN pixels (no modulated signal, frequencies that disagree beyond the
+    unwrap tolerance), distances to 1e-6 m (float32 output; the inputs agree to rounding)."""
+    from tofcore.compiled import depth_error
+
+    preset, overrides = SENSORS[name]
+    sensor = small_sensor(preset, **overrides)
+    transport = transport_of(sensor)
+    n_raw = len(sensor.modulation.correlation_bank())
+    plan = render_module.make_plan(tofcore.demo_scene("room"), sensor, max_depth=3, ambient=None)
+    setup = render_module.frame_setup(sensor, plan)
+    reference = render_module._decode_clean_per_k(transport, sensor, n_raw, setup).astype(np.float32)
+    fast = depth_error.clean_per_k(transport, sensor, n_raw)
+    assert fast.shape == reference.shape == (transport.max_depth, transport.height, transport.width)
+    assert np.isfinite(reference).mean() > 0.5
+    mismatch = np.isnan(fast) != np.isnan(reference)
+    assert mismatch.mean() <= 1e-3, f"{mismatch.sum()} pixels differ in validity"
+    both = ~np.isnan(fast) & ~np.isnan(reference)
+    np.testing.assert_allclose(fast[both], reference[both], rtol=0, atol=1e-6)

@@ -50,6 +50,8 @@ SQRT2 = float(np.sqrt(2.0))
 MAX_FREQUENCIES = 8
 """Frequencies a pixel's arrays hold (local arrays need their size when compiling)."""
 MAX_REPLICATES = 16
+MAX_RAW = 64
+"""Raw images a pixel's arrays hold."""
 # Rows of the frequency table (one row per frequency): f, steps N, first raw channel, d_amb, c / (4π f),
 # the phasor filter's threshold on |Z| (min_amplitude_e · N / 2), the output weight f / Σf.
 F_HZ, F_STEPS, F_FIRST, F_AMBIGUITY, F_METRES_PER_RAD, F_STRONG_Z, F_OUTPUT = range(7)
@@ -189,6 +191,80 @@ def unwrap_weight_sum(table, s, i_count, freqs, p, scheme_frequency, out_w):
 
 
 @fn
+def unwrap_best(wrapped, w_choose, w_out, freqs, n_candidates, h, frequency_out, nearest):
+    """(r², D̄) of decode.unwrap's best wrap candidate for the wrapped distances ``wrapped`` (F,): the first of the
+    candidates D = d_h + n d_amb,h with the least spread r² of the frequencies' nearest wraps under the
+    inverse-variance weights ``w_choose``, its distance averaged with ``w_out`` where ``frequency_out`` (the
+    camera's f/Σf), else with ``w_choose``; ``nearest`` (F,) scratch. Not yet reduced modulo the range."""
+    best_r2, best_d = math.inf, 0.0
+    d_h, amb_h = wrapped[h], freqs[h, F_AMBIGUITY]
+    for n in range(n_candidates):
+        candidate = d_h + n * amb_h
+        mean = 0.0
+        for i in range(freqs.shape[0]):  # every frequency's nearest wrap to the candidate
+            amb = freqs[i, F_AMBIGUITY]
+            nearest[i] = wrapped[i] + round_half_even((candidate - wrapped[i]) / amb) * amb
+            mean += w_choose[i] * nearest[i]
+        r2 = 0.0
+        out = 0.0
+        for i in range(freqs.shape[0]):
+            r2 += w_choose[i] * (nearest[i] - mean) ** 2
+            out += w_out[i] * nearest[i]
+        if r2 < best_r2:
+            best_r2, best_d = r2, (mean if not frequency_out else out)
+    return best_r2, best_d
+
+
+@fn
+def clean_distances(correlation_sum, ambient_sum, sample_count, channels, freqs, settings, p, scratch, raw, out):
+    """The noise-free decoded distance of pixel p for every max path length k = 1..K into ``out`` (K, P): the
+    raw images of the bounce buckets ≤ k (running sums of the buckets' means) decoded without thresholds,
+    range limit or phasor filter (render._decode_clean_per_k: decode.decode with the clean settings); NaN
+    where a frequency has no modulated signal or the frequencies disagree beyond the unwrap tolerance.
+    ``settings`` as in :func:`pixel_error` with the unwrap tolerance in row 6; ``raw`` (≥ J,) scratch."""
+    unambiguous, tolerance = settings[0], settings[6]
+    n_candidates, h = np.int64(settings[1]), np.int64(settings[2])
+    frequency_out = settings[5] != 0.0
+    w_choose, w_out, wrapped, nearest, a, b = scratch[0], scratch[1], scratch[2], scratch[3], scratch[4], scratch[5]
+    n = sample_count[p]
+    ambient = ambient_sum[p] / n
+    n_raw = channels.shape[0]
+    for j in range(n_raw):
+        raw[j] = 0.0
+    for k in range(correlation_sum.shape[0]):
+        for j in range(n_raw):
+            raw[j] += correlation_sum[k, j, p] / n  # the cumulative mean of buckets ≤ k
+        no_return = False
+        total_w = 0.0
+        for i in range(freqs.shape[0]):
+            first, steps = np.int64(freqs[i, F_FIRST]), np.int64(freqs[i, F_STEPS])
+            re, im, sum_q = 0.0, 0.0, 0.0
+            for s_k in range(steps):
+                j = first + s_k
+                q = channels[j, 0] * (raw[j] + ambient * channels[j, 1])
+                re += channels[j, 2] * q
+                im += channels[j, 3] * q
+                sum_q += q
+            a[i] = 2.0 / steps * math.hypot(re, im)
+            b[i] = sum_q / steps
+            if a[i] <= NO_RETURN * b[i]:
+                no_return = True
+            phase = math.atan2(im, re) % TWO_PI
+            if not phase < TWO_PI:
+                phase = 0.0
+            wrapped[i] = phase * freqs[i, F_METRES_PER_RAD]
+            w = (freqs[i, F_HZ] * a[i]) ** 2 / (a[i] + b[i]) if a[i] + b[i] > 0 else 0.0
+            w_choose[i] = w
+            total_w += w
+        for i in range(freqs.shape[0]):
+            w_choose[i] = w_choose[i] / total_w if total_w > 0 else 1.0 / freqs.shape[0]
+            w_out[i] = freqs[i, F_OUTPUT] if frequency_out else w_choose[i]
+        best_r2, best_d = unwrap_best(wrapped, w_choose, w_out, freqs, n_candidates, h, frequency_out, nearest)
+        failed = not math.sqrt(best_r2) <= tolerance
+        out[k, p] = math.nan if no_return or failed else best_d % unambiguous
+
+
+@fn
 def pixel_error(table, counts, distance, depth_scale, freqs, settings, y, x, width, height, rows, scratch, weights,
                 deviations, unwrapped):
     """Stage 2 for pixel (y, x): (σ of the output depth, whether its replicates unwrap to different intervals).
@@ -290,22 +366,7 @@ def pixel_error(table, counts, distance, depth_scale, freqs, settings, y, x, wid
             if not phase < TWO_PI:
                 phase = 0.0
             wrapped[i] = phase * freqs[i, F_METRES_PER_RAD]
-        best_r2, best_d = math.inf, 0.0
-        d_h, amb_h = wrapped[h], freqs[h, F_AMBIGUITY]
-        for n in range(n_candidates):  # decode.unwrap: the candidate with the least weighted spread
-            candidate = d_h + n * amb_h
-            mean = 0.0
-            for i in range(n_freq):  # every frequency's nearest wrap to the candidate
-                amb = freqs[i, F_AMBIGUITY]
-                nearest[i] = wrapped[i] + round_half_even((candidate - wrapped[i]) / amb) * amb
-                mean += w_choose[i] * nearest[i]
-            r2 = 0.0
-            out = 0.0
-            for i in range(n_freq):
-                r2 += w_choose[i] * (nearest[i] - mean) ** 2
-                out += w_out[i] * nearest[i]
-            if r2 < best_r2:
-                best_r2, best_d = r2, (mean if not frequency_out else out)
+        best_d = unwrap_best(wrapped, w_choose, w_out, freqs, n_candidates, h, frequency_out, nearest)[1]
         unwrapped[r] = best_d % unambiguous
     low, high = unwrapped[0], unwrapped[0]
     for r in range(1, n_rep):
@@ -374,6 +435,27 @@ def error_kernel(table, counts, distance, depth_scale, freqs, settings, width, s
         flips[p] = f
 
 
+@cpu_parallel
+def clean_rows(correlation_sum, ambient_sum, sample_count, channels, freqs, settings, width, out):
+    """:func:`clean_distances` for every pixel on numba's threads, a row at a time (CI's check of the kernel)."""
+    for y in prange(sample_count.shape[0] // width):
+        scratch = np.empty((6, freqs.shape[0]))
+        raw = np.empty(channels.shape[0])
+        for x in range(width):
+            clean_distances(correlation_sum, ambient_sum, sample_count, channels, freqs, settings, y * width + x,
+                            scratch, raw, out)
+
+
+@gpu_kernel
+def clean_kernel(correlation_sum, ambient_sum, sample_count, channels, freqs, settings, out):
+    """:func:`clean_distances` on the GPU, a thread per pixel."""
+    p = cuda.grid(1)
+    if p < sample_count.shape[0]:
+        scratch = cuda.local.array((6, MAX_FREQUENCIES), np.float64)
+        raw = cuda.local.array(MAX_RAW, np.float64)
+        clean_distances(correlation_sum, ambient_sum, sample_count, channels, freqs, settings, p, scratch, raw, out)
+
+
 # ------------------------------------------------------------------ host side: the tables and the launches
 def supports(sensor) -> str:
     """Why this estimate cannot take ``sensor`` ("" where it can): it covers continuous-wave sensors with
@@ -385,12 +467,14 @@ def supports(sensor) -> str:
         return f"more than {MAX_FREQUENCIES} frequencies"
     if sensor.processing.phasor_filter not in ("none", "bilateral"):
         return f"phasor filter {sensor.processing.phasor_filter!r}"
+    if mod.raw_count > MAX_RAW:
+        return f"more than {MAX_RAW} raw images"
     return ""
 
 
 def tables(sensor, n_raw: int, flip_threshold_m: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(channels (J, 4), frequency table (F, 7), settings (6,)) of :func:`pixel_phasors` and
-    :func:`pixel_error` for ``sensor`` (its first ``n_raw`` correlation channels are the raw images) and the
+    """(channels (J, 4), frequency table (F, 7), settings (7,)) of :func:`pixel_phasors`, :func:`pixel_error` and
+    :func:`clean_distances` for ``sensor`` (its first ``n_raw`` correlation channels are the raw images) and the
     spread of the replicates' distances above which they unwrapped to different intervals."""
     mod = sensor.modulation
     scale = sensor.readout.responsivity * np.asarray(mod.raw_exposure_s(), np.float64)
@@ -409,8 +493,11 @@ def tables(sensor, n_raw: int, flip_threshold_m: float) -> tuple[np.ndarray, np.
         first += steps
     unambiguous = mod.unambiguous_range_m()
     h = int(np.argmax(mod.frequencies_hz))
-    settings = np.array([unambiguous, max(1, math.ceil(unambiguous / d_amb[h] - 1e-9)), h, flip_threshold_m, sensor.processing.phasor_filter == "bilateral",
-                         sensor.processing.unwrap_weights == "frequency"], np.float64)
+    tolerance = sensor.invalid.unwrap_tolerance_m
+    settings = np.array([unambiguous, max(1, math.ceil(unambiguous / d_amb[h] - 1e-9)), h, flip_threshold_m,
+                         sensor.processing.phasor_filter == "bilateral",
+                         sensor.processing.unwrap_weights == "frequency",
+                         _decode.default_unwrap_tolerance_m(mod) if tolerance is None else tolerance], np.float64)
     return channels, freqs, settings
 
 
@@ -476,3 +563,28 @@ def render_error(transport, sensor, n_raw: int, flip_threshold_m: float):
         build.error_kernel[blocks, THREADS_PER_BLOCK](table, counts, distance, scale, freqs, settings, w, sigma,
                                                       flips)
     return sigma.reshape(h, w), flips.reshape(h, w)
+
+
+def clean_per_k(transport, sensor, n_raw: int):
+    """(K, H, W) float32 noise-free decoded distance for every max path length k (render._decode_clean_per_k) for
+    a sensor :func:`supports` takes, on the transport's device: one CUDA kernel on a GPU, numba's threads on the
+    CPU."""
+    from ..backend import namespace
+
+    xp = namespace(transport.correlation_sum)
+    k, h, w = transport.max_depth, transport.height, transport.width
+    channels, freqs, settings = (xp.asarray(a) for a in tables(sensor, n_raw, 0.0))
+    correlation_sum = xp.ascontiguousarray(transport.correlation_sum[:, :n_raw], dtype=np.float64)
+    ambient_sum = xp.ascontiguousarray(transport.ambient_sum, dtype=np.float64)
+    sample_count = xp.ascontiguousarray(transport.sample_count, dtype=np.int64)
+    out = xp.empty((k, h * w))
+    if xp is np:
+        from .cpu import PARALLEL_LOCK
+
+        with PARALLEL_LOCK:
+            clean_rows(correlation_sum, ambient_sum, sample_count, channels, freqs, settings, w, out)
+    else:
+        blocks = (h * w + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK
+        cuda_build().clean_kernel[blocks, THREADS_PER_BLOCK](correlation_sum, ambient_sum, sample_count, channels,
+                                                            freqs, settings, out)
+    return out.reshape(k, h, w).astype(np.float32)

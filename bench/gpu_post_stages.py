@@ -1,0 +1,97 @@
+"""Where the GPU's post-trace milliseconds go: each stage of the Kinect v2 frame after the trace, timed with the
+device synchronised before and after it (so a stage's time is its own kernels' and launches').
+
+Wraps the stages of :mod:`tofcore.render` (the per-pass error estimate, the camera's images — raw images,
+scattering, noise, decoding with the phasor and edge filters —, the per-k ground truth, the read-back) and,
+inside the camera's images, the decoder and the scattering, renders the demo room at 16 spp and at 1 spp a
+few times, and prints the median of each stage per frame.
+
+Usage::
+
+    PYTHONPATH=. python3 bench/gpu_post_stages.py [--repeat 5] [--json $OUT/post_stages.json]
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import importlib
+import json
+import statistics
+import sys
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent))
+
+
+def main() -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--repeat", type=int, default=5)
+    p.add_argument("--json", type=Path)
+    a = p.parse_args()
+    import cupy as cp
+
+    import tofcore
+    from tofcore.sensor import decode, optics
+
+    render = importlib.import_module("tofcore.render")
+    times: dict[str, list[float]] = collections.defaultdict(list)
+
+    def timed(module, name: str, label: str):
+        function = getattr(module, name)
+
+        def wrapper(*args, **kwargs):
+            cp.cuda.Device().synchronize()
+            start = time.perf_counter()
+            try:
+                return function(*args, **kwargs)
+            finally:
+                cp.cuda.Device().synchronize()
+                times[label].append(time.perf_counter() - start)
+        setattr(module, name, wrapper)
+
+    for module, name, label in ((render, "render_error", "error estimate"),
+                                (render, "_camera_images", "camera images (all below)"),
+                                (optics, "apply_scattering", "  lens scattering"),
+                                (render, "_decode_clean_per_k", "per-k ground truth"),
+                                (render, "_read_back", "read-back"),
+                                (render, "_frame", "frame (camera, per-k, read-back)")):
+        timed(module, name, label)
+    decode_camera = decode.decode
+
+    def camera_decode(*args, **kwargs):  # the camera's decode only (the per-k one is timed as a whole)
+        cp.cuda.Device().synchronize()
+        start = time.perf_counter()
+        try:
+            return decode_camera(*args, **kwargs)
+        finally:
+            cp.cuda.Device().synchronize()
+            times["  decode (camera's or per-k's)"].append(time.perf_counter() - start)
+    render.decoding.decode = camera_decode
+
+    scene, sensor = tofcore.demo_scene("room"), tofcore.load_preset("kinect_v2")
+    result = {}
+    for spp in (16, 1):
+        tofcore.render(scene, sensor, spp=spp, max_depth=5, device="gpu")  # warm
+        times.clear()
+        whole = []
+        for _ in range(a.repeat):
+            cp.cuda.Device().synchronize()
+            start = time.perf_counter()
+            tofcore.render(scene, sensor, spp=spp, max_depth=5, device="gpu")
+            cp.cuda.Device().synchronize()
+            whole.append(time.perf_counter() - start)
+        per_frame = {k: 1e3 * sum(v) / a.repeat for k, v in times.items()}
+        result[f"{spp} spp"] = dict(per_frame, whole=1e3 * statistics.median(whole))
+        print(f"Kinect v2 room, {spp} spp, ms per frame (mean of {a.repeat}); whole frame median "
+              f"{1e3 * statistics.median(whole):.1f} ms")
+        for k, v in sorted(per_frame.items(), key=lambda kv: -kv[1]):
+            print(f"  {k:40s} {v:8.2f}")
+    if a.json:
+        a.json.write_text(json.dumps(result, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
