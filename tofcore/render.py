@@ -659,7 +659,7 @@ def _decode_clean_per_k(transport: Transport, sensor, n_raw: int, setup: FrameSe
     The raw images of bounces ≤ k are the running sums over the bounce buckets; the K images are
     decoded together (one decode of K·H rows) instead of K times. On a GPU, the wavefront's transport of a
     continuous-wave sensor is decoded by one kernel instead (:func:`tofcore.compiled.depth_error.clean_per_k`:
-    11.6 → … ms for the Kinect v2 frame on an H200), the same distances in float32.
+    11.6 → 1.4 ms for the Kinect v2 frame on an H200), the same distances in float32.
     """
     xp = namespace(transport.correlation_sum)
     if xp is not np and transport.stats.tracer == "compiled":  # the GPU wavefront: one kernel (render_error says why)
