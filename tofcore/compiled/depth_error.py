@@ -1,6 +1,8 @@
 r"""The render's depth-error estimate per pixel, compiled: σ and the unwrap flips of
 :func:`tofcore.render.render_error` for continuous-wave sensors, one source for the CPU (numba threads over
-rows) and CUDA (a thread per pixel), as :mod:`tofcore.compiled.kernels` is for the tracer.
+rows) and CUDA (a thread per pixel), as :mod:`tofcore.compiled.kernels` is for the tracer; and the frame's
+per-k ground truth (:func:`clean_distances`: render._decode_clean_per_k, the same decoding and unwrapping
+without the camera's thresholds and filter).
 
 The NumPy functions it mirrors, and the formulas, are those of :mod:`tofcore.render` (``_standard_error``,
 ``_filtered_deviation``, ``_flips``) and :mod:`tofcore.sensor.decode` (``phase_amplitude_offset``,
@@ -20,7 +22,7 @@ phasor as :math:`\frac2N Z` where NumPy rebuilds it as :math:`A\cos\varphi, A\si
 vectorised ``exp``/``atan2`` round their last bit differently from libm (tests/tofcore/test_depth_error.py
 states the tolerance).
 
-Renders on a GPU use it (:func:`tofcore.render.render_error` says when); CPU renders keep the array program,
+Renders on a GPU use both (:func:`tofcore.render.render_error` says when); CPU renders keep the array programs,
 whose cost there is ~1 % of a frame, against 11 s more of numba's one-time compile. The CPU build is how CI,
 which has no GPU, checks this source against the NumPy estimate; the CUDA simulator checks the kernels'
 indexing (tests/tofcore/test_depth_error.py).
