@@ -41,7 +41,8 @@ def main() -> int:
     render = importlib.import_module("tofcore.render")
     sensor = tofcore.load_preset("kinect_v2")
     scene = tofcore.demo_scene("room")
-    transport = tofcore.trace(scene, sensor.camera, sensor.leds, world_from_sensor=tofcore.suggested_pose(scene, sensor),
+    pose = tofcore.suggested_pose(scene, sensor)
+    transport = tofcore.trace(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
                               correlations=sensor.modulation.correlation_bank(), spp=a.spp, max_depth=5, seed=0,
                               device=a.device)
     assert transport.stats.tracer == "compiled", transport.stats.tracer_reason

@@ -163,7 +163,8 @@ def test_cuda_estimate_equals_the_cpu_estimate(monkeypatch):
     monkeypatch.setenv("TOFCORE_TRACER", "compiled")
     sensor = small_sensor("kinect_v2", width=128)
     scene = tofcore.demo_scene("room")
-    on_device = tofcore.trace(scene, sensor.camera, sensor.leds, world_from_sensor=tofcore.suggested_pose(scene, sensor),
+    pose = tofcore.suggested_pose(scene, sensor)
+    on_device = tofcore.trace(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
                               correlations=sensor.modulation.correlation_bank(), spp=8, max_depth=3, seed=3,
                               device="gpu")
     assert on_device.stats.tracer == "compiled" and backend.namespace(on_device.replicate_sum) is not np

@@ -110,8 +110,9 @@ def store_phasor(table, s, i, p, re, im, offset):
 
 @fn
 def pixel_phasors(replicate_sum, counts, channels, freqs, p, table, t):
-    """Stage 1 for pixel p, into column t of ``table``: the phasors of each replicate (NaN where it has no sample; its unit vector and
-    length as np.nan_to_num's zero image would give them) and of their mean (nan_to_num'd, as render does).
+    """Stage 1 for pixel p, into column t of ``table``: the phasors of each replicate (NaN where it has no
+    sample; its unit vector and length as np.nan_to_num's zero image would give them) and of their mean
+    (nan_to_num'd, as render does).
 
     ``replicate_sum`` (R, J + 2, P) and ``counts`` (R, P) as :meth:`Transport.replicate_means` reads them,
     ``channels`` (J, 4): scale s_j = responsivity × exposure, gate duty δ_j, cos θ_k, sin θ_k (rounded to
@@ -272,8 +273,10 @@ def pixel_error(table, counts, distance, depth_scale, freqs, settings, y, x, wid
     """Stage 2 for pixel (y, x): (σ of the output depth, whether its replicates unwrap to different intervals).
 
     ``settings`` (float64) = (unambiguous range U, wrap candidates N, index h of the highest frequency, flip
-    threshold, bilateral filter on (1/0), output weights f/Σf (1) or inverse variance (0)); ``distance`` the first-hit distance (NaN: none), ``depth_scale`` |ω_z| of a z-depth
-    sensor, else 1; scratch: ``scratch`` (5, ≥ F), ``weights`` (9,), ``deviations`` and ``unwrapped`` (≥ R,)."""
+    threshold, bilateral filter on (1/0), output weights f/Σf (1) or inverse variance (0), unwrap tolerance);
+    ``distance`` the first-hit distance (NaN: none), ``depth_scale`` |ω_z| of a z-depth sensor, else 1;
+    ``rows`` the table columns of x = 0 in the rows above, at and below y; scratch: ``scratch`` (5, ≥ F),
+    ``weights`` (9,), ``deviations`` and ``unwrapped`` (≥ R,)."""
     unambiguous, threshold = settings[0], settings[3]
     n_candidates, h = np.int64(settings[1]), np.int64(settings[2])
     bilateral, frequency_out = settings[4] != 0.0, settings[5] != 0.0
