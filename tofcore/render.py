@@ -472,7 +472,7 @@ def _render_passes(scene: Scene, sensor, pose, settings: RenderSettings, device:
             log.append(row)
             if s.progress is not None:
                 s.progress(dict(row, spp_max=s.spp))
-            done = passes.report(PassReport(error_m=sigma, estimate_s=estimate_s, frame_s=frame_s))
+            done = passes.report(PassReport(error_m=sigma, estimate_s=estimate_s, frame_s=frame_s, apart=flips))
             if not (done or s.every_pass):
                 continue
             frame_start = _clock()

@@ -82,7 +82,8 @@ class PassPolicy:
         measured cost of the passes before it so that the budget is used (:mod:`tofcore.tracer.budget`),
         up to ``spp``. Not reproducible across machines.
     target_error_m : stop once the RMS of the reported error (:class:`PassReport`) over the pixels that see a
-        surface is at most this.
+        surface is at most this, leaving out those the report counts apart (a render's unwrap flips: the
+        number its convergence log and summary print).
     adaptive : after a uniform pilot of 16 samples per pixel, give each pass's samples to the pixels whose
         reported error is largest (:func:`~tofcore.tracer.estimator.allocate_samples`).
     """
@@ -113,6 +114,9 @@ class PassReport:
     error_m: np.ndarray            # (H, W) standard error of each pixel's output (m), NaN where not known yet
     estimate_s: float = 0.0        # seconds that estimate took (the final frame needs a few of them)
     frame_s: float | None = None   # seconds the caller's latest frame took to build; None before the first
+    apart: np.ndarray | None = None  # (H, W) bool: pixels whose error the caller reports apart (unwrap flips):
+    #                                  the target's RMS leaves them out, as the reported error does; the adaptive
+    #                                  allocation still reads their error
 
 
 def trace(scene: Scene, camera: Camera, leds: Sequence[LED], **kwargs) -> Transport:
@@ -363,7 +367,9 @@ class PassSchedule:
         self._error_m = np.asarray(backend.to_host(report.error_m), np.float64)
         self._decide(report)
         target = self.policy.target_error_m
-        rms = None if target is None else rms_error(self._error_m, distance_m)
+        counted = self._error_m if report.apart is None else np.where(backend.to_host(report.apart), np.nan,
+                                                                      self._error_m)
+        rms = None if target is None else rms_error(counted, distance_m)
         if rms is not None and rms <= target:
             self.next_n = 0
         elif rms is not None and math.isfinite(rms) and self.next_n:
