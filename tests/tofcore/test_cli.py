@@ -106,7 +106,8 @@ def test_make_demo_installs_the_runtime_and_the_compiled_tracer_only():
     assert "requirements-dev.txt" not in steps and "bpy" not in steps and "pytest" not in steps
     assert '-m pip install --quiet -e ".[compiled]"' in steps   # NumPy, tqdm and numba: no development stack
     render = steps.strip().splitlines()[-1]
-    assert "tofcore render --scene room --preset kinect_v2 --spp 32 --no-noise" in render   # as the README shows
+    assert ("tofcore render --scene room --preset kinect_v2 --spp 64 --target-error 2mm --no-noise"   # as the README shows
+            in render)
 
 
 def test_readme_quotes_the_demo_command_of_the_makefile():
