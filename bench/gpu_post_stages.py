@@ -33,7 +33,7 @@ def main() -> int:
     import cupy as cp
 
     import tofcore
-    from tofcore.sensor import decode, optics
+    from tofcore.sensor import optics
 
     render = importlib.import_module("tofcore.render")
     times: dict[str, list[float]] = collections.defaultdict(list)
@@ -51,24 +51,14 @@ def main() -> int:
                 times[label].append(time.perf_counter() - start)
         setattr(module, name, wrapper)
 
-    for module, name, label in ((render, "render_error", "error estimate"),
+    for module, name, label in ((render.decoding, "decode", "  decode (camera's or per-k's)"),
+                                (render, "render_error", "error estimate"),
                                 (render, "_camera_images", "camera images (all below)"),
                                 (optics, "apply_scattering", "  lens scattering"),
                                 (render, "_decode_clean_per_k", "per-k ground truth"),
                                 (render, "_read_back", "read-back"),
                                 (render, "_frame", "frame (camera, per-k, read-back)")):
         timed(module, name, label)
-    decode_camera = decode.decode
-
-    def camera_decode(*args, **kwargs):  # the camera's decode only (the per-k one is timed as a whole)
-        cp.cuda.Device().synchronize()
-        start = time.perf_counter()
-        try:
-            return decode_camera(*args, **kwargs)
-        finally:
-            cp.cuda.Device().synchronize()
-            times["  decode (camera's or per-k's)"].append(time.perf_counter() - start)
-    render.decoding.decode = camera_decode
 
     scene, sensor = tofcore.demo_scene("room"), tofcore.load_preset("kinect_v2")
     result = {}

@@ -36,7 +36,6 @@ image when one is given.
 from __future__ import annotations
 
 import dataclasses
-import os
 import time
 from collections.abc import Callable, Iterator
 from concurrent.futures import ThreadPoolExecutor
@@ -157,11 +156,9 @@ def render_error(transport: Transport, sensor, n_raw: int, threads: int | None =
     (tests/tofcore/test_render_error.py). NumPy releases the interpreter while it computes, so the bands run
     on all cores: the estimate after every pass is serial work the tracer's threads wait for.
     """
-    if namespace(transport.replicate_sum) is not np and transport.stats.tracer == "compiled":  # the GPU wavefront
-        from .compiled import depth_error
-
-        if not depth_error.supports(sensor):
-            return depth_error.render_error(transport, sensor, n_raw, flip_threshold_m(sensor))
+    kernels = _post_trace_kernels(transport, sensor)
+    if kernels is not None:
+        return kernels.render_error(transport, sensor, n_raw, flip_threshold_m(sensor))
     means, counts = transport.replicate_means()          # (R, J+2, H, W), (R, H, W)
     xp = namespace(means)
     distance = backend.device_copy(xp, transport.first_hit.distance_m)
@@ -169,7 +166,7 @@ def render_error(transport: Transport, sensor, n_raw: int, threads: int | None =
     if sensor.depth_output == "z":
         z = np.abs(backend.device_copy(xp, sensor.camera.pixel_center_directions())[..., 2])
     height = means.shape[-2]
-    bands = 1 if xp is not np else max(1, min(threads or _cpu_count(), height // BAND_MIN_ROWS))
+    bands = 1 if xp is not np else max(1, min(threads or limits.usable_cpus(), height // BAND_MIN_ROWS))
     if bands == 1:
         return _band_error(means, counts, distance, z, sensor, n_raw)
     edges = [round(b * height / bands) for b in range(bands + 1)]
@@ -187,12 +184,15 @@ def render_error(transport: Transport, sensor, n_raw: int, threads: int | None =
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
-def _cpu_count() -> int:
-    """CPUs this process may run on."""
-    try:
-        return len(os.sched_getaffinity(0))
-    except AttributeError:  # not on Linux
-        return os.cpu_count() or 1
+def _post_trace_kernels(transport: Transport, sensor):
+    """:mod:`tofcore.compiled.depth_error` where it takes the post-trace work per pixel (the error estimate, the
+    per-k ground truth): a transport of the GPU's compiled wavefront and a sensor it supports; else None (the
+    array programs here and in the decoder; on the CPU too, see :func:`render_error`)."""
+    if namespace(transport.replicate_sum) is np or transport.stats.tracer != "compiled":
+        return None
+    from .compiled import depth_error
+
+    return None if depth_error.supports(sensor) else depth_error
 
 
 def _band_error(means, counts, distance, z, sensor, n_raw: int):
@@ -661,12 +661,10 @@ def _decode_clean_per_k(transport: Transport, sensor, n_raw: int, setup: FrameSe
     continuous-wave sensor is decoded by one kernel instead (:func:`tofcore.compiled.depth_error.clean_per_k`:
     11.6 → 1.4 ms for the Kinect v2 frame on an H200), the same distances in float32.
     """
+    kernels = _post_trace_kernels(transport, sensor)
+    if kernels is not None:
+        return kernels.clean_per_k(transport, sensor, n_raw)
     xp = namespace(transport.correlation_sum)
-    if xp is not np and transport.stats.tracer == "compiled":  # the GPU wavefront: one kernel (render_error says why)
-        from .compiled import depth_error
-
-        if not depth_error.supports(sensor):
-            return depth_error.clean_per_k(transport, sensor, n_raw)
     per_bounce = transport.correlation_per_bounce()[:, :n_raw]          # (K, J, H, W)
     cumulative = xp.cumsum(per_bounce, axis=0).transpose(1, 0, 2, 3)     # (J, K, H, W)
     k, h, w = cumulative.shape[1:]
@@ -740,7 +738,7 @@ def _frame(transport: Transport, sensor, pose: np.ndarray, plan: Plan, seed: int
     mod = sensor.modulation
     cam = sensor.camera
     directions = cam.pixel_center_directions()
-    if per_k and namespace(transport.correlation_sum) is np and _cpu_count() > 1:
+    if per_k and namespace(transport.correlation_sum) is np and limits.usable_cpus() > 1:
         # On the CPU the per-k ground truth (K decodes of the clean images) is decoded on a thread of its own
         # beside the camera's images: NumPy leaves the interpreter while it computes, so both cores work.
         with ThreadPoolExecutor(1) as pool:

@@ -91,14 +91,9 @@ def test_banded_estimate_equals_whole_image(preset, monkeypatch):
     wall) of the 64-pixel-wide room."""
     module = importlib.import_module("tofcore.render")  # the module (tofcore.render is the function)
     sensor = tofcore.load_preset(preset)
-    cam = sensor.camera
-    s = 64 / cam.width
-    h = round(cam.height * s)
-    cam = dataclasses.replace(cam, width=64, height=h, fx=cam.fx * s, fy=cam.fy * h / cam.height,
-                              cx=cam.cx * s, cy=cam.cy * h / cam.height)
-    sensor = sensor.replace(camera=cam)
+    sensor = sensor.scaled(64 / sensor.camera.width)
     scene = tofcore.demo_scene("room")
-    transport = tofcore.trace(scene, cam, sensor.leds, world_from_sensor=tofcore.suggested_pose(scene, sensor),
+    transport = tofcore.trace(scene, sensor.camera, sensor.leds, world_from_sensor=tofcore.suggested_pose(scene, sensor),
                               correlations=sensor.modulation.correlation_bank(), spp=8, max_depth=3, seed=1,
                               ambient=tofcore.Ambient(radiance_w_m2_sr=0.05))
     n_raw = len(sensor.modulation.correlation_bank())

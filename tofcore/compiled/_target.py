@@ -317,6 +317,37 @@ def gpu_kernel_function(module_name: str):
     return decorate
 
 
+def numba_cuda():
+    """``numba.cuda``, imported after giving NumPy 2.5 back ``np.row_stack`` (removed there; numba-cuda 0.30 still
+    registers an overload for it, and its import fails without it)."""
+    if not hasattr(np, "row_stack"):
+        np.row_stack = np.vstack
+    from numba import cuda
+
+    return cuda
+
+
+_CUDA_BUILDS: dict[str, object] = {}
+"""Source file → its CUDA build (:func:`load_cuda_build`), once per process."""
+
+
+def load_cuda_build(source_module_name: str, source_file: str):
+    """The module ``source_file`` compiled for CUDA: the file executed again under the name
+    ``source_module_name + CUDA_SUFFIX``, for which the decorators above return numba.cuda's (once per process)."""
+    if source_file not in _CUDA_BUILDS:
+        import importlib.util
+
+        numba_cuda()
+
+        name = source_module_name + CUDA_SUFFIX
+        spec = importlib.util.spec_from_file_location(name, source_file)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+        _CUDA_BUILDS[source_file] = module
+    return _CUDA_BUILDS[source_file]
+
+
 def gpu_module(module_name: str):
     """``numba.cuda`` for the CUDA build of a module (its kernels read ``cuda.grid``, ``cuda.local``), else None
     (the CPU build never imports numba's CUDA target)."""

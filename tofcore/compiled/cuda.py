@@ -21,22 +21,19 @@ or under ``NUMBA_CACHE_DIR``: the first process on a machine compiles for ~15–
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-if not hasattr(np, "row_stack"):  # NumPy 2.5 removed it; numba-cuda 0.30 still registers an overload for it
-    np.row_stack = np.vstack
-import numba  # noqa: E402
-from numba import cuda  # noqa: E402
+import numba
 
-from ._target import CUDA_SUFFIX  # noqa: E402
-from .launch import PreparedKernel, Slot  # noqa: E402
-from .layout import N_COUNTERS  # noqa: E402
+from ._target import load_cuda_build, numba_cuda
+from .launch import PreparedKernel, Slot
+from .layout import N_COUNTERS
+
+cuda = numba_cuda()
 
 THREADS_PER_BLOCK = 256
 """Threads per block of the stage kernels (128 measured the same, docs/benchmarks.md)."""
@@ -54,8 +51,6 @@ then ends with a device synchronisation)."""
 
 PROFILE = False
 
-_MODULE = None
-
 
 def _stage_done(name: str, since: float) -> float:
     """With :data:`PROFILE` on, wait for the device and add the time since ``since`` to stage ``name``."""
@@ -69,15 +64,7 @@ def _stage_done(name: str, since: float) -> float:
 
 def load_kernels():
     """The CUDA build of kernels.py (loaded once per process)."""
-    global _MODULE
-    if _MODULE is None:
-        name = __name__.rsplit(".", 1)[0] + ".kernels" + CUDA_SUFFIX
-        spec = importlib.util.spec_from_file_location(name, Path(__file__).with_name("kernels.py"))
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-        _MODULE = module
-    return _MODULE
+    return load_cuda_build(__name__.rsplit(".", 1)[0] + ".kernels", str(Path(__file__).with_name("kernels.py")))
 
 
 @dataclass(eq=False)

@@ -39,7 +39,7 @@ from ..sensor import decode as _decode
 from ..sensor import processing as _processing
 from numba import prange
 
-from ._target import cpu_parallel_function, device_function, gpu_kernel_function, gpu_module
+from ._target import cpu_parallel_function, device_function, gpu_kernel_function, gpu_module, load_cuda_build
 
 NO_RETURN = _decode.NO_RETURN_RELATIVE_AMPLITUDE
 BILATERAL_TAPS = _processing.BILATERAL_KERNEL.reshape(9).astype(np.float64)
@@ -506,25 +506,9 @@ def tables(sensor, n_raw: int, flip_threshold_m: float) -> tuple[np.ndarray, np.
     return channels, freqs, settings
 
 
-_CUDA_MODULE = None
-
-
 def cuda_build():
     """This file compiled by numba.cuda (loaded once per process, as tofcore.compiled.cuda loads kernels.py)."""
-    global _CUDA_MODULE
-    if _CUDA_MODULE is None:
-        import importlib.util
-        import sys
-
-        from ._target import CUDA_SUFFIX
-
-        name = __name__ + CUDA_SUFFIX
-        spec = importlib.util.spec_from_file_location(name, __file__)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-        _CUDA_MODULE = module
-    return _CUDA_MODULE
+    return load_cuda_build(__name__, __file__)
 
 
 THREADS_PER_BLOCK = 128
