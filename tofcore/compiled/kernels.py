@@ -73,6 +73,7 @@ PI_SQUARED = np.pi**2
 TWO_PI = 2.0 * np.pi
 QUARTER_PI = 0.25 * np.pi
 HALF_PI = 0.5 * np.pi
+TAN_HALF_PI = float(np.tan(HALF_PI))  # what the reference's tan(acos(0)) gives
 INV_4PI = 1.0 / (4.0 * np.pi)
 NEWTON_TOL = _NEWTON_STEP_TOL
 NEWTON_MAX_ITER = _NEWTON_MAX_ITER
@@ -368,6 +369,95 @@ def inverse_direction(d):
             F32_ONE / (d[2] if abs(d[2]) >= TINY_DIR else (-TINY_DIR if d[2] < F32_ZERO else TINY_DIR)))
 
 
+# The four children's slab tests of a node at once. On the CPU one function of LLVM vector instructions
+# (issue 32's route (b): LLVM's SLP vectorizer did not pack the scalar loop by itself, so the vectors are
+# written out); for CUDA (one thread per ray already; the GPU traces with tofcore.gpu.traversal, so this build
+# never calls it) the same tests one child at a time. Both round as the scalar code: each lane is the float32
+# subtract and multiply, max and min as numba's max(a, b) = b if b > a else a (NaN as Python keeps it), and the
+# ordered a <= b.
+if cuda is None:
+    from llvmlite import ir as _ir
+    from numba import types as _types
+    from numba.extending import intrinsic as _intrinsic
+
+    @_intrinsic
+    def slab_test(typingctx, planes, node, ex, ey, ez, o, inv, best_t):
+        """(hit mask, entry distances) of the WIDTH children of the node whose first row is ``node``: bit c of the
+        mask set where child c's box is entered at t_in[c] ≤ its exit clipped at ``best_t``; ``planes`` the
+        (rows, WIDTH) float32 node planes, ``ex, ey, ez`` the entry-plane rows (:func:`traverse`), ``o``,
+        ``inv`` float32 (x, y, z)."""
+        f32 = _types.float32
+        if not (isinstance(planes, _types.Array) and planes.dtype == f32 and planes.ndim == 2
+                and planes.layout == "C" and o == _types.UniTuple(f32, 3) and inv == o and best_t == f32):
+            return None
+        signature = _types.Tuple((_types.int64, _types.UniTuple(f32, WIDTH)))(planes, node, ex, ey, ez, o, inv,
+                                                                                best_t)
+
+        def codegen(context, builder, sig, args):
+            planes_v, node_v, ex_v, ey_v, ez_v, o_v, inv_v, best_v = args
+            array = context.make_array(sig.args[0])(context, builder, planes_v)
+            lanes = _ir.VectorType(_ir.FloatType(), WIDTH)
+            i32, i64 = _ir.IntType(32), _ir.IntType(64)
+            row_bytes = builder.extract_value(array.strides, 0)
+            first = context.cast(builder, node_v, sig.args[1], _types.intp)
+            base = builder.bitcast(array.data, _ir.IntType(8).as_pointer())
+
+            def plane(row_offset, row_type, constant=0):
+                row = builder.add(first, context.cast(builder, row_offset, row_type, _types.intp))
+                if constant:
+                    row = builder.add(row, _ir.Constant(row.type, constant))
+                address = builder.gep(base, [builder.mul(row, row_bytes)])
+                return builder.load(builder.bitcast(address, lanes.as_pointer()), align=4)
+
+            def splat(value):
+                one = builder.insert_element(_ir.Constant(lanes, _ir.Undefined), value, _ir.Constant(i32, 0))
+                return builder.shuffle_vector(one, one, _ir.Constant(_ir.VectorType(i32, WIDTH), [0] * WIDTH))
+
+            def larger(acc, v):  # numba's max(acc, v)
+                return builder.select(builder.fcmp_ordered(">", v, acc), v, acc)
+
+            def smaller(acc, v):  # numba's min(acc, v)
+                return builder.select(builder.fcmp_ordered("<", v, acc), v, acc)
+
+            near, far = [], []
+            for axis, (entry, entry_type, opposite) in enumerate(((ex_v, sig.args[2], 3), (ey_v, sig.args[3], 5),
+                                                                  (ez_v, sig.args[4], 7))):
+                origin = splat(builder.extract_value(o_v, axis))
+                scale = splat(builder.extract_value(inv_v, axis))
+                near.append(builder.fmul(builder.fsub(plane(entry, entry_type), origin), scale))
+                # the exit plane's row: node + opposite − entry
+                exit_row = builder.sub(_ir.Constant(i64, opposite), context.cast(builder, entry, entry_type,
+                                                                                  _types.intp))
+                far.append(builder.fmul(builder.fsub(plane(exit_row, _types.intp), origin), scale))
+            t_in = larger(larger(larger(near[0], near[1]), near[2]), _ir.Constant(lanes, [0.0] * WIDTH))
+            t_out = smaller(smaller(smaller(far[0], far[1]), far[2]), splat(best_v))
+            hits = builder.fcmp_ordered("<=", t_in, t_out)
+            mask = builder.zext(builder.bitcast(hits, _ir.IntType(WIDTH)), i64)
+            entries = context.make_tuple(builder, sig.return_type.types[1],
+                                         [builder.extract_element(t_in, _ir.Constant(i32, c)) for c in range(WIDTH)])
+            return context.make_tuple(builder, sig.return_type, [mask, entries])
+
+        return signature, codegen
+else:
+    @fn
+    def slab_test(planes, node, ex, ey, ez, o, inv, best_t):
+        """The CPU's slab_test one child at a time."""
+        mask = 0
+        t = (F32_ZERO, F32_ZERO, F32_ZERO, F32_ZERO)
+        for c in range(WIDTH):
+            near_x = (planes[node + ex, c] - o[0]) * inv[0]
+            far_x = (planes[node + 3 - ex, c] - o[0]) * inv[0]
+            near_y = (planes[node + ey, c] - o[1]) * inv[1]
+            far_y = (planes[node + 5 - ey, c] - o[1]) * inv[1]
+            near_z = (planes[node + ez, c] - o[2]) * inv[2]
+            far_z = (planes[node + 7 - ez, c] - o[2]) * inv[2]
+            t_in = max(max(max(near_x, near_y), near_z), F32_ZERO)
+            if t_in <= min(min(min(far_x, far_y), far_z), best_t):
+                mask |= 1 << c
+            t = t[:c] + (t_in,) + t[c + 1:]
+        return mask, t
+
+
 @fn
 def push_child(stack, stack_t, top, first, child, t_in, any_hit):
     """Push ``child`` entered at ``t_in`` above stack[top − 1]; for a closest hit, insertion-sorted into the
@@ -411,15 +501,11 @@ def traverse(bvh, o, d, t_max, ignore, any_hit, stack, stack_t):
             continue
         node = stack[top]
         first = top  # the children entered go to stack[first:top], far (bottom) to near (top)
-        for c in range(WIDTH):  # the slab test of child c, its exit clipped at the best t so far
-            near_x = (nodes_f[node + ex, c] - o[0]) * inv[0]
-            far_x = (nodes_f[node + 3 - ex, c] - o[0]) * inv[0]
-            near_y = (nodes_f[node + ey, c] - o[1]) * inv[1]
-            far_y = (nodes_f[node + 5 - ey, c] - o[1]) * inv[1]
-            near_z = (nodes_f[node + ez, c] - o[2]) * inv[2]
-            far_z = (nodes_f[node + 7 - ez, c] - o[2]) * inv[2]
-            t_in = max(max(max(near_x, near_y), near_z), F32_ZERO)
-            if not t_in <= min(min(min(far_x, far_y), far_z), best_t):
+        mask, entries = slab_test(nodes_f, node, ex, ey, ez, o, inv, best_t)
+        for c in range(WIDTH):  # the children whose boxes the ray enters before the best t so far, in order
+            t_in = entries[c]
+            # best_t may have fallen since the test (a leaf before c): the exit clipped at it again, as before
+            if not ((mask >> c) & 1 and t_in <= best_t):
                 continue
             child = nodes_i[node + CHILD_ROW, c]
             if child >= 0:
@@ -783,28 +869,41 @@ def half_vector(wo, wi):
 
 @fn
 def oren_nayar(reflectance, roughness, cos_theta_i, cos_theta_o, cos_phi):
-    """Oren–Nayar f_r without cosine (bsdf.oren_nayar, eq. 2.28–2.30)."""
+    """Oren–Nayar f_r without cosine (bsdf.oren_nayar, eq. 2.28–2.30).
+
+    The reference's sin θ_max, tan θ_min and tan((θ_max + θ_min)/2) from the cosines, without calling sin and
+    tan (7 % of a thread's profile): sin θ = √(1 − cos²θ), tan θ = sin θ / cos θ and the half-angle identity
+    tan((a + b)/2) = (sin a + sin b) / (cos a + cos b); the same values to rounding (≈ 1e-16 relative). θ_max is
+    the angle of the smaller cosine; both cosines 0 (a grazing pair, never shaded) gives the reference's
+    tan(π/2)."""
     s = roughness * roughness
-    theta_i = math.acos(min(max(cos_theta_i, 0.0), 1.0))
-    theta_o = math.acos(min(max(cos_theta_o, 0.0), 1.0))
-    theta_max = max(theta_i, theta_o)
-    theta_min = min(theta_i, theta_o)
+    cos_i = min(max(cos_theta_i, 0.0), 1.0)
+    cos_o = min(max(cos_theta_o, 0.0), 1.0)
+    cos_min_angle, cos_max_angle = max(cos_i, cos_o), min(cos_i, cos_o)  # cos θ_min, cos θ_max
+    theta_max = math.acos(cos_max_angle)
+    theta_min = math.acos(cos_min_angle)
+    sin_max = math.sqrt(1.0 - cos_max_angle * cos_max_angle)
+    sin_min = math.sqrt(1.0 - cos_min_angle * cos_min_angle)
+    tan_min = sin_min / cos_min_angle if cos_min_angle > 0.0 else TAN_HALF_PI
+    cos_sum = cos_max_angle + cos_min_angle
+    tan_mid = (sin_max + sin_min) / cos_sum if cos_sum > 0.0 else TAN_HALF_PI
     scaled_min = 2.0 * theta_min / PI
     c1 = 1.0 - 0.5 * s / (s + 0.33)
-    c2 = 0.45 * s / (s + 0.09) * (math.sin(theta_max) - (scaled_min ** 3.0 if cos_phi < 0.0 else 0.0))
+    c2 = 0.45 * s / (s + 0.09) * (sin_max - (scaled_min * scaled_min * scaled_min if cos_phi < 0.0 else 0.0))
     root_c3 = 4.0 * theta_max * theta_min / PI_SQUARED
     c3 = 0.125 * s / (s + 0.09) * (root_c3 * root_c3)
-    direct = (reflectance / PI) * (c1 + cos_phi * c2 * math.tan(theta_min)
-                                   + (1.0 - abs(cos_phi)) * c3 * math.tan(0.5 * (theta_max + theta_min)))
+    direct = (reflectance / PI) * (c1 + cos_phi * c2 * tan_min + (1.0 - abs(cos_phi)) * c3 * tan_mid)
     interreflection = 0.17 * reflectance * reflectance / PI * s / (s + 0.13) * (1.0 - cos_phi * (scaled_min * scaled_min))
     return max(direct + interreflection, 0.0)
 
 
 @fn
 def cos_azimuth_difference(wo, wi):
-    """cos(φ_o − φ_i), 0 where a direction lies on the normal (bsdf.cos_azimuth_difference)."""
+    """cos(φ_o − φ_i), 0 where a direction lies on the normal (bsdf.cos_azimuth_difference); the product of the
+    planar lengths as one square root, √((x_o² + y_o²)(x_i² + y_i²)), not two hypot calls (2.6 % of a thread's
+    profile; the same to rounding for unit vectors, which cannot overflow)."""
     planar_dot = wo[0] * wi[0] + wo[1] * wi[1]
-    planar_norms = math.hypot(wo[0], wo[1]) * math.hypot(wi[0], wi[1])
+    planar_norms = math.sqrt((wo[0] * wo[0] + wo[1] * wo[1]) * (wi[0] * wi[0] + wi[1] * wi[1]))
     if not planar_norms > 0.0:
         return 0.0
     return min(max(planar_dot / planar_norms, -1.0), 1.0)
