@@ -45,6 +45,10 @@ def assert_same_frame(a, b):
         assert close.mean() >= 0.995, f"{name}: {100 * (1 - close.mean()):.2f} % of the sums differ"
         np.testing.assert_allclose(y.sum(axis=-1), x.sum(axis=-1), rtol=1e-6, atol=1e-9 * np.abs(x).max(),
                                    err_msg=name)
+    # The ground truth's rays involve no transcendental function: the compiled first hits are the reference's bit
+    # for bit (the compiled tracer traces them with its own kernels where they are loaded).
+    for name in ("distance_m", "position_m", "normal", "material_id", "object_id", "direction"):
+        np.testing.assert_array_equal(getattr(b.first_hit, name), getattr(a.first_hit, name), err_msg=name)
     for key in RAYS:
         n_a, n_b = getattr(a.stats, key), getattr(b.stats, key)
         assert abs(n_a - n_b) <= 1e-3 * max(n_a, 1), (key, n_a, n_b)
@@ -111,6 +115,23 @@ def room_trace_args(**changes):
 def test_room_frame_equals_numpy(monkeypatch, changes):
     args, kwargs = room_trace_args(**changes)
     assert_same_frame(*both(monkeypatch, *args, **kwargs))
+
+
+@needs_numba
+def test_the_compiled_tracer_traces_the_ground_truth_with_its_kernels(monkeypatch):
+    """Once the kernels are loaded the first hits are theirs (the reference's NumPy traversal is not called);
+    test_room_frame_equals_numpy checks they equal the reference's."""
+    from tofcore.tracer import stages
+
+    args, kwargs = room_trace_args(spp=1)
+    monkeypatch.setenv(compiled.TRACER_ENV, "compiled")
+    trace(*args, **kwargs)  # the kernels compiled or loaded
+
+    def not_here(*_):
+        raise AssertionError("the NumPy first hits were traced")
+
+    monkeypatch.setattr(stages, "first_hit", not_here)
+    assert np.isfinite(trace(*args, **kwargs).first_hit.distance_m).any()
 
 
 @needs_numba

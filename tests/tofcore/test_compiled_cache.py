@@ -103,18 +103,22 @@ def test_a_cold_cache_is_recognised_before_the_render_so_the_command_can_say_it_
 
 # --------------------------------------------------------------------------- a cache that cannot brick an install
 
-#: The driver's cache as numba writes it, made by hand (nothing compiled): a whole index naming one data file;
+#: The drivers' caches as numba writes them, made by hand (nothing compiled): a whole index naming one data file;
 #: then the same with the index emptied and with the data file truncated (issue 35: True was said for both).
 CRAFTED_PROBE = """
 import os, pickle, sys
 from tofcore import compiled
 from tofcore.compiled import kernels
-cache = kernels.trace_pixels._cache
-index = cache._cache_file._index_path
-data = os.path.join(cache.cache_path, os.path.basename(index)[:-len(".nbi")] + ".1.nbc")
-cache._cache_file._save_index({("sig", "target"): os.path.basename(data)})   # numba's own index writer
-with open(data, "wb") as fh:
-    fh.write(pickle.dumps(("a compiled library", b"x" * 4096), protocol=4))
+def craft(driver):
+    cache = driver._cache
+    index = cache._cache_file._index_path
+    data = os.path.join(cache.cache_path, os.path.basename(index)[:-len(".nbi")] + ".1.nbc")
+    cache._cache_file._save_index({("sig", "target"): os.path.basename(data)})   # numba's own index writer
+    with open(data, "wb") as fh:
+        fh.write(pickle.dumps(("a compiled library", b"x" * 4096), protocol=4))
+    return index, data
+craft(kernels.first_hits)  # the ground truth's driver, whole throughout
+index, data = craft(kernels.trace_pixels)
 whole = compiled.cpu_kernels_cached()
 size = os.path.getsize(data)
 os.truncate(data, 11)

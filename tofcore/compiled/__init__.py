@@ -79,7 +79,7 @@ def cpu_kernels_cached() -> bool | None:
     """Whether the CPU build of the kernels is in numba's cache and can be loaded (a render then loads it in
     about a second); None where the compiled tracer will not run on the CPU (no numba, ``TOFCORE_TRACER=numpy``).
 
-    True only when the driver's (``kernels.trace_pixels``) index file is numba's, of this numba version and of
+    True only when the drivers' (``kernels.trace_pixels``, ``kernels.first_hits``) index files are numba's, of this numba version and of
     these sources, and every data file it names is a whole pickle (:func:`tofcore.compiled._target.complete_pickle`):
     an emptied index, a truncated data file or a cache folder that cannot be used (the kernels are then compiled
     in every process) is False. A driver cached for other argument types still compiles."""
@@ -90,7 +90,7 @@ def cpu_kernels_cached() -> bool | None:
 
     if CACHE_FOLDERS.get(kernels.__name__) is None:
         return False
-    return _index_is_whole(kernels.trace_pixels._cache)
+    return all(_index_is_whole(driver._cache) for driver in (kernels.trace_pixels, kernels.first_hits))
 
 
 def _index_is_whole(cache) -> bool:

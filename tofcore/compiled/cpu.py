@@ -21,6 +21,8 @@ import threading
 
 import numpy as np
 
+from ..tracer import stages
+from ..tracer.transport import FirstHit
 from . import kernels
 from .layout import N_COUNTERS
 
@@ -37,3 +39,26 @@ def trace_chunk(packed, out, p0: int, p1: int, first: np.ndarray, counts: np.nda
         kernels.trace_pixels(packed.scene(), packed.settings(), pixels,
                              (out.signal_sum, out.correlation_sum, out.replicate_sum, out.ambient_sum, film, counters))
     return counters.sum(axis=0)
+
+
+def first_hit(packed, setup, stats) -> FirstHit:
+    """The noise-free ground truth (:func:`tofcore.tracer.stages.first_hit`, the same rays, hits and arithmetic)
+    traced by :func:`tofcore.compiled.kernels.first_hits` on numba's threads: the reference traverses in NumPy
+    on two threads, 0.3 s of a 4.5-s frame on 16 cores."""
+    d = np.ascontiguousarray(stages.pixel_centre_directions(setup))
+    n = len(d)
+    prim, point, normal = np.full(n, -1, np.int32), np.zeros((n, 3)), np.zeros((n, 3))
+    with PARALLEL_LOCK:
+        kernels.first_hits(packed.geo, tuple(float(x) for x in setup.lens_center), d, (prim, point, normal))
+    stats.camera_rays += n
+    hit = prim >= 0
+    return stages.first_hit_record(setup, d, hit, np.where(hit, prim, 0), point, normal)
+
+
+def compile_kernels(packed, out, first: np.ndarray, counts: np.ndarray) -> None:
+    """Compile (or load) every CPU kernel a trace calls, tracing nothing: the paths' driver on an empty pixel
+    range and the ground truth's on no rays."""
+    trace_chunk(packed, out, 0, 0, first, counts)
+    with PARALLEL_LOCK:
+        kernels.first_hits(packed.geo, (0.0, 0.0, 0.0), np.zeros((0, 3)),
+                           (np.zeros(0, np.int32), np.zeros((0, 3)), np.zeros((0, 3))))

@@ -586,15 +586,12 @@ def orthonormal_basis(n):
 
 
 @fn
-def surface_at(geo, prim, u, v, ray_origin, ray_direction):
-    """The surface tuple where a float64 ray hits triangle ``prim`` at float32 barycentrics (u, v), its
-    material's textures applied (tofcore.tracer.surface.surface_at)."""
-    triangles, vertices, face_normals, normals, material_ids, materials = geo[4], geo[5], geo[6], geo[7], \
-        geo[8], geo[9]
+def hit_point(geo, prim, u, v, ray_origin, ray_direction):
+    """(position, geometric normal facing the ray) where a float64 ray hits triangle ``prim`` at float32
+    barycentrics (u, v): the float64 ray–plane point o + t d, t = (v₀ − o)·n_g / (d·n_g), or the barycentric
+    point where the ray grazes the plane (|d·n_g| ≤ 1e-9) (tofcore.tracer.surface.surface_geometry)."""
+    triangles, vertices, face_normals = geo[4], geo[5], geo[6]
     i0, i1, i2 = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
-    w0 = np.float64(F32_ONE - u - v)
-    u64 = np.float64(u)
-    v64 = np.float64(v)
     ng = (np.float64(face_normals[prim, 0]), np.float64(face_normals[prim, 1]), np.float64(face_normals[prim, 2]))
     p0 = (np.float64(vertices[i0, 0]), np.float64(vertices[i0, 1]), np.float64(vertices[i0, 2]))
     cos_ray = dot(ray_direction, ng)
@@ -603,13 +600,27 @@ def surface_at(geo, prim, u, v, ray_origin, ray_direction):
         position = (ray_origin[0] + t * ray_direction[0], ray_origin[1] + t * ray_direction[1],
                     ray_origin[2] + t * ray_direction[2])
     else:
+        w0 = np.float64(F32_ONE - u - v)
+        u64 = np.float64(u)
+        v64 = np.float64(v)
         position = (w0 * p0[0] + u64 * vertices[i1, 0] + v64 * vertices[i2, 0],
                     w0 * p0[1] + u64 * vertices[i1, 1] + v64 * vertices[i2, 1],
                     w0 * p0[2] + u64 * vertices[i1, 2] + v64 * vertices[i2, 2])
     if dot(ng, ray_direction) > 0:
-        ng = (ng[0] * -1.0, ng[1] * -1.0, ng[2] * -1.0)
-    else:
-        ng = (ng[0] * 1.0, ng[1] * 1.0, ng[2] * 1.0)
+        return position, (ng[0] * -1.0, ng[1] * -1.0, ng[2] * -1.0)
+    return position, (ng[0] * 1.0, ng[1] * 1.0, ng[2] * 1.0)
+
+
+@fn
+def surface_at(geo, prim, u, v, ray_origin, ray_direction):
+    """The surface tuple where a float64 ray hits triangle ``prim`` at float32 barycentrics (u, v), its
+    material's textures applied (tofcore.tracer.surface.surface_at)."""
+    triangles, vertices, normals, material_ids, materials = geo[4], geo[5], geo[7], geo[8], geo[9]
+    i0, i1, i2 = triangles[prim, 0], triangles[prim, 1], triangles[prim, 2]
+    w0 = np.float64(F32_ONE - u - v)
+    u64 = np.float64(u)
+    v64 = np.float64(v)
+    position, ng = hit_point(geo, prim, u, v, ray_origin, ray_direction)
     if normals.shape[0] > 0:
         ns = (w0 * normals[i0, 0] + u64 * normals[i1, 0] + v64 * normals[i2, 0],
               w0 * normals[i0, 1] + u64 * normals[i1, 1] + v64 * normals[i2, 1],
@@ -1503,6 +1514,33 @@ def trace_pixels(scene, settings, pixels, out):
         ambient_sum[p] += seen
         for c in range(N_COUNTERS):
             counters[local, c] = count[c]
+
+
+FIRST_HIT_BLOCK = 1024
+"""Rays of the ground truth a thread traces with one stack (:func:`first_hits`)."""
+
+
+@cpu_parallel
+def first_hits(geo, lens, directions, out):
+    """The noise-free ground truth's rays from the lens centre ``lens`` (scene frame) along unit ``directions``
+    (R, 3) float64, on numba's threads (tofcore.tracer.stages.first_hit's traversal and hit geometry): each
+    ray leaves the lens as a camera ray does (:func:`ray_query`), traverses the BVH in float32, and where it
+    hits gets the float64 point and facing normal of :func:`hit_point`. ``out`` = (prim (R,) int32, −1 on a miss;
+    point (R, 3) float64, normal (R, 3) float64, both left as they were on a miss)."""
+    prim_out, point_out, normal_out = out
+    n = directions.shape[0]
+    for block in prange((n + FIRST_HIT_BLOCK - 1) // FIRST_HIT_BLOCK):
+        work = (np.zeros(N_COUNTERS, np.int64), np.empty(STACK_SIZE, np.int64), np.empty(STACK_SIZE, np.float32))
+        for i in range(block * FIRST_HIT_BLOCK, min(n, (block + 1) * FIRST_HIT_BLOCK)):
+            d = (directions[i, 0], directions[i, 1], directions[i, 2])
+            prim, u, v = next_hit(geo, lens, d, 1, -1, work)
+            prim_out[i] = prim
+            if prim < 0:
+                continue
+            point, normal = hit_point(geo, prim, u, v, lens, d)
+            for a in range(3):
+                point_out[i, a] = point[a]
+                normal_out[i, a] = normal[a]
 
 
 GPU_MAX_CHANNELS = 32

@@ -22,7 +22,8 @@ import numpy as np
 from ..errors import ConfigError
 from ..tracer.parallel import Execution, HostTracer, ReferenceTracer, chunks, collect
 from ..tracer.setup import TraceSetup, on_host
-from ..tracer.transport import TraceStats, Transport
+from ..tracer import stages
+from ..tracer.transport import FirstHit, TraceStats, Transport
 from . import child_compile, setup
 from . import TRACER_ENV, TRACERS, cuda_unavailable, numba_version, thread_count
 
@@ -66,6 +67,15 @@ class CompiledTracer:
         if self.choice.device_scene is None and self.execution.cancel is not None:
             stats.compile = child_compile.compile_aside(self.execution.cancel, self._tick)
 
+    def first_hit(self, trace_setup: TraceSetup, stats: TraceStats) -> FirstHit:
+        """The ground truth's rays: on the CPU by the kernels where they are compiled or cached (else the NumPy
+        reference's traversal, while the kernels compile for the passes), on the GPU by its own traversal."""
+        if self.choice.device_scene is None and not needs_compile():
+            from . import cpu
+
+            return cpu.first_hit(self.choice.packed, trace_setup, stats)
+        return stages.first_hit(trace_setup, stats)
+
     def attach(self, transport: Transport) -> str:
         """The frame's sums exist: the passes add to them; returns how the kernels run (``stats.parallel``)."""
         self._transport = transport
@@ -76,8 +86,8 @@ class CompiledTracer:
         run = self.execution
         if self.choice.device_scene is None and needs_compile():
             # An empty pixel range compiles the kernels for this trace's argument types and traces nothing.
-            seconds = compile_in_thread(lambda: cpu_trace_chunk(self.choice.packed, self._transport, 0, 0, done,
-                                                                counts), self._tick)
+            seconds = compile_in_thread(lambda: cpu_compile(self.choice.packed, self._transport, done, counts),
+                                        self._tick)
             stats = self._transport.stats  # a child that could not compile said why (compile_aside)
             stats.compile = f"{stats.compile}, {seconds:.1f} s" if stats.compile else \
                 f"compiled in this process in {seconds:.1f} s"
@@ -131,11 +141,11 @@ def compile_in_thread(compile_kernels, tick) -> float:
     return time.perf_counter() - start
 
 
-def cpu_trace_chunk(packed, out, p0: int, p1: int, first: np.ndarray, counts: np.ndarray) -> np.ndarray:
-    """:func:`tofcore.compiled.cpu.trace_chunk` (imported when called: it imports the kernels)."""
+def cpu_compile(packed, out, first: np.ndarray, counts: np.ndarray) -> None:
+    """:func:`tofcore.compiled.cpu.compile_kernels` (imported when called: it imports the kernels)."""
     from . import cpu
 
-    return cpu.trace_chunk(packed, out, p0, p1, first, counts)
+    cpu.compile_kernels(packed, out, first, counts)
 
 
 COMPILED_CHUNK_PATHS = 1 << 18

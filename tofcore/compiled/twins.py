@@ -68,6 +68,7 @@ TWINS: dict[str, str | tuple[str, ...]] = {
     "shadow_ray": "tofcore.tracer.surface.shadow_ray",
     "orthonormal_basis": "tofcore.tracer.surface.orthonormal_basis",
     "surface_at": "tofcore.tracer.surface.surface_at",
+    "hit_point": "tofcore.tracer.surface.surface_geometry",
     "surface_params": "tofcore.scene.bsdf.SurfaceParams",
     "texture_sample": "tofcore.scene.material.Texture.sample",
     "perturb_normal": "tofcore.tracer.surface._perturb",
@@ -118,6 +119,7 @@ TWINS: dict[str, str | tuple[str, ...]] = {
     "next_direction": "tofcore.tracer.stages.scatter",
     "trace_path": "tofcore.tracer.integrator.trace_chunk",
     "trace_pixels": "tofcore.tracer.integrator.trace_chunk",
+    "first_hits": "tofcore.tracer.stages.first_hit",  # tests/tofcore/test_compiled.py: every field equal
     # the GPU wavefront (tofcore.compiled.cuda drives it)
     "store_vec": _GPU_STAGING,
     "load_vec": _GPU_STAGING,

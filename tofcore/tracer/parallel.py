@@ -26,10 +26,10 @@ import numpy as np
 
 from .. import backend
 from ..errors import Cancelled
-from . import workers
+from . import stages, workers
 from .integrator import trace_chunk
 from .setup import TraceSetup, on_host
-from .transport import TraceStats, Transport
+from .transport import FirstHit, TraceStats, Transport
 from .workers import process_support
 
 _ACCUMULATORS = ("sample_count", "signal_sum", "correlation_sum", "ambient_sum", "replicate_sum", "transient_sum")
@@ -144,6 +144,10 @@ class ReferenceTracer:
         if self.execution.workers > 1:
             self._why_not = start_workers(self.execution.workers)
 
+    def first_hit(self, setup: TraceSetup, stats: TraceStats) -> FirstHit:
+        """The pixel-centre rays traced by the reference (:func:`~tofcore.tracer.stages.first_hit`)."""
+        return stages.first_hit(setup, stats)
+
     def attach(self, transport: Transport) -> str:
         """The frame's sums exist: put them into shared memory for the workers; returns how chunks run."""
         self._transport = transport
@@ -208,6 +212,10 @@ class HostTracer:
 
     def start(self, stats: TraceStats) -> None:
         self.inner.start(stats)
+
+    def first_hit(self, setup: TraceSetup, stats: TraceStats) -> FirstHit:
+        """On the device, as the frame's other buffers (:func:`~tofcore.tracer.stages.first_hit`)."""
+        return stages.first_hit(setup, stats)
 
     def attach(self, transport: Transport) -> str:
         """The device frame exists: the CPU tracer gets host sums of the same shapes."""

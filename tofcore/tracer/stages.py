@@ -41,8 +41,7 @@ from .transport import FirstHit, TraceStats
 def first_hit(setup: TraceSetup, stats: TraceStats) -> FirstHit:
     """Trace the pixel-centre rays on the tracing device; the buffers come back as NumPy arrays."""
     xp = setup.xp
-    cam = setup.camera
-    d = rotate(xp.asarray(cam.pixel_center_directions().reshape(-1, 3).astype(np.float64)), setup.rotation)
+    d = pixel_centre_directions(setup)
     n = len(d)
     origin = xp.broadcast_to(setup.lens_center, (n, 3))
     hits = setup.scene.bvh.intersect(leaving(origin, d), d.astype(np.float32))
@@ -54,13 +53,28 @@ def first_hit(setup: TraceSetup, stats: TraceStats) -> FirstHit:
     prim = xp.where(hit, hits.prim, 0)
     with np.errstate(invalid="ignore"):
         point, facing_normal = surface_geometry(setup.table, prim, hits.u, hits.v, origin, d)
-    distance = xp.where(hit, xp.linalg.norm(point - setup.lens_center, axis=1), np.nan)
-    position = xp.where(hit[:, None], (point + xp.asarray(setup.scene.origin_m)).astype(np.float32),
-                        np.float32(np.nan))  # world frame
-    normal = xp.where(hit[:, None], facing_normal.astype(np.float32), np.float32(np.nan))
+    return first_hit_record(setup, d, hit, prim, point, facing_normal)
+
+
+def pixel_centre_directions(setup: TraceSetup):
+    """(H·W, 3) float64 unit directions of the rays through the pixel centres, in the scene frame."""
+    return rotate(setup.xp.asarray(setup.camera.pixel_center_directions().reshape(-1, 3).astype(np.float64)),
+                  setup.rotation)
+
+
+def first_hit_record(setup: TraceSetup, d, hit, prim, point, facing_normal) -> FirstHit:
+    """The :class:`FirstHit` of the pixel-centre rays ``d`` from their hits: ``hit`` (R,) bool, ``prim`` the
+    triangle (any valid index where ``hit`` is False), the float64 ``point`` (scene frame) and ``facing_normal``
+    (R, 3) (anything finite or not where ``hit`` is False: masked here)."""
+    xp = setup.xp
+    with np.errstate(invalid="ignore"):
+        distance = xp.where(hit, xp.linalg.norm(point - setup.lens_center, axis=1), np.nan)
+        position = xp.where(hit[:, None], (point + xp.asarray(setup.scene.origin_m)).astype(np.float32),
+                            np.float32(np.nan))  # world frame
+        normal = xp.where(hit[:, None], facing_normal.astype(np.float32), np.float32(np.nan))
     material = xp.where(hit, setup.table.material_ids[prim], np.int32(-1)).astype(np.int32)
     obj = xp.where(hit, setup.table.object_ids[prim], np.int32(-1)).astype(np.int32)
-    shape = (cam.height, cam.width)
+    shape = (setup.camera.height, setup.camera.width)
     host = backend.to_host
     return FirstHit(distance_m=host(distance).reshape(shape), position_m=host(position).reshape(shape + (3,)),
                     normal=host(normal).reshape(shape + (3,)), material_id=host(material).reshape(shape),

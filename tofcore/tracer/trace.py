@@ -36,7 +36,6 @@ from .budget import TimeBudget
 from .estimator import allocate_samples, rms_error
 from .parallel import Execution, reference
 from .setup import Correlation, TraceSettings, TraceSetup, make_setup
-from .stages import first_hit
 from .transport import FirstHit, TraceStats, Transport
 
 
@@ -54,6 +53,10 @@ class Tracer(Protocol):
 
     def start(self, stats: TraceStats) -> None:
         """Before the first hits: start what runs meanwhile (worker processes, a kernel compile)."""
+
+    def first_hit(self, setup: TraceSetup, stats: TraceStats) -> FirstHit:
+        """The noise-free ground truth: one ray through each pixel centre (:func:`~tofcore.tracer.stages.first_hit`
+        defines it)."""
 
     def attach(self, transport: Transport) -> str:
         """The frame's sums exist, the passes add to them; returns how the chunks run (TraceStats.parallel)."""
@@ -270,7 +273,7 @@ def _passes(scene: Scene, camera: Camera, leds: Sequence[LED], settings: TraceSe
     stats = TraceStats(tracer=tracer.name, tracer_reason=tracer.reason)
     try:  # from here on, close() releases what the tracer took, whatever stops the trace (Ctrl-C included)
         tracer.start(stats)  # worker processes boot while this one traces the first hits
-        transport = _empty_transport(setup, first_hit(setup, stats), stats)
+        transport = _empty_transport(setup, tracer.first_hit(setup, stats), stats)
         stats.parallel = tracer.attach(transport)
         stats.setup_seconds = time.perf_counter() - start
         while (counts := schedule.next_pass(transport)) is not None:
