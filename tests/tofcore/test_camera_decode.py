@@ -25,6 +25,7 @@ import pytest
 import tofcore
 from tofcore.errors import ConfigError
 from tofcore.sensor import decode as decoding
+from tofcore.sensor.modulation import ideal_raw
 from tofcore.sensor.noise import NoiseStream
 
 render_module = importlib.import_module("tofcore.render")  # the module (tofcore.render is the function)
@@ -57,14 +58,20 @@ def small_sensor(preset: str, width: int = 40, **overrides):
     return sensor.scaled(width / sensor.camera.width).replace(**overrides)
 
 
+def camera_setup(sensor):
+    """(plan, FrameSetup) of a render of the demo room by ``sensor``; ``.camera`` is the camera's DecodeSettings."""
+    plan = render_module.make_plan(tofcore.demo_scene("room"), sensor, max_depth=3, ambient=None)
+    return plan, render_module.frame_setup(sensor, plan)
+
+
 def camera_raw(sensor, spp: int = 4, seed: int = 5):
     """(raw (R, H, W), the camera's DecodeSettings) of the demo room as a render makes them: scattering, noise."""
     scene = tofcore.demo_scene("room")
-    transport = tofcore.trace(scene, sensor.camera, sensor.leds, world_from_sensor=tofcore.suggested_pose(scene, sensor),
+    pose = tofcore.suggested_pose(scene, sensor)
+    transport = tofcore.trace(scene, sensor.camera, sensor.leds, world_from_sensor=pose,
                               correlations=sensor.modulation.correlation_bank(), spp=spp, max_depth=3, seed=3,
                               ambient=tofcore.Ambient(radiance_w_m2_sr=0.05))
-    plan = render_module.make_plan(scene, sensor, max_depth=3, ambient=None)
-    setup = render_module.frame_setup(sensor, plan)
+    plan, setup = camera_setup(sensor)
     n_raw = len(sensor.modulation.correlation_bank())
     return render_module._camera_raw(transport, sensor, plan, NoiseStream.from_seed(seed), n_raw, setup), setup.camera
 
@@ -77,23 +84,17 @@ def every_reason_raw(modulation, full_well_e: float, height: int = 14, width: in
     distance = np.where(np.arange(width) < width // 2, 2.0, 3.4)[None].repeat(height, 0)
     signal = 4e4 / distance ** 2
     distance[:, :3] = 0.3                                     # before the range
-    distance[-3:, -4:] = 6.1                                  # beyond it (within the unambiguous range)
-    raw = modulation_raw(modulation, distance, signal, ambient_e=2e3)
-    mixed = 0.5 * (modulation_raw(modulation, np.full((height, width), 1.1), 1e4, 2e3)
-                   + modulation_raw(modulation, np.full((height, width), 2.9), 1e4, 2e3))
+    distance[-3:, -4:] = 6.1                                  # beyond the Kinect v2's (the O3D303 wraps it)
+    raw = ideal_raw(modulation, distance, signal, ambient_e=2e3)
+    mixed = 0.5 * (ideal_raw(modulation, np.full((height, width), 1.1), 1e4, 2e3)
+                   + ideal_raw(modulation, np.full((height, width), 2.9), 1e4, 2e3))
     raw[:, 5:8, 10:13] = mixed[:, 5:8, 10:13]
-    raw[:, 3:5, 3:6] = modulation_raw(modulation, distance, 12.0, 50.0)[:, 3:5, 3:6]   # weak: below 50 e⁻
+    raw[:, 3:5, 3:6] = ideal_raw(modulation, distance, 12.0, 50.0)[:, 3:5, 3:6]       # weak: below 50 e⁻
     raw[:, 9:11, 3:5] = 2e3 * 0.5                                                    # ambient only
     raw = np.maximum(raw + rng.normal(0.0, 1.0, raw.shape) * np.sqrt(raw), 0.0)
     raw[:, 0:2, 7:10] = 0.0                                                          # no light at all
     raw[:, 6:8, 4:6] = 3.0 * full_well_e                                             # saturated
     return np.minimum(raw, full_well_e)
-
-
-def modulation_raw(modulation, distance, signal_e, ambient_e):
-    from tofcore.sensor.modulation import ideal_raw
-
-    return ideal_raw(modulation, distance, signal_e, ambient_e)
 
 
 def assert_decodes_agree(fast, reference):
@@ -124,9 +125,9 @@ def test_compiled_decode_equals_the_decoder_for_every_reason(preset):
     """Every reason the decoder gives (edge-filtered pixels for the Kinect v2's filters), border pixels, NaN
     distances of invalid pixels, a range scale per pixel."""
     sensor = small_sensor(preset)
-    _, settings = camera_raw(small_sensor(preset, width=8), spp=1)
     raw = every_reason_raw(sensor.modulation, sensor.readout.full_well_e)
-    settings = settings.replace(range_scale=np.random.default_rng(1).uniform(0.85, 1.0, raw.shape[1:]))
+    scale = np.random.default_rng(1).uniform(0.85, 1.0, raw.shape[1:])
+    settings = camera_setup(sensor)[1].camera.replace(range_scale=scale)
     reference = decoding.decode(raw, sensor.modulation, settings)
     expected = set(decoding.Reason) - ({decoding.Reason.UNWRAPPING_FAILED, decoding.Reason.EDGE_FILTERED}
                                        if preset == "o3d303" else set())  # one frequency: no unwrapping, no filter
@@ -186,14 +187,15 @@ data = np.load(sys.argv[1], allow_pickle=True)
 sensor = tofcore.load_preset("kinect_v2")
 raw = data["raw"]
 settings = decoding.DecodeSettings(**data["settings"].item())
-channels, freqs, vector = camera_decode.tables(sensor.modulation, settings)
 h, w = raw.shape[1:]
-outputs = tuple(np.empty(h * w, dtype=np.float32) for _ in range(5)) + (np.empty(h * w, dtype=np.uint8),
-                                                                      np.empty(h * w, dtype=np.bool_))
-camera_decode.launch_cuda(camera_decode.cuda_build(), raw.reshape(raw.shape[0], -1), channels, freqs, vector,
-                          np.ascontiguousarray(settings.range_scale, dtype=np.float64).reshape(-1), w, outputs, np)
-np.savez(sys.argv[2], **dict(zip(("distance", "amplitude", "offset", "intensity", "confidence", "reason", "valid"),
-                                 (a.reshape(h, w) for a in outputs))))
+images = np.empty((len(camera_decode.OUTPUT_IMAGES), h * w), dtype=np.float32)
+reason, valid = np.empty(h * w, dtype=np.uint8), np.empty(h * w, dtype=np.bool_)
+camera_decode.launch_cuda(camera_decode.cuda_build(), raw.reshape(raw.shape[0], -1),
+                          camera_decode.tables(sensor.modulation, settings),
+                          np.ascontiguousarray(settings.range_scale, dtype=np.float64).reshape(-1), w, images, reason,
+                          valid, np)
+np.savez(sys.argv[2], reason=reason.reshape(h, w), valid=valid.reshape(h, w),
+         **dict(zip(camera_decode.OUTPUT_IMAGES, images.reshape(-1, h, w))))
 """
 
 
@@ -214,7 +216,8 @@ def test_cuda_build_of_the_decode_in_the_simulator(tmp_path):
                           str(tmp_path / "out.npz")], env=env, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr[-3000:]
     reference = decoding.decode(raw, sensor.modulation, decoding.DecodeSettings(**fields))
-    assert {int(decoding.Reason.EDGE_FILTERED), int(decoding.Reason.UNWRAPPING_FAILED)} <= set(np.unique(reference.reason))
+    reasons = set(np.unique(reference.reason))
+    assert {int(decoding.Reason.EDGE_FILTERED), int(decoding.Reason.UNWRAPPING_FAILED)} <= reasons
     simulated = decoding.Decoded(**dict(np.load(tmp_path / "out.npz")))
     assert_decodes_agree(simulated, reference)
 
@@ -229,7 +232,8 @@ def _no_numba_cuda() -> str:
     return compiled.cuda_unavailable() or ""
 
 
-needs_numba_cuda = pytest.mark.skipif(bool(_no_numba_cuda()), reason=f"needs numba-cuda and a CUDA GPU: {_no_numba_cuda()}")
+needs_numba_cuda = pytest.mark.skipif(bool(_no_numba_cuda()),
+                                      reason=f"needs numba-cuda and a CUDA GPU: {_no_numba_cuda()}")
 
 
 def host_decoded(decoded) -> decoding.Decoded:
@@ -261,8 +265,8 @@ def test_cuda_decode_equals_the_cupy_decoder(name):
     import cupy as cp
 
     preset, overrides = SENSORS[name]
-    raw, settings = camera_raw(small_sensor(preset, width=128, **overrides))
     sensor = small_sensor(preset, width=128, **overrides)
+    raw, settings = camera_raw(sensor)
     if settings.range_scale is not None:
         settings = settings.replace(range_scale=cp.asarray(settings.range_scale))
     device_raw = cp.asarray(raw)

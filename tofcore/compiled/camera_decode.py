@@ -82,6 +82,9 @@ T_A, T_B, T_PHASE, T_RE, T_IM, T_NORM, T_URE, T_UIM = range(8)
 E_DEPTH, E_IR, E_OK = range(3)
 # Rows of the scratch array (5, ≥ F) of pass 2.
 W_CHOOSE, W_OUT, WRAPPED, NEAREST, TESTED = range(5)
+# Rows of the float32 output images (5, P): Decoded's fields in this order.
+OUTPUT_IMAGES = ("distance", "amplitude", "offset", "intensity", "confidence")
+O_DISTANCE, O_AMPLITUDE, O_OFFSET, O_INTENSITY, O_CONFIDENCE = range(5)
 
 fn = device_function(__name__)
 cpu_parallel = cpu_parallel_function(__name__)
@@ -230,15 +233,15 @@ def amplitude_floor(offset, steps, settings):
 
 @fn
 def pixel_decode(raw, table, freqs, settings, range_scale, y, x, width, height, rows, scratch, weights, edge,
-                 outputs):
-    """Pass 2 for pixel (y, x): decode.decode of its phasors and its neighbours', into ``outputs`` (distance,
-    amplitude, offset, intensity, confidence: float32; reason: uint8; valid: bool; each (P,)), and where the
-    edge filter is on the pixel's row of ``edge`` (E_* rows) for pass 3.
+                 images, reason_out, valid_out):
+    """Pass 2 for pixel (y, x): decode.decode of its phasors and its neighbours', into column p of ``images``
+    (5, P) float32 (the O_* rows: distance, amplitude, offset, intensity, confidence), ``reason_out`` (P,) uint8 and
+    ``valid_out`` (P,) bool, and where the edge filter is on into the pixel's column of ``edge`` (E_* rows) for
+    pass 3.
 
     ``settings`` the S_* vector; ``range_scale`` (P,) what multiplies the distance in the range test;
     ``rows`` the table columns of x = 0 in the rows above, at and below y; ``scratch`` (5, ≥ F) and ``weights``
     (9,) scratch."""
-    distance_out, amplitude_out, offset_out, intensity_out, confidence_out, reason_out, valid_out = outputs
     n_freq = freqs.shape[0]
     p = rows[1] + x
     h = np.int64(settings[S_HIGHEST])
@@ -310,11 +313,11 @@ def pixel_decode(raw, table, freqs, settings, range_scale, y, x, width, height, 
         edge[E_IR, p] = ir_sum
         edge[E_OK, p] = 1.0 if edge_ok else 0.0
     valid = reason == VALID
-    distance_out[p] = distance if valid else math.nan
-    amplitude_out[p] = table[h, T_A, p]
-    offset_out[p] = table[h, T_B, p]
-    intensity_out[p] = raw_sum / raw.shape[0]
-    confidence_out[p] = confidence if valid else 0.0
+    images[O_DISTANCE, p] = distance if valid else math.nan
+    images[O_AMPLITUDE, p] = table[h, T_A, p]
+    images[O_OFFSET, p] = table[h, T_B, p]
+    images[O_INTENSITY, p] = raw_sum / raw.shape[0]
+    images[O_CONFIDENCE, p] = confidence if valid else 0.0
     reason_out[p] = reason
     valid_out[p] = valid
 
@@ -358,44 +361,42 @@ def pixel_edge(edge, settings, y, x, width, height):
 
 
 @fn
-def remove_edge_pixel(edge, settings, y, x, width, height, distance_out, confidence_out, reason_out, valid_out):
+def remove_edge_pixel(edge, settings, y, x, width, height, images, reason_out, valid_out):
     """Pass 3's result for pixel (y, x): a pixel valid after pass 2 that :func:`pixel_edge` removes becomes
     EDGE_FILTERED (the last reason: any other one wins)."""
     p = y * width + x
     if reason_out[p] == VALID and pixel_edge(edge, settings, y, x, width, height):
-        distance_out[p] = math.nan
-        confidence_out[p] = 0.0
+        images[O_DISTANCE, p] = math.nan
+        images[O_CONFIDENCE, p] = 0.0
         reason_out[p] = EDGE_FILTERED
         valid_out[p] = False
 
 
 @fn
-def decode_row(raw, table, freqs, settings, range_scale, y, width, height, scratch, weights, edge, outputs):
+def decode_row(raw, table, freqs, settings, range_scale, y, width, height, scratch, weights, edge, images, reason,
+               valid):
     """Pass 2 for row y (the CPU driver's unit of work)."""
     rows = ((y - 1) * width, y * width, (y + 1) * width)
     for x in range(width):
         pixel_decode(raw, table, freqs, settings, range_scale, y, x, width, height, rows, scratch, weights, edge,
-                     outputs)
+                     images, reason, valid)
 
 
 @cpu_parallel
-def decode_rows(raw, channels, freqs, settings, range_scale, width, table, edge, distance, amplitude, offset,
-                intensity, confidence, reason, valid):
+def decode_rows(raw, channels, freqs, settings, range_scale, width, table, edge, images, reason, valid):
     """The three passes over every row on numba's threads (the CPU build; CI's check of the kernels' source).
     (Each loop's body is one call: numba's parallel loops compile slowly when they inline large bodies.)"""
     pixels = raw.shape[1]
     height = pixels // width
     bilateral = settings[S_BILATERAL] != 0.0
-    outputs = (distance, amplitude, offset, intensity, confidence, reason, valid)
     for p in prange(pixels):
         pixel_phasors(raw, channels, freqs, bilateral, p, table)
     for y in prange(height):
         decode_row(raw, table, freqs, settings, range_scale, y, width, height, np.empty((5, freqs.shape[0])),
-                   np.empty(9), edge, outputs)
+                   np.empty(9), edge, images, reason, valid)
     if settings[S_EDGE_FILTER] != 0.0:
         for p in prange(pixels):
-            remove_edge_pixel(edge, settings, p // width, p % width, width, height, distance, confidence, reason,
-                              valid)
+            remove_edge_pixel(edge, settings, p // width, p % width, width, height, images, reason, valid)
 
 
 @gpu_kernel
@@ -407,27 +408,24 @@ def phasors_kernel(raw, channels, freqs, settings, table):
 
 
 @gpu_kernel
-def decode_kernel(raw, table, freqs, settings, range_scale, width, edge, distance, amplitude, offset, intensity,
-                  confidence, reason, valid):
-    """Pass 2 on the GPU, a thread per pixel (the outputs one argument each: numba.cuda types a CuPy array
-    through its CUDA array interface, which a tuple of them does not have)."""
+def decode_kernel(raw, table, freqs, settings, range_scale, width, edge, images, reason, valid):
+    """Pass 2 on the GPU, a thread per pixel."""
     p = cuda.grid(1)
     if p < raw.shape[1]:
         scratch = cuda.local.array((5, MAX_FREQUENCIES), np.float64)
         weights = cuda.local.array(9, np.float64)
         y = p // width
         pixel_decode(raw, table, freqs, settings, range_scale, y, p % width, width, raw.shape[1] // width,
-                     ((y - 1) * width, y * width, (y + 1) * width), scratch, weights, edge,
-                     (distance, amplitude, offset, intensity, confidence, reason, valid))
+                     ((y - 1) * width, y * width, (y + 1) * width), scratch, weights, edge, images, reason, valid)
 
 
 @gpu_kernel
-def edge_kernel(edge, settings, width, distance, confidence, reason, valid):
+def edge_kernel(edge, settings, width, images, reason, valid):
     """Pass 3 on the GPU, a thread per pixel."""
     p = cuda.grid(1)
     if p < edge.shape[1]:
-        remove_edge_pixel(edge, settings, p // width, p % width, width, edge.shape[1] // width, distance,
-                          confidence, reason, valid)
+        remove_edge_pixel(edge, settings, p // width, p % width, width, edge.shape[1] // width, images, reason,
+                          valid)
 
 
 # ------------------------------------------------------------------ host side: the tables and the launches
@@ -495,19 +493,23 @@ def cuda_build():
 THREADS_PER_BLOCK = 128
 
 
-def launch_cuda(build, raw, channels, freqs, vector, range_scale, width: int, outputs, xp) -> None:
-    """The three kernels of ``build`` over ``raw`` (J, P) into ``outputs`` (the tuple of :func:`pixel_decode`),
-    their tables allocated with the array module ``xp`` (CuPy; NumPy under numba's CUDA simulator)."""
+def launch_cuda(build, raw, host_tables, range_scale, width: int, images, reason, valid, xp) -> None:
+    """The three kernels of ``build`` over ``raw`` (J, P) into ``images``, ``reason``, ``valid`` (as
+    :func:`pixel_decode` writes them):
+    ``host_tables`` those of :func:`tables` (uploaded here; read on the host first, so no launch waits for a
+    device value), the pixels' tables allocated with the array module ``xp`` (CuPy; NumPy under numba's CUDA
+    simulator)."""
+    edge_on = host_tables[2][S_EDGE_FILTER] != 0.0
+    channels, freqs, vector = (xp.asarray(a) for a in host_tables)
     pixels = raw.shape[1]
-    edge_on = vector[S_EDGE_FILTER] != 0.0
     table = xp.empty((freqs.shape[0], 8, pixels))  # every pixel's phasors, read by its neighbours
     edge = xp.empty((3, pixels if edge_on else 1))
     blocks = (pixels + THREADS_PER_BLOCK - 1) // THREADS_PER_BLOCK
     build.phasors_kernel[blocks, THREADS_PER_BLOCK](raw, channels, freqs, vector, table)
-    build.decode_kernel[blocks, THREADS_PER_BLOCK](raw, table, freqs, vector, range_scale, width, edge, *outputs)
+    build.decode_kernel[blocks, THREADS_PER_BLOCK](raw, table, freqs, vector, range_scale, width, edge, images,
+                                                   reason, valid)
     if edge_on:
-        distance, _, _, _, confidence, reason, valid = outputs
-        build.edge_kernel[blocks, THREADS_PER_BLOCK](edge, vector, width, distance, confidence, reason, valid)
+        build.edge_kernel[blocks, THREADS_PER_BLOCK](edge, vector, width, images, reason, valid)
 
 
 def decode(raw, modulation, settings=None, *, check: bool = True) -> _decode.Decoded:
@@ -526,21 +528,22 @@ def decode(raw, modulation, settings=None, *, check: bool = True) -> _decode.Dec
     xp = namespace(raw)
     height, width = raw.shape[1:]
     pixels = height * width
-    channels, freqs, vector = (xp.asarray(a) for a in tables(modulation, s))
+    host_tables = tables(modulation, s)
     flat = xp.ascontiguousarray(raw.reshape(raw.shape[0], pixels))
     scale = xp.ones(pixels) if s.range_scale is None else xp.ascontiguousarray(
         xp.broadcast_to(xp.asarray(s.range_scale, dtype=np.float64), (height, width))).reshape(pixels)
-    outputs = tuple(xp.empty(pixels, dtype=np.float32) for _ in range(5)) + (
-        xp.empty(pixels, dtype=np.uint8), xp.empty(pixels, dtype=np.bool_))
+    images = xp.empty((len(OUTPUT_IMAGES), pixels), dtype=np.float32)
+    reason, valid = xp.empty(pixels, dtype=np.uint8), xp.empty(pixels, dtype=np.bool_)
     if xp is np:
         from .cpu import PARALLEL_LOCK
 
+        channels, freqs, vector = host_tables
         edge = np.empty((3, pixels if vector[S_EDGE_FILTER] != 0.0 else 1))
         with PARALLEL_LOCK:
             decode_rows(flat, channels, freqs, vector, scale, width, np.empty((freqs.shape[0], 8, pixels)), edge,
-                        *outputs)
+                        images, reason, valid)
     else:
-        launch_cuda(cuda_build(), flat, channels, freqs, vector, scale, width, outputs, xp)
-    distance, amplitude, offset, intensity, confidence, reason, valid = (a.reshape(height, width) for a in outputs)
-    return _decode.Decoded(distance=distance, amplitude=amplitude, offset=offset, intensity=intensity,
-                           confidence=confidence, valid=valid, reason=reason)
+        launch_cuda(cuda_build(), flat, host_tables, scale, width, images, reason, valid, xp)
+    images = images.reshape(len(OUTPUT_IMAGES), height, width)
+    return _decode.Decoded(**dict(zip(OUTPUT_IMAGES, images)), valid=valid.reshape(height, width),
+                           reason=reason.reshape(height, width))
