@@ -443,9 +443,8 @@ def supports(modulation, settings, shape: tuple[int, ...]) -> str:
         return f"raw images of shape {tuple(shape)}, not one (H, W) image"
     if settings.phasor_filter not in ("none", "bilateral"):
         return f"phasor filter {settings.phasor_filter!r}"
-    d_amb = modulation.ambiguity_distances_m()
     if wrap_candidates(modulation) > _decode.MAX_UNWRAP_CANDIDATES:
-        return f"more than {_decode.MAX_UNWRAP_CANDIDATES} wrap candidates (d_amb {d_amb.min():.3g} m)"
+        return f"{wrap_candidates(modulation)} wrap candidates, more than {_decode.MAX_UNWRAP_CANDIDATES}"
     if settings.range_scale is not None and np.broadcast_shapes(np.shape(settings.range_scale), shape) != shape:
         return f"range_scale of shape {np.shape(settings.range_scale)} for images {tuple(shape)}"
     return ""
