@@ -3,8 +3,10 @@ device synchronised before and after it (so a stage's time is its own kernels' a
 
 Wraps the stages of :mod:`tofcore.render` (the per-pass error estimate, the camera's images — raw images,
 scattering, noise, decoding with the phasor and edge filters —, the per-k ground truth, the read-back) and,
-inside the camera's images, the decoder and the scattering, renders the demo room at 16 spp and at 1 spp a
-few times, and prints the median of each stage per frame.
+inside the camera's images, the camera's decode and the scattering, renders the demo room at 16 spp and at 1 spp
+a few times, and prints the mean of each stage per frame. It does so twice in the same process: with the camera's
+decode as the compiled kernels (tofcore.compiled.camera_decode, what renders use) and as the CuPy decoder
+(tofcore.sensor.decode.decode: ``camera_decode.supports`` patched to refuse), and prints the decode's ms both ways.
 
 Usage::
 
@@ -17,6 +19,7 @@ import argparse
 import collections
 import importlib
 import json
+import math
 import statistics
 import sys
 import time
@@ -33,6 +36,7 @@ def main() -> int:
     import cupy as cp
 
     import tofcore
+    from tofcore.compiled import camera_decode
     from tofcore.sensor import optics
 
     render = importlib.import_module("tofcore.render")
@@ -51,7 +55,9 @@ def main() -> int:
                 times[label].append(time.perf_counter() - start)
         setattr(module, name, wrapper)
 
-    for module, name, label in ((render.decoding, "decode", "  decode (camera's or per-k's)"),
+    decode_labels = ("  camera decode, kernels", "  camera decode, CuPy decoder")
+    for module, name, label in ((camera_decode, "decode", decode_labels[0]),
+                                (render.decoding, "decode", decode_labels[1]),
                                 (render, "render_error", "error estimate"),
                                 (render, "_camera_images", "camera images (all below)"),
                                 (optics, "apply_scattering", "  lens scattering"),
@@ -61,23 +67,33 @@ def main() -> int:
         timed(module, name, label)
 
     scene, sensor = tofcore.demo_scene("room"), tofcore.load_preset("kinect_v2")
+    supports = camera_decode.supports
     result = {}
+    for decoder in ("kernels", "CuPy decoder"):
+        camera_decode.supports = supports if decoder == "kernels" else (lambda *args: "bench: the CuPy decoder")
+        for spp in (16, 1):
+            tofcore.render(scene, sensor, spp=spp, max_depth=5, device="gpu")  # warm
+            times.clear()
+            whole = []
+            for _ in range(a.repeat):
+                cp.cuda.Device().synchronize()
+                start = time.perf_counter()
+                tofcore.render(scene, sensor, spp=spp, max_depth=5, device="gpu")
+                cp.cuda.Device().synchronize()
+                whole.append(time.perf_counter() - start)
+            per_frame = {k: 1e3 * sum(v) / a.repeat for k, v in times.items()}
+            result[f"{spp} spp, {decoder}"] = dict(per_frame, whole=1e3 * statistics.median(whole))
+            print(f"Kinect v2 room, {spp} spp, the camera's decode by the {decoder}, ms per frame (mean of "
+                  f"{a.repeat}); whole frame median {1e3 * statistics.median(whole):.1f} ms")
+            for k, v in sorted(per_frame.items(), key=lambda kv: -kv[1]):
+                print(f"  {k:40s} {v:8.2f}")
+    camera_decode.supports = supports
     for spp in (16, 1):
-        tofcore.render(scene, sensor, spp=spp, max_depth=5, device="gpu")  # warm
-        times.clear()
-        whole = []
-        for _ in range(a.repeat):
-            cp.cuda.Device().synchronize()
-            start = time.perf_counter()
-            tofcore.render(scene, sensor, spp=spp, max_depth=5, device="gpu")
-            cp.cuda.Device().synchronize()
-            whole.append(time.perf_counter() - start)
-        per_frame = {k: 1e3 * sum(v) / a.repeat for k, v in times.items()}
-        result[f"{spp} spp"] = dict(per_frame, whole=1e3 * statistics.median(whole))
-        print(f"Kinect v2 room, {spp} spp, ms per frame (mean of {a.repeat}); whole frame median "
-              f"{1e3 * statistics.median(whole):.1f} ms")
-        for k, v in sorted(per_frame.items(), key=lambda kv: -kv[1]):
-            print(f"  {k:40s} {v:8.2f}")
+        kernels, cupy = (result[f"{spp} spp, {d}"] for d in ("kernels", "CuPy decoder"))
+        frame = "frame (camera, per-k, read-back)"
+        print(f"{spp} spp: the camera's decode {kernels.get(decode_labels[0], math.nan):.2f} ms (kernels) against "
+              f"{cupy.get(decode_labels[1], math.nan):.2f} ms (CuPy decoder); the frame after the trace "
+              f"{kernels[frame]:.1f} against {cupy[frame]:.1f} ms")
     if a.json:
         a.json.write_text(json.dumps(result, indent=1))
     return 0

@@ -184,11 +184,18 @@ def render_error(transport: Transport, sensor, n_raw: int, threads: int | None =
     return np.concatenate([p[0] for p in parts]), np.concatenate([p[1] for p in parts])
 
 
+def _on_the_gpu_wavefront(transport: Transport) -> bool:
+    """Whether ``transport`` was traced by the compiled wavefront on a GPU (then numba's CUDA target is loaded,
+    and the post-trace kernels of :mod:`tofcore.compiled` run beside it)."""
+    return namespace(transport.replicate_sum) is not np and transport.stats.tracer == "compiled"
+
+
 def _post_trace_kernels(transport: Transport, sensor):
     """:mod:`tofcore.compiled.depth_error` where it takes the post-trace work per pixel (the error estimate, the
     per-k ground truth): a transport of the GPU's compiled wavefront and a sensor it supports; else None (the
-    array programs here and in the decoder; on the CPU too, see :func:`render_error`)."""
-    if namespace(transport.replicate_sum) is np or transport.stats.tracer != "compiled":
+    array programs here and in the decoder; on the CPU too, see :func:`render_error`). The camera's decode has
+    its own choice, :func:`_camera_decoder`."""
+    if not _on_the_gpu_wavefront(transport):
         return None
     from .compiled import depth_error
 
@@ -697,23 +704,43 @@ def _read_back(images: dict) -> dict:
     return out
 
 
-def _camera_images(transport: Transport, sensor, plan: Plan, seed: int, n_raw: int, setup: FrameSetup,
-                   directions: np.ndarray) -> dict:
-    """The camera's images of the transport so far, on its device: raw images with scattering, noise and
-    saturation, decoded (depth, distance, amplitude, offset, intensity, confidence, reason, raw)."""
-    mod = sensor.modulation
+def _camera_raw(transport: Transport, sensor, plan: Plan, stream, n_raw: int, setup: FrameSetup):
+    """The camera's raw images (R, H, W) of the transport so far, on its device: with lens scattering, shot, read
+    and gain noise drawn from ``stream`` (a :class:`~tofcore.sensor.noise.NoiseStream`), clipped at full well."""
     raw = raw_images(transport.correlation()[:n_raw], transport.ambient(), sensor)
-    xp = namespace(raw)
     if setup.psf is not None:
         raw = optics.apply_scattering(raw, setup.psf)
-    stream = noise_models.NoiseStream.from_seed(seed)  # apart from the tracer's; the same numbers on every device
     if plan.raw_noise:
         raw = noise_models.add_raw_noise(raw, read_noise_e=sensor.noise.read_noise_e, rng=stream, check=False)
         if sensor.noise.gain_noise > 0:  # Keller's β (eq. 3.1), after the shot and read noise of the same stream
             raw = noise_models.keller_amplitude_noise(raw, alpha_e=0.0, beta=sensor.noise.gain_noise, rng=stream,
                                                       check=False)
-    raw = np.minimum(raw, sensor.readout.full_well_e)
-    decoded = decoding.decode(raw, mod, setup.camera, check=False)
+    return np.minimum(raw, sensor.readout.full_well_e)
+
+
+def _camera_decoder(transport: Transport, sensor, settings: decoding.DecodeSettings, shape: tuple[int, ...]):
+    """The function that decodes the camera's raw images of image ``shape`` with ``settings``:
+    :func:`tofcore.compiled.camera_decode.decode` (three kernels instead of ~270 array operations, the decoder's
+    outputs to rounding) for a transport of the GPU's compiled wavefront and a decode that module
+    :func:`~tofcore.compiled.camera_decode.supports`; else the decoder, :func:`tofcore.sensor.decode.decode`
+    (on the CPU too: docs/benchmarks.md, "The camera's decode compiled")."""
+    if not _on_the_gpu_wavefront(transport):
+        return decoding.decode
+    from .compiled import camera_decode
+
+    return decoding.decode if camera_decode.supports(sensor.modulation, settings, shape) else camera_decode.decode
+
+
+def _camera_images(transport: Transport, sensor, plan: Plan, seed: int, n_raw: int, setup: FrameSetup,
+                   directions: np.ndarray) -> dict:
+    """The camera's images of the transport so far, on its device: raw images with scattering, noise and
+    saturation, decoded (depth, distance, amplitude, offset, intensity, confidence, reason, raw)."""
+    mod = sensor.modulation
+    stream = noise_models.NoiseStream.from_seed(seed)  # apart from the tracer's; the same numbers on every device
+    raw = _camera_raw(transport, sensor, plan, stream, n_raw, setup)
+    xp = namespace(raw)
+    decode = _camera_decoder(transport, sensor, setup.camera, raw.shape[1:])
+    decoded = decode(raw, mod, setup.camera, check=False)
     distance = decoded.distance.astype(np.float64)
     if plan.distance_noise:
         # Eq. 2.43 takes the signal A and the non-signal charge B; the decoded offset (eq. 2.41) is A + B

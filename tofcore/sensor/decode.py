@@ -171,7 +171,7 @@ def decode_cw(raw: np.ndarray, modulation: Modulation, *, check: bool = True) ->
     the systematic error of a triangle correlation sampled at N points (see :func:`systematic_error_curve`).
     ``check``: that ``raw`` is finite, as in :func:`decode`.
     """
-    raw = _check_raw(raw, modulation, finite=check)
+    raw = check_raw(raw, modulation, finite=check)
     if not modulation.is_cw:
         raise ConfigError(f"decode_cw: modulation.kind must be 'cw_square' or 'cw_sine', got {modulation.kind!r}")
     results = []
@@ -360,7 +360,7 @@ def distance_gradient(raw: np.ndarray, modulation: Modulation, weights: str = "i
     Zero where a frequency has no modulated signal (A ≤ 10⁻⁹ B, as decode's NO_RETURN test).
     ``check``: that ``raw`` is finite, as in :func:`decode`.
     """
-    raw = _check_raw(raw, modulation, finite=check)
+    raw = check_raw(raw, modulation, finite=check)
     xp = namespace(raw)
     grad = xp.zeros(raw.shape)
     if not modulation.is_cw:
@@ -405,7 +405,7 @@ def decode_pulsed(raw: np.ndarray, modulation: Modulation, *, check: bool = True
     Ambient light adds the same charge a to both buckets and biases the ratio:
     :math:`d = \\tfrac{c t_0}{2} (S\\tau/t_0 + a)/(S + 2a)` (SPEC §3, thesis §6.4). ``check``: as in :func:`decode`.
     """
-    raw = _check_raw(raw, modulation, finite=check)
+    raw = check_raw(raw, modulation, finite=check)
     if modulation.is_cw:
         raise ConfigError(f"decode_pulsed: modulation.kind must be 'pulsed', got {modulation.kind!r}")
     total = raw[0] + raw[1]
@@ -506,7 +506,7 @@ def decode(raw: np.ndarray, modulation: Modulation, settings: DecodeSettings | N
     s = DecodeSettings() if settings is None else settings
     if not isinstance(s, DecodeSettings):
         raise ConfigError(f"decode: settings must be a DecodeSettings, got {type(s).__name__}")
-    raw = _check_raw(raw, modulation, finite=check)
+    raw = check_raw(raw, modulation, finite=check)
     range_min, range_max = s.range_m
     xp = namespace(raw)
     edge_ok = None
@@ -632,7 +632,7 @@ def systematic_error_curve(modulation: Modulation, distances_m: np.ndarray) -> n
 
 
 # ------------------------------------------------------------------ checks
-def _check_raw(raw: np.ndarray, modulation: Modulation, *, finite: bool = True) -> np.ndarray:
+def check_raw(raw: np.ndarray, modulation: Modulation, *, finite: bool = True) -> np.ndarray:
     """``raw`` as float64 with its shape checked; and that it is finite (a read-back on a GPU) if ``finite``."""
     raw = asarray(raw, dtype=np.float64)
     if raw.ndim < 1 or raw.shape[0] != modulation.raw_count:
