@@ -155,6 +155,15 @@ def compiling() -> bool:
     return child_compile is not None and child_compile.running()
 
 
+def compile_state() -> tuple[str, float, str] | None:
+    """The background compile's ``(state, seconds, line)`` (``tofcore.compiled.child_compile.state``: running,
+    done or failed), or None where none ran in this session; imports no numba."""
+    import sys
+
+    child_compile = sys.modules.get("tofcore.compiled.child_compile")
+    return None if child_compile is None else child_compile.state()
+
+
 def status_line(last_tracer: dict | None = None) -> tuple[str, str]:
     """(text, icon) of the compiled-tracer box: installed or not, and which tracer the last render used.
 
@@ -164,14 +173,22 @@ def status_line(last_tracer: dict | None = None) -> tuple[str, str]:
     if version is None:
         return ("numba is not installed: renders use the NumPy tracer (Install numba for a compiled tracer, "
                 "about 2× faster per core)", 'INFO')
+    state = compile_state()
     if compiling():
-        return (f"numba {version} installed: compiling the tracer in the background (30 s to 3 min, once; "
+        so_far = f", {state[1]:.0f} s…" if state is not None and state[0] == "running" else ""
+        return (f"numba {version} installed: compiling the tracer in the background{so_far} (30 s to 3 min, once; "
                 f"renders wait for it)", 'SORTTIME')
     if last_tracer and last_tracer.get("tracer") == "numpy":
         reason = blender_reason(last_tracer.get("tracer_reason") or "")
         return f"numba {version} installed, but the last render used NumPy: {reason}", 'INFO'
     if last_tracer and last_tracer.get("tracer") == "compiled":
         return f"Ready: numba {version}, the last render used the compiled tracer", 'CHECKMARK'
+    if state is not None and state[0] == "done":
+        return (f"Ready: numba {version}, the tracer compiled in the background in {state[1]:.0f} s (cached for "
+                f"later renders)", 'CHECKMARK')
+    if state is not None and state[0] == "failed":
+        return (f"numba {version} installed, but compiling the tracer in the background failed: {state[2]}; the "
+                f"first render compiles it", 'ERROR')
     return (f"numba {version} installed: the first render compiles the tracer (30 s to 3 min, cached for "
             f"later renders)", 'INFO')
 

@@ -35,14 +35,20 @@ loading them         CuPy 13 looks for these libraries on the system's library p
                      (:func:`activate`); CuPy's later ``dlopen``/``LoadLibrary`` by name then finds them loaded.
 ===================  =====================================================================================
 
+After a successful install, :func:`start_warmup` has the GPU's kernels compiled once by a child process of
+Blender's Python (:class:`Warmup`: ``tofcore warmup --device gpu``, the CUDA libraries loaded first as
+:func:`load_cuda_libraries` does here), so that the first GPU render loads them from CuPy's and numba's caches
+instead of compiling; the preferences show its state.
+
 The module imports ``bpy`` only inside :func:`site_packages_dir`, and CuPy only through
 :func:`tofcore.backend.select_device` in :func:`check`, never at registration. pip runs in a subprocess
 (``fork`` + ``exec``: the child runs no Python of this process, which matters because a process that
-imported bpy hangs in a plain ``fork``) with ``close_fds``.
+imported bpy hangs in a plain ``fork``) with ``close_fds``; so does the warm-up.
 """
 
 from __future__ import annotations
 
+import atexit
 import ctypes
 import glob
 import importlib
@@ -297,6 +303,142 @@ class Installer:
     def join(self, timeout: float | None = None) -> None:
         if self.thread is not None:
             self.thread.join(timeout)
+
+
+# --------------------------------------------------------------------------- the warm-up (a child process, no bpy)
+
+#: The warm-up child's program (``python -c``): the add-on's CUDA libraries loaded by full path, as
+#: :func:`load_cuda_libraries` loads them in Blender (neither CuPy 13 nor Windows' DLL search would find them by
+#: name), then ``tofcore warmup --device <argv[1]>`` (:func:`tofcore.cli.cmd_warmup`).
+WARMUP_PROGRAM = """
+import ctypes, os, sys
+mode = getattr(os, "RTLD_GLOBAL", 0) | getattr(os, "RTLD_NOW", 0)
+for path in sys.argv[2:]:
+    if hasattr(os, "add_dll_directory"):
+        os.add_dll_directory(os.path.dirname(path))
+    ctypes.CDLL(path, mode=mode)
+from tofcore.cli import main
+sys.exit(main(["warmup", "--device", sys.argv[1]]))
+"""
+
+
+def warmup_command(python: str, device: str = "gpu", libraries: list[str] | tuple[str, ...] = ()) -> list[str]:
+    """The command line of the warm-up child: Blender's Python running ``tofcore warmup --device DEVICE`` after
+    loading ``libraries`` (:func:`cuda_library_files` of the add-on's CuPy folder)."""
+    return [python, "-c", WARMUP_PROGRAM, device, *libraries]
+
+
+def warmup_env() -> dict[str, str]:
+    """The warm-up child's environment: this one with ``PYTHONPATH`` = this process's ``sys.path`` (Blender's,
+    the extension's and the add-on's CuPy and numba folders), so the child imports the same tofcore, CuPy and
+    numba, as ``tofcore.compiled.child_compile`` does for the CPU's."""
+    env = dict(os.environ)
+    env["PYTHONPATH"] = os.pathsep.join(p for p in sys.path if p)
+    return env
+
+
+class Warmup:
+    """``tofcore warmup`` in a child process (started after an install), watched by a daemon thread: the GPU's
+    kernels (CuPy's, numba-cuda's where installed) compiled and cached once, so that the first GPU render loads
+    them instead of compiling.
+
+    Never blocks: :meth:`start` returns at once; the preferences draw :meth:`line`. ``state``: ``"running"``,
+    ``"done"``, ``"error"``; ``seconds``: how long it ran (so far); ``message``: its last line (what
+    ``tofcore warmup`` said, or why it failed).
+    """
+
+    def __init__(self, command: list[str], env: dict[str, str] | None = None, what: str = "GPU") -> None:
+        self.command, self.env, self.what = list(command), env, what
+        self.state = "running"
+        self.message = ""
+        self.lines: list[str] = []
+        self.thread: threading.Thread | None = None
+        self._proc: subprocess.Popen | None = None
+        self._started = self._ended = None
+
+    @property
+    def seconds(self) -> float:
+        import time
+
+        if self._started is None:
+            return 0.0
+        return (self._ended if self._ended is not None else time.perf_counter()) - self._started
+
+    def run(self) -> None:
+        import time
+
+        self._started = time.perf_counter()
+        try:
+            options = dict(_popen_options(), env=self.env if self.env is not None else warmup_env())
+            self._proc = subprocess.Popen(self.command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True,
+                                          stdin=subprocess.DEVNULL, bufsize=1, errors="replace", **options)
+            for line in self._proc.stdout:
+                if line.strip():
+                    self.lines.append(line.strip())
+                    del self.lines[:-50]
+            returncode = self._proc.wait()
+        except OSError as err:
+            self.state, self.message = "error", f"{self.command[0]} could not be started ({err.strerror or err})"
+            return
+        finally:
+            self._ended = time.perf_counter()
+        if returncode == 0:
+            self.state, self.message = "done", self.lines[-1] if self.lines else ""
+        else:
+            self.state = "error"
+            self.message = f"exit status {returncode}" + (f": {self.lines[-1]}" if self.lines else "")
+
+    def start(self) -> None:
+        self.thread = threading.Thread(target=self.run, name=f"tof-warmup-{self.what.lower()}", daemon=True)
+        self.thread.start()
+
+    def join(self, timeout: float | None = None) -> None:
+        if self.thread is not None:
+            self.thread.join(timeout)
+
+    def stop(self) -> None:
+        """Stop the child (Blender quits: a stopped compile leaves nothing half-written, numba and CuPy write their
+        cache files by atomic renames)."""
+        proc = self._proc
+        if proc is not None and proc.poll() is None:
+            proc.terminate()
+
+    def line(self) -> tuple[str, str]:
+        """(text, icon) for the preferences: warming…, ready in N s, or failed: one line."""
+        if self.state == "running":
+            return (f"Warming up the {self.what} kernels in the background: {self.seconds:.0f} s… (compiled once; "
+                    f"a render meanwhile compiles what it needs itself)", 'SORTTIME')
+        if self.state == "done":
+            return f"{self.what} kernels ready in {self.seconds:.0f} s (compiled once, cached for later renders)", \
+                'CHECKMARK'
+        return (f"{self.what} kernel warm-up failed: {self.message}; the first {self.what} render compiles them",
+                'ERROR')
+
+
+_warmup: Warmup | None = None
+
+
+def start_warmup(folder: str, python: str | None = None) -> Warmup:
+    """Start warming up the GPU kernels in the background (after CuPy was installed into ``folder``), unless a
+    warm-up runs already; the :class:`Warmup` (also :func:`warmup`)."""
+    global _warmup
+    if _warmup is None or _warmup.state != "running":
+        _warmup = Warmup(warmup_command(python or sys.executable, "gpu", cuda_library_files(folder)))
+        _warmup.start()
+    return _warmup
+
+
+def warmup() -> Warmup | None:
+    """The GPU warm-up of this Blender session (:func:`start_warmup`), or None."""
+    return _warmup
+
+
+def _stop_warmup() -> None:
+    if _warmup is not None:
+        _warmup.stop()
+
+
+atexit.register(_stop_warmup)
 
 
 # --------------------------------------------------------------------------- the folder, sys.path, libraries

@@ -20,7 +20,12 @@ The compiled-tracer box shows whether numba is installed and which tracer the la
 The GPU box shows whether CuPy is installed in Blender's Python and, once checked (Check GPU) or rendered
 with, which GPU runs; :mod:`.gpu` computes it lazily and caches it, and imports CuPy only for a check or a
 GPU render, never at registration. "Install CuPy for GPU rendering" runs pip with Blender's own Python into
-the extension's user folder (:mod:`.gpu` explains why there, and which packages).
+the extension's user folder (:mod:`.gpu` explains why there, and which packages); once the GPU answers, the
+kernels a GPU render compiles are compiled in the background by one child process of Blender's Python
+(``tofcore warmup --device gpu``, :class:`.gpu.Warmup`), its state a line of the GPU box (warming… with its
+seconds, ready in N s, or failed: why). After "Install numba" the CPU tracer compiles the same way
+(``tofcore.compiled.child_compile``), its state in the compiled-tracer box. These children are the only
+processes the add-on starts besides pip; nothing forks the Blender process itself.
 
 :func:`get` returns the preferences, or their defaults when the package is not
 enabled through Blender's add-on system (tests import it as a plain package).
@@ -122,9 +127,12 @@ def draw_compiled(layout) -> None:
 
 
 def draw_gpu(prefs, layout) -> None:
-    """The GPU box: status (wrapped over several labels), CUDA choice, Install and Check buttons, folder."""
+    """The GPU box: status (wrapped over several labels), the kernels' warm-up after an install (warming…, ready in
+    N s, failed: why), CUDA choice, Install and Check buttons, folder."""
     layout.label(text="GPU (CuPy)", icon='SETTINGS')
     _wrapped(layout, *status_line())
+    if gpu.warmup() is not None:
+        _wrapped(layout, *gpu.warmup().line())
     layout.prop(prefs, "cupy_package")
     row = layout.row(align=True)
     row.operator(TOF_OT_install_cupy.bl_idname, icon='IMPORT')
@@ -227,7 +235,10 @@ def finish_install(installer: gpu.Installer, report) -> set[str]:
         return {'FINISHED'}
     result = gpu.check(installer.target)
     if result.device:
-        report({'INFO'}, f"{installer.message}; GPU ready: {result.device}")
+        gpu.start_warmup(installer.target)
+        watch_warmup()
+        report({'INFO'}, f"{installer.message}; GPU ready: {result.device}; warming up its kernels in the "
+                         f"background (compiled once)")
     else:
         report({'WARNING'}, f"{installer.message}, but the GPU cannot run: {result.problem}")
     return {'FINISHED'}
@@ -258,10 +269,34 @@ def finish_numba_install(installer: gpu.Installer, report) -> set[str]:
     if "numba" in sys.modules:  # this Blender session already runs the numba it had before
         report({'WARNING'}, f"{installer.message}; restart Blender to use it")
     elif compiled.start_compiling():
+        watch_warmup()
         report({'INFO'}, f"{installer.message}; compiling the tracer in the background now (30 s to 3 min, once)")
     else:
         report({'INFO'}, f"{installer.message}; the next render compiles the tracer once (30 s to 3 min)")
     return {'FINISHED'}
+
+
+#: How often the preferences are redrawn while a warm-up runs in the background, seconds.
+WARMUP_REDRAW_S = 1.0
+
+
+def _warming() -> bool:
+    """Whether a background warm-up (the GPU's, or the CPU tracer's compile) runs now."""
+    warmup = gpu.warmup()
+    return (warmup is not None and warmup.state == "running") or compiled.compiling()
+
+
+def _redraw_while_warming():
+    """A ``bpy.app.timers`` function: redraw the preferences (the warm-up's seconds) until the warm-up ends."""
+    _redraw_preferences(bpy.context)
+    return WARMUP_REDRAW_S if _warming() else None
+
+
+def watch_warmup() -> None:
+    """Keep the preferences' warm-up line current while it runs (a timer; none fire in background mode, where
+    nothing is drawn)."""
+    if not bpy.app.background and not bpy.app.timers.is_registered(_redraw_while_warming):
+        bpy.app.timers.register(_redraw_while_warming, first_interval=WARMUP_REDRAW_S)
 
 
 class _InstallOperator:
@@ -431,5 +466,7 @@ def register() -> None:
 def unregister() -> None:
     if _install.installer is not None and _install.installer.state == "running":
         _install.installer.cancel()
+    if bpy.app.timers.is_registered(_redraw_while_warming):
+        bpy.app.timers.unregister(_redraw_while_warming)
     gpu.remove_from_sys_path(cupy_folder())
     gpu.remove_from_sys_path(numba_folder())

@@ -24,6 +24,10 @@ Where frames render (CPU, which GPUs) is decided once, before the dataset is
 touched, by :func:`batch.devices.plan_devices`; a ``--device gpu`` run without
 a usable GPU stops there with one line (exit code 2).
 
+Before the workers start, the kernels they will use are compiled once by one
+child process where the caches do not hold them yet (:mod:`batch.warmup`), so
+that N workers do not compile the same kernels N times at once.
+
 Every executor calls :func:`batch.worker.run_view` on :class:`~batch.jobs.ViewTask`
 objects and yields their records; the parent, the index's only writer, indexes
 each job once, as its published folder describes it (:meth:`Dataset.settle`,
@@ -68,6 +72,7 @@ from .dataset import FRAMES, RECORD, Dataset, differing_keys
 from .devices import VISIBLE_ENV, cpu_frames_and_threads, plan_devices
 from .jobs import Job, ViewTask, group_by_view
 from .timing import timing_lines, worker_timing
+from .warmup import plan_warmup, warm_up
 from .worker import WorkerDied, failed_record, finish_writes, init_worker, run_view, start_view
 
 
@@ -721,6 +726,11 @@ def run_jobs(jobs: list[Job], dataset: str | os.PathLike, *, executor=None, work
                     + (f" ({result.skipped_failed} failed earlier; --retry-failed retries them)"
                        if result.skipped_failed else ""))
             else:
+                warm, why_not = plan_warmup(devices, executor=where, workers=min(workers, len(tasks)))
+                if warm is not None:  # the workers' kernels compiled once, before any worker starts
+                    warm_up(warm, log)
+                elif why_not:
+                    log(why_not)
                 with signals_deferred() as caught:  # an executor is not left half-started (a Dask cluster)
                     executor = executor or make_executor(workers=workers, scheduler=scheduler,
                                                          dask_local=dask_local, inline=inline, gpus=devices.gpus)

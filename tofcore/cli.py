@@ -470,18 +470,31 @@ def cmd_presets(args: argparse.Namespace) -> int:
 
 
 def cmd_warmup(args: argparse.Namespace) -> int:
-    """Compile (or load) the tracer's kernels for a device by rendering a tiny frame; say how long it took."""
+    """Compile (or load) everything a first render compiles on a device, by rendering a small frame; say how long
+    it took.
+
+    The frame is the demo corner through the sensor ``--preset`` (Kinect v2) at 4 spp, so that the render-error
+    estimate runs too. On the CPU it is 16 pixels wide: numba compiles per argument type, not per image size (a
+    Kinect room frame at any size, 1 or 2 tracer threads, then compiles nothing more: tests/tofcore/
+    test_warmup.py). On the GPU it has the preset's full size: some of CuPy's kernels (its CUB reductions) are
+    compiled per array size. Then, on either device, both builds of the BVH's compiled level split (numba, on the
+    CPU; meshes of 4,096 triangles or more: :func:`tofcore.scene.bvh_build.warm_up`). Batch runs call this once
+    before their workers start (batch/warmup.py), the Blender add-on after installing numba or CuPy."""
     import time
 
     from . import compiled
+    from .backend import select_device
     from .render import render
+    from .scene import bvh_build
     from .scene.demo import demo_scene
     from .sensor.presets import load_preset
 
-    sensor = load_preset("kinect_v2")
-    sensor = sensor.scaled(16 / sensor.camera.width)
     start = time.perf_counter()
-    frame = render(demo_scene("corner"), sensor, spp=4, device=args.device)  # 4 spp: the error estimate runs too
+    chosen = select_device(args.device)
+    sensor = load_preset(args.preset)
+    if chosen.name == "cpu":
+        sensor = sensor.scaled(16 / sensor.camera.width)
+    frame = render(demo_scene("corner"), sensor, spp=4, device=chosen)  # 4 spp: the error estimate runs too
     transport, device = frame.stats["transport"], frame.stats["device"]["name"]
     where = ""
     if transport["tracer"] == "compiled" and device == "cpu":
@@ -489,6 +502,9 @@ def cmd_warmup(args: argparse.Namespace) -> int:
                  "; kernels not cached: every process compiles them again (see the note)")
     elif transport["tracer"] == "compiled":
         where = f"; kernels cached in {compiled.cache_location()}"
+    if bvh_build.available():
+        bvh_build.warm_up()
+        where += f"; the BVH build in {getattr(bvh_build._split_level_serial._cache, 'cache_path', 'no cache')}"
     why = f" ({transport['tracer_reason']})" if transport.get("tracer_reason") else ""
     say(f"{transport['tracer']} tracer on the {device.upper()}{why}: ready in {time.perf_counter() - start:.1f} s"
         f"{where}")
@@ -584,6 +600,8 @@ def build_parser() -> argparse.ArgumentParser:
                        epilog="example:\n  tofcore warmup --device gpu   # ~30 s the first time, ~2 s once cached")
     w.add_argument("--device", choices=("cpu", "gpu", "auto"), default="auto",
                    help="cpu (compiled CPU kernels), gpu (the CUDA build) or auto")
+    w.add_argument("--preset", default="kinect_v2",
+                   help="the sensor preset (name or .toml file) of the frame rendered; on the GPU at its full size")
     w.set_defaults(func=cmd_warmup)
     return parser
 

@@ -121,6 +121,29 @@ def test_the_status_says_the_background_compile_runs(monkeypatch):
     assert "background" not in compiled.status_line({})[0]
 
 
+def test_the_status_says_how_the_background_compile_ended(monkeypatch):
+    """While the compile after Install numba runs, its seconds; then ready in N s, or failed: one line."""
+    from tofcore.compiled import child_compile
+
+    monkeypatch.setattr(compiled, "installed_numba", lambda: "0.68.1")
+    monkeypatch.setattr(child_compile, "running", lambda: True)
+    monkeypatch.setattr(child_compile, "state", lambda: ("running", 12.3, ""))
+    assert compiled.status_line({})[0] == ("numba 0.68.1 installed: compiling the tracer in the background, 12 s… "
+                                           "(30 s to 3 min, once; renders wait for it)")
+    monkeypatch.setattr(child_compile, "running", lambda: False)
+    monkeypatch.setattr(child_compile, "state", lambda: ("done", 41.6, ""))
+    assert compiled.status_line({}) == ("Ready: numba 0.68.1, the tracer compiled in the background in 42 s (cached "
+                                        "for later renders)", 'CHECKMARK')
+    monkeypatch.setattr(child_compile, "state", lambda: ("failed", 3.0, "`python -m tofcore warmup --device cpu` "
+                                                                        "ended with exit status 1: MemoryError"))
+    text, icon = compiled.status_line({})
+    assert icon == 'ERROR' and text == ("numba 0.68.1 installed, but compiling the tracer in the background failed: "
+                                        "`python -m tofcore warmup --device cpu` ended with exit status 1: "
+                                        "MemoryError; the first render compiles it")
+    compiled.note_tracer({"tracer": "compiled"})                 # a render since: it says what that render used
+    assert compiled.status_line(compiled.last_tracer())[0].startswith("Ready: numba 0.68.1, the last render used")
+
+
 def test_the_status_bar_and_the_report_say_the_compile_and_the_pass_inside(capsys):
     """While the first render compiles, the status bar says so with its seconds (tofcore's ``activity``); the
     final report says how long it took; in background mode the same words are printed (issue 36)."""

@@ -278,3 +278,55 @@ def test_status_lines():
     two = gpu.Status(cupy=[*cupy, ("cupy-cuda13x", "14.2.0", "/y")])
     assert two.line()[0].startswith("Several CuPy packages installed (cupy-cuda12x 13.6.0, cupy-cuda13x 14.2.0)")
     assert gpu.Status(platform_problem="no CUDA on macOS", cupy=cupy).line() == ("no CUDA on macOS", 'ERROR')
+
+
+# --------------------------------------------------------------------------- the warm-up after an install
+
+def test_warmup_command_loads_the_cuda_libraries_then_runs_tofcores_warmup():
+    command = gpu.warmup_command("/blender/python3.11", "gpu", ["/f/nvidia/cuda_nvrtc/lib/libnvrtc.so.12"])
+    assert command[:3] == ["/blender/python3.11", "-c", gpu.WARMUP_PROGRAM]
+    assert command[3:] == ["gpu", "/f/nvidia/cuda_nvrtc/lib/libnvrtc.so.12"]
+    assert 'main(["warmup", "--device", sys.argv[1]])' in gpu.WARMUP_PROGRAM
+    assert gpu.warmup_env()["PYTHONPATH"].split(os.pathsep) == [p for p in sys.path if p]
+
+
+def _warmup_env() -> dict:
+    """The real program, on the CPU with the NumPy tracer (about a second): tofcore from this checkout."""
+    return dict(os.environ, PYTHONPATH=str(REPO_ROOT), TOFCORE_TRACER="numpy")
+
+
+def test_the_warmup_program_runs_tofcores_warmup_and_reports_ready():
+    warmup = gpu.Warmup(gpu.warmup_command(sys.executable, "cpu"), env=_warmup_env())
+    assert warmup.line()[0].startswith("Warming up the GPU kernels in the background: 0 s…")
+    warmup.start()
+    warmup.join(120)
+    assert warmup.state == "done", warmup.message
+    assert warmup.message.startswith("numpy tracer on the CPU (TOFCORE_TRACER=numpy): ready in ")
+    text, icon = warmup.line()
+    assert text == f"GPU kernels ready in {warmup.seconds:.0f} s (compiled once, cached for later renders)"
+    assert icon == 'CHECKMARK' and warmup.seconds > 0
+
+
+def test_a_failed_warmup_is_one_line(tmp_path):
+    broken = tmp_path / "libnvrtc.so.12"
+    broken.write_bytes(b"not a library")
+    warmup = gpu.Warmup(gpu.warmup_command(sys.executable, "gpu", [str(broken)]), env=_warmup_env())
+    warmup.run()
+    assert warmup.state == "error" and warmup.message.startswith("exit status 1: OSError: ")
+    text, icon = warmup.line()
+    assert text.startswith("GPU kernel warm-up failed: exit status 1: OSError: ") and icon == 'ERROR'
+    assert text.endswith("; the first GPU render compiles them")
+    missing = gpu.Warmup([str(tmp_path / "no-python"), "-c", "pass"], env=_warmup_env())
+    missing.run()
+    assert missing.state == "error" and "could not be started" in missing.message
+
+
+def test_start_warmup_starts_one_at_a_time(tmp_path, monkeypatch):
+    started = []
+    monkeypatch.setattr(gpu, "_warmup", None)
+    monkeypatch.setattr(gpu.Warmup, "start", lambda self: started.append(self.command))
+    first = gpu.start_warmup(str(tmp_path), python="py")
+    assert gpu.start_warmup(str(tmp_path), python="py") is first and gpu.warmup() is first   # it runs
+    assert started == [["py", "-c", gpu.WARMUP_PROGRAM, "gpu"]]                             # no libraries there
+    first.state = "error"
+    assert gpu.start_warmup(str(tmp_path), python="py") is not first and len(started) == 2  # a new one

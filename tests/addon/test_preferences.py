@@ -241,6 +241,47 @@ def test_install_in_worker_thread_like_the_ui(prefs, fake_pip):
     assert not reports.of("ERROR")
 
 
+def test_after_installing_cupy_the_gpu_kernels_warm_up_in_the_background(prefs, fake_pip, monkeypatch):
+    """A successful install whose GPU answers starts ``tofcore warmup --device gpu`` in a child process (not in
+    this one) and returns at once; the GPU box then shows the warm-up's state."""
+    started = []
+    monkeypatch.delitem(sys.modules, "cupy", raising=False)  # this session runs no older CuPy
+    monkeypatch.setattr(gpu, "check", lambda folder: SimpleNamespace(device="GPU 0: fake", problem=None))
+    monkeypatch.setattr(gpu, "start_warmup", lambda folder, python=None: started.append(folder))
+    result, reports = run_execute(preferences.TOF_OT_install_cupy)
+    assert result == {'FINISHED'}, reports.items
+    assert started == [preferences.cupy_folder()]
+    assert reports.of("INFO") == ["Successfully installed cupy-cuda12x-13.6.0 fastrlock-0.8.4; GPU ready: GPU 0: "
+                                  "fake; warming up its kernels in the background (compiled once)"]
+
+
+def test_the_gpu_box_shows_the_warm_up(prefs, monkeypatch):
+    warmup = gpu.Warmup(["py", "-c", "pass"])
+    monkeypatch.setattr(gpu, "_warmup", warmup)
+    log: list = []
+
+    def drawn() -> tuple[str, set]:
+        """The GPU box's labels as one text (long lines wrap over several labels), and their icons."""
+        log.clear()
+        preferences.draw_gpu(prefs, RecordingLayout(log))
+        labels = [(text, icon) for kind, text, icon in log if kind == "label"]
+        return " ".join(text for text, _ in labels), {icon for _, icon in labels}
+
+    warmup._started, warmup._ended = 0.0, 31.4
+    text, icons = drawn()
+    assert ("Warming up the GPU kernels in the background: 31 s… (compiled once; a render meanwhile compiles "
+            "what it needs itself)") in text and 'SORTTIME' in icons
+    warmup.state = "done"
+    text, icons = drawn()
+    assert "GPU kernels ready in 31 s (compiled once, cached for later renders)" in text and 'CHECKMARK' in icons
+    warmup.state, warmup.message = "error", "exit status 2: error: --device gpu: no usable GPU"
+    text, icons = drawn()
+    assert ("GPU kernel warm-up failed: exit status 2: error: --device gpu: no usable GPU; the first GPU render "
+            "compiles them") in text and 'ERROR' in icons
+    monkeypatch.setattr(gpu, "_warmup", None)
+    assert "warm-up" not in drawn()[0] and "Warming" not in drawn()[0]          # none started
+
+
 # --------------------------------------------------------------------------- Check GPU
 
 def test_check_gpu_without_cupy(prefs, monkeypatch):

@@ -344,8 +344,9 @@ class cuda:
 
 def test_only_the_pinned_workers_touch_cupy(tmp_path, small_set):
     """A stand-in ``cupy`` package logs who imports it and with which CUDA_VISIBLE_DEVICES: the discovery's
-    child process (which it answers with 2 GPUs) and each worker, pinned to its GPU (where it fails as a
-    CuPy without CUDA does: every frame fails with one line), never the batch process itself."""
+    child process (which it answers with 2 GPUs), the kernels' warm-up child on the first GPU (batch.warmup:
+    it fails, one line) and each worker, pinned to its GPU (where it fails as a CuPy without CUDA does: every
+    frame fails with one line), never the batch process itself."""
     fake = tmp_path / "site" / "cupy"
     fake.mkdir(parents=True)
     log = tmp_path / "imports.log"
@@ -363,7 +364,11 @@ def test_only_the_pinned_workers_touch_cupy(tmp_path, small_set):
     worker_pids = {r["pid"]: r["cuda_visible_devices"] for r in records}
     (probe,) = [(pid, visible) for pid, visible in imports if visible == "0,1"]  # the parent would be a 2nd
     assert probe[0] not in worker_pids
-    in_workers = [(pid, visible) for pid, visible in imports if pid != probe[0]]
+    warm_up = [(pid, visible) for pid, visible in imports if pid != probe[0] and pid not in worker_pids]
+    assert [visible for _, visible in warm_up] == ["0"]  # the warm-up child, before the workers, on GPU 0
+    assert imports.index(warm_up[0]) < min(i for i, (pid, _) in enumerate(imports) if pid in worker_pids)
+    assert "kernel warm-up failed after " in proc.stderr and "each worker compiles the kernels itself" in proc.stderr
+    in_workers = [(pid, visible) for pid, visible in imports if pid in worker_pids]
     assert len(in_workers) == 8  # once per frame (a failed import is not cached)
     assert all(worker_pids.get(pid) == visible and visible in ("0", "1") for pid, visible in in_workers)
 

@@ -59,6 +59,25 @@ def test_a_failing_child_says_why_so_the_render_compiles_itself(fake_child):
     assert "exit status 3" in why and why.endswith("numba: something went wrong"), why
 
 
+def test_the_state_says_running_then_done_or_failed_with_the_seconds(fake_child, tmp_path):
+    assert child_compile.state() is None                            # no child in this process yet
+    fake_child("import sys, time; time.sleep(0.5); open(sys.argv[1], 'w').close()")
+    assert child_compile.start() == ""
+    state, seconds, why = child_compile.state()
+    assert state == "running" and 0 <= seconds < 5 and why == ""
+    assert child_compile.wait(lambda: False) == ""
+    time.sleep(0.2)                                                 # its watcher notes the end
+    state, seconds, why = child_compile.state()
+    assert state == "done" and 0.4 < seconds < 10 and why == ""
+    assert child_compile.state()[1] == seconds                      # the end is kept, not "now"
+    (tmp_path / "cached").unlink()                                  # not cached any more: a new child
+    fake_child("import sys; print('numba: out of memory', file=sys.stderr); sys.exit(3)")
+    assert child_compile.start() == ""
+    child_compile._child["process"].wait()
+    state, _, why = child_compile.state()
+    assert state == "failed" and "exit status 3" in why and why.endswith("numba: out of memory")
+
+
 def test_the_child_imports_what_this_process_imports():
     env = child_compile.child_environment()
     assert env["PYTHONPATH"].split(":")[:3] == [p for p in sys.path if p][:3]

@@ -32,7 +32,7 @@ POLL_S = 0.1
 TICK_S = 0.5
 """Seconds between two ``tick`` calls of :func:`wait`."""
 
-_child: dict = {}  # the running compile: {"process": Popen, "log": file with its stderr}
+_child: dict = {}  # the last compile: {"process": Popen, "log": file with its stderr, "started"/"ended": perf_counter}
 _lock = threading.Lock()
 
 
@@ -76,8 +76,33 @@ def start() -> str:
             log.close()
             _child.clear()
             return f"{python} could not be started ({err})"
-        _child.update(process=process, log=log)
+        _child.clear()
+        _child.update(process=process, log=log, started=time.perf_counter())
+        threading.Thread(target=_note_end, args=(process,), name="tof-compile-child", daemon=True).start()
         return ""
+
+
+def _note_end(process: subprocess.Popen) -> None:
+    """Wait for the child in a thread and note when it ended (for :func:`state`)."""
+    process.wait()
+    if _child.get("process") is process:
+        _child["ended"] = time.perf_counter()
+
+
+def state() -> tuple[str, float, str] | None:
+    """The last child's ``(state, seconds, line)`` for a status display: ``"running"`` (seconds so far),
+    ``"done"`` (the kernels are cached; its run time) or ``"failed"`` (its run time and why, one line); None
+    before the first child of this process."""
+    process, started = _child.get("process"), _child.get("started")
+    if process is None or started is None:
+        return None
+    if process.poll() is None:
+        return "running", time.perf_counter() - started, ""
+    seconds = _child.get("ended", time.perf_counter()) - started
+    if "outcome" not in _child:  # read once: the preferences ask at every redraw
+        _child["outcome"] = _outcome()
+    why = _child["outcome"]
+    return ("failed", seconds, why) if why else ("done", seconds, "")
 
 
 def running() -> bool:

@@ -57,24 +57,41 @@ def available() -> bool:
     return numba is not None and os.environ.get("TOFCORE_TRACER", "").strip().lower() != "numpy"
 
 
-def split_level(records, order, starts, counts, leaf_size: int, n_bins: int):
+def split_level(records, order, starts, counts, leaf_size: int, n_bins: int, *, parallel: bool | None = None):
     """Split every node of one level (compiled): ``records`` and ``order`` are partitioned in place; returns
     ``(node_lo, node_hi, n_left)``: (K, 3) float32 node boxes and (K,) int64 triangles sent left (0 for a
     leaf).
 
     ``records`` is (M, 9) float32, per position of ``order``: the triangle's box minimum, maximum and
     centroid (xyz each), so every pass reads its triangles in sequence; node ``k`` holds positions
-    ``starts[k]:starts[k] + counts[k]``.
+    ``starts[k]:starts[k] + counts[k]``. ``parallel``: on numba's threads (default: for meshes of at least
+    `PARALLEL_LEVEL` triangles) or on this one.
     """
     k = len(starts)
     node_lo = np.empty((k, 3), np.float32)
     node_hi = np.empty((k, 3), np.float32)
     n_left = np.zeros(k, np.int64)
     scale_numerator = np.float32(n_bins * (1 - 1e-6))
-    split = _split_level_parallel if len(order) >= PARALLEL_LEVEL else _split_level_serial
+    if parallel is None:
+        parallel = len(order) >= PARALLEL_LEVEL
+    split = _split_level_parallel if parallel else _split_level_serial
     split(records, order, np.empty_like(records), np.empty_like(order), starts, counts, leaf_size, n_bins,
           scale_numerator, node_lo, node_hi, n_left)
     return node_lo, node_hi, n_left
+
+
+
+def warm_up(leaf_size: int = 4, n_bins: int = 32) -> None:
+    """Compile (or load from numba's cache) both builds of the level split, the parallel one and the serial one,
+    on a level of 8 triangles: the argument types of a mesh's build, so that a mesh of at least
+    ``bvh.COMPILED_BUILD_MIN`` triangles loads them (``tofcore warmup``: about 6 s of compile on 2 cores,
+    once)."""
+    m = 8
+    centroids = np.arange(m, dtype=np.float32)[:, None] * np.ones(3, np.float32)
+    for parallel in (True, False):
+        records = np.ascontiguousarray(np.concatenate([centroids - 0.5, centroids + 0.5, centroids], axis=1))
+        split_level(records, np.arange(m), np.zeros(1, np.int64), np.full(1, m, np.int64), leaf_size, n_bins,
+                    parallel=parallel)
 
 
 def _split_level(records, order, records_scratch, order_scratch, starts, counts, leaf_size, n_bins,
