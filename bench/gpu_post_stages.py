@@ -6,7 +6,7 @@ scattering, noise, decoding with the phasor and edge filters —, the per-k grou
 inside the camera's images, the camera's decode and the scattering, renders the demo room at 16 spp and at 1 spp
 a few times, and prints the mean of each stage per frame. It does so twice in the same process: with the camera's
 decode as the compiled kernels (tofcore.compiled.camera_decode, what renders use) and as the CuPy decoder
-(tofcore.sensor.decode.decode: ``camera_decode.supports`` patched to refuse), and prints the decode's ms both ways.
+(tofcore.sensor.decode.decode: ``camera_decode.unsupported`` patched to refuse everything), and prints the decode's ms both ways.
 
 Usage::
 
@@ -67,10 +67,10 @@ def main() -> int:
         timed(module, name, label)
 
     scene, sensor = tofcore.demo_scene("room"), tofcore.load_preset("kinect_v2")
-    supports = camera_decode.supports
+    unsupported = camera_decode.unsupported
     result = {}
     for decoder in ("kernels", "CuPy decoder"):
-        camera_decode.supports = supports if decoder == "kernels" else (lambda *args: "bench: the CuPy decoder")
+        camera_decode.unsupported = unsupported if decoder == "kernels" else (lambda *args: "bench: the CuPy decoder")
         for spp in (16, 1):
             tofcore.render(scene, sensor, spp=spp, max_depth=5, device="gpu")  # warm
             times.clear()
@@ -87,7 +87,7 @@ def main() -> int:
                   f"{a.repeat}); whole frame median {1e3 * statistics.median(whole):.1f} ms")
             for k, v in sorted(per_frame.items(), key=lambda kv: -kv[1]):
                 print(f"  {k:40s} {v:8.2f}")
-    camera_decode.supports = supports
+    camera_decode.unsupported = unsupported
     for spp in (16, 1):
         kernels, cupy = (result[f"{spp} spp, {d}"] for d in ("kernels", "CuPy decoder"))
         frame = "frame (camera, per-k, read-back)"

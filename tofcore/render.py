@@ -199,7 +199,7 @@ def _post_trace_kernels(transport: Transport, sensor):
         return None
     from .compiled import depth_error
 
-    return None if depth_error.supports(sensor) else depth_error
+    return None if depth_error.unsupported(sensor) else depth_error
 
 
 def _band_error(means, counts, distance, z, sensor, n_raw: int):
@@ -722,13 +722,13 @@ def _camera_decoder(transport: Transport, sensor, settings: decoding.DecodeSetti
     """The function that decodes the camera's raw images of image ``shape`` with ``settings``:
     :func:`tofcore.compiled.camera_decode.decode` (three kernels instead of ~270 array operations, the decoder's
     outputs to rounding) for a transport of the GPU's compiled wavefront and a decode that module
-    :func:`~tofcore.compiled.camera_decode.supports`; else the decoder, :func:`tofcore.sensor.decode.decode`
+    :func:`~tofcore.compiled.camera_decode.unsupported` does not refuse; else the decoder, :func:`tofcore.sensor.decode.decode`
     (on the CPU too: docs/benchmarks.md, "The camera's decode compiled")."""
     if not _on_the_gpu_wavefront(transport):
         return decoding.decode
     from .compiled import camera_decode
 
-    return decoding.decode if camera_decode.supports(sensor.modulation, settings, shape) else camera_decode.decode
+    return decoding.decode if camera_decode.unsupported(sensor.modulation, settings, shape) else camera_decode.decode
 
 
 def _camera_images(transport: Transport, sensor, plan: Plan, seed: int, n_raw: int, setup: FrameSetup,

@@ -114,7 +114,7 @@ def test_compiled_decode_equals_the_decoder_on_rendered_raw_images(name):
     preset, overrides = SENSORS[name]
     sensor = small_sensor(preset, **overrides)
     raw, settings = camera_raw(sensor)
-    assert camera_decode().supports(sensor.modulation, settings, raw.shape[1:]) == ""
+    assert camera_decode().unsupported(sensor.modulation, settings, raw.shape[1:]) == ""
     reference = decoding.decode(raw, sensor.modulation, settings)
     assert reference.valid.mean() > 0.5
     assert_decodes_agree(camera_decode().decode(raw, sensor.modulation, settings), reference)
@@ -156,11 +156,11 @@ def test_the_decoder_takes_what_the_kernels_do_not(monkeypatch):
     module = camera_decode()
     kinect, xtion = small_sensor("kinect_v2"), small_sensor("xtion2")
     settings = decoding.DecodeSettings(phasor_filter="bilateral", edge_filter=True)
-    assert module.supports(kinect.modulation, settings, (30, 40)) == ""
-    assert "pulsed" in module.supports(xtion.modulation, settings, (30, 40))
-    assert "not one (H, W) image" in module.supports(kinect.modulation, settings, (3, 30, 40))
+    assert module.unsupported(kinect.modulation, settings, (30, 40)) == ""
+    assert "pulsed" in module.unsupported(xtion.modulation, settings, (30, 40))
+    assert "not one (H, W) image" in module.unsupported(kinect.modulation, settings, (3, 30, 40))
     many_wraps = dataclasses.replace(kinect.modulation, frequencies_hz=(80e6, 80.0001e6, 120e6))
-    assert "wrap candidates" in module.supports(many_wraps, settings, (30, 40))
+    assert "wrap candidates" in module.unsupported(many_wraps, settings, (30, 40))
     with pytest.raises(ConfigError, match="camera_decode: cannot decode a pulsed sensor"):
         module.decode(np.ones((2, 4, 4)), xtion.modulation)
 

@@ -52,7 +52,7 @@ def test_compiled_estimate_equals_the_numpy_estimate(name):
 
     preset, overrides = SENSORS[name]
     sensor = small_sensor(preset, **overrides)
-    assert depth_error.supports(sensor) == ""
+    assert depth_error.unsupported(sensor) == ""
     transport = transport_of(sensor)
     n_raw = len(sensor.modulation.correlation_bank())
     sigma, flips = render_module.render_error(transport, sensor, n_raw)  # a CPU transport: the array program
@@ -82,7 +82,7 @@ def test_compiled_estimate_sees_the_flips_of_a_noisy_pass():
 def test_a_pulsed_sensor_keeps_the_array_program():
     from tofcore.compiled import depth_error
 
-    assert "pulsed" in depth_error.supports(tofcore.load_preset("xtion2"))
+    assert "pulsed" in depth_error.unsupported(tofcore.load_preset("xtion2"))
 
 
 SIMULATED_GPU_ESTIMATE = r"""

@@ -29,7 +29,7 @@ calls; every other sum runs in the decoder's order. A float32 output can then di
 float64 value lies on a rounding boundary, and a pixel's reason where a tested value lies within rounding of its
 threshold (tests/tofcore/test_camera_decode.py states and tests the tolerance).
 
-What it covers (:func:`supports`): continuous-wave modulation (one or more frequencies, any phase steps), the
+What it covers (:func:`unsupported`): continuous-wave modulation (one or more frequencies, any phase steps), the
 phasor filters "none" and "bilateral", both unwrap weights and amplitude tests, the dealiasing and edge checks,
 saturation, range with range scale; one image (R, H, W). Anything else (a pulsed sensor, a batch of images) is
 the decoder's. Renders on a GPU use it (:func:`tofcore.render._camera_decoder` says when); CPU renders keep the
@@ -429,7 +429,7 @@ def edge_kernel(edge, settings, width, images, reason, valid):
 
 
 # ------------------------------------------------------------------ host side: the tables and the launches
-def supports(modulation, settings, shape: tuple[int, ...]) -> str:
+def unsupported(modulation, settings, shape: tuple[int, ...]) -> str:
     """Why these kernels cannot decode raw images of image ``shape`` (the raw stack's shape without its first
     axis) for ``modulation`` and :class:`~tofcore.sensor.decode.DecodeSettings` ``settings`` ("" where they can).
     The decoder then does, raising its own errors where it must (e.g. too many wrap candidates)."""
@@ -514,14 +514,14 @@ def launch_cuda(build, raw, host_tables, range_scale, width: int, images, reason
 def decode(raw, modulation, settings=None, *, check: bool = True) -> _decode.Decoded:
     """:func:`tofcore.sensor.decode.decode` of one raw image stack ``raw`` (R, H, W) by the three passes, on the
     array's device: numba's threads on the CPU, three CUDA kernels on a GPU. Same arguments, checks and result
-    (to rounding: the module docstring); a decode that :func:`supports` refuses is a ConfigError naming why."""
+    (to rounding: the module docstring); a decode that :func:`unsupported` refuses is a ConfigError naming why."""
     from ..backend import namespace
 
     s = _decode.DecodeSettings() if settings is None else settings
     if not isinstance(s, _decode.DecodeSettings):
         raise ConfigError(f"decode: settings must be a DecodeSettings, got {type(s).__name__}")
     raw = _decode.check_raw(raw, modulation, finite=check)
-    why = supports(modulation, s, raw.shape[1:])
+    why = unsupported(modulation, s, raw.shape[1:])
     if why:
         raise ConfigError(f"camera_decode: cannot decode {why}; tofcore.sensor.decode.decode does")
     xp = namespace(raw)

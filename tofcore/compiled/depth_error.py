@@ -462,7 +462,7 @@ def clean_kernel(correlation_sum, ambient_sum, sample_count, channels, freqs, se
 
 
 # ------------------------------------------------------------------ host side: the tables and the launches
-def supports(sensor) -> str:
+def unsupported(sensor) -> str:
     """Why this estimate cannot take ``sensor`` ("" where it can): it covers continuous-wave sensors with
     the phasor filters "none" and "bilateral" and at most MAX_FREQUENCIES frequencies."""
     mod = sensor.modulation
@@ -515,7 +515,7 @@ THREADS_PER_BLOCK = 128
 
 
 def render_error(transport, sensor, n_raw: int, flip_threshold_m: float):
-    """(σ (H, W), flips (H, W) bool) of :func:`tofcore.render.render_error` for a sensor :func:`supports` takes,
+    """(σ (H, W), flips (H, W) bool) of :func:`tofcore.render.render_error` for a sensor :func:`unsupported` does not refuse,
     on the transport's device: numba's threads on the CPU, two CUDA kernels on a GPU."""
     from ..backend import device_copy, namespace
     from ..tracer.estimator import replicate_counts
@@ -556,7 +556,7 @@ def render_error(transport, sensor, n_raw: int, flip_threshold_m: float):
 
 def clean_per_k(transport, sensor, n_raw: int):
     """(K, H, W) float32 noise-free decoded distance for every max path length k (render._decode_clean_per_k) for
-    a sensor :func:`supports` takes, on the transport's device: one CUDA kernel on a GPU, numba's threads on the
+    a sensor :func:`unsupported` does not refuse, on the transport's device: one CUDA kernel on a GPU, numba's threads on the
     CPU."""
     from ..backend import namespace
 

@@ -80,7 +80,6 @@ def split_level(records, order, starts, counts, leaf_size: int, n_bins: int, *, 
     return node_lo, node_hi, n_left
 
 
-
 def warm_up(leaf_size: int = 4, n_bins: int = 32) -> None:
     """Compile (or load from numba's cache) both builds of the level split, the parallel one and the serial one,
     on a level of 8 triangles: the argument types of a mesh's build, so that a mesh of at least
