@@ -1,7 +1,8 @@
 """Where the GPU's post-trace milliseconds go: each stage of the Kinect v2 frame after the trace, timed with the
 device synchronised before and after it (so a stage's time is its own kernels' and launches').
 
-Wraps the stages of :mod:`tofcore.render` (the per-pass error estimate, the camera's images — raw images,
+Wraps the stages of the trace (set-up, packing and upload, first hits, the frame's sums, the passes: what a
+1-spp preview frame spends before its pass) and of :mod:`tofcore.render` (the per-pass error estimate, the camera's images — raw images,
 scattering, noise, decoding with the phasor and edge filters —, the per-k ground truth, the read-back) and,
 inside the camera's images, the camera's decode and the scattering, renders the demo room at 16 spp and at 1 spp
 a few times, and prints the mean of each stage per frame. It does so twice in the same process: with the camera's
@@ -40,6 +41,10 @@ def main() -> int:
     from tofcore.sensor import optics
 
     render = importlib.import_module("tofcore.render")
+    trace = importlib.import_module("tofcore.tracer.trace")
+    compiled_tracer = importlib.import_module("tofcore.compiled.tracer")
+    cuda_build = importlib.import_module("tofcore.compiled.cuda")
+    stages = importlib.import_module("tofcore.tracer.stages")
     times: dict[str, list[float]] = collections.defaultdict(list)
 
     def timed(module, name: str, label: str):
@@ -63,7 +68,12 @@ def main() -> int:
                                 (optics, "apply_scattering", "  lens scattering"),
                                 (render, "_decode_clean_per_k", "per-k ground truth"),
                                 (render, "_read_back", "read-back"),
-                                (render, "_frame", "frame (camera, per-k, read-back)")):
+                                (render, "_frame", "frame (camera, per-k, read-back)"),
+                                (trace, "make_setup", "trace: set-up (scene tables on the device)"),
+                                (compiled_tracer, "_choice", "trace: packing and upload"),
+                                (stages, "first_hit", "trace: first hits"),
+                                (trace, "_empty_transport", "trace: the frame's sums"),
+                                (cuda_build, "trace_pass", "trace: the passes")):
         timed(module, name, label)
 
     scene, sensor = tofcore.demo_scene("room"), tofcore.load_preset("kinect_v2")
