@@ -146,10 +146,15 @@ def warm_up(work: Path, args) -> None:
         return
     args.warm_cache.mkdir(parents=True, exist_ok=True)
     set_file = write_set(work, 2, args)
-    for n_gpus in (1, 2):
+    for n_gpus in gpu_counts(args):
         seconds, _ = run_batch(set_file, work / "datasets" / f"warm-up-{n_gpus}", args.gpus[:n_gpus], args.warm_cache,
                                args.out_dir / f"warm-up-{n_gpus}gpu.log", args)
         print(f"warm-up on {n_gpus} GPU(s) (2 frames, cache {args.warm_cache}): {seconds:.1f} s", flush=True)
+
+
+def gpu_counts(args) -> tuple[int, ...]:
+    """The GPU counts each round runs: 1 and 2, or 1 alone where ``--gpus`` names one GPU."""
+    return (1, 2) if len(args.gpus) >= 2 else (1,)
 
 
 def plan(args) -> list[tuple[str, int]]:
@@ -184,7 +189,8 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--device", choices=["gpu", "cpu"], default="gpu",
                         help="gpu (default): the machine's GPUs; cpu: two fake GPUs rendering on the CPU (smoke)")
-    parser.add_argument("--gpus", default="0,1", help="CUDA_VISIBLE_DEVICES ids; 1 GPU = the first (default 0,1)")
+    parser.add_argument("--gpus", default="0,1", help="CUDA_VISIBLE_DEVICES ids; 1 GPU = the first (default 0,1); one id: "
+                        "the 1-GPU runs alone")
     parser.add_argument("--frames", type=int, default=None, help="frames in the set (default 24; cpu: 4)")
     parser.add_argument("--spp", type=int, default=None, help="samples per pixel (default 64; cpu: 2)")
     parser.add_argument("--max-depth", type=int, default=None, help="path length (default 5; cpu: 2)")
@@ -206,8 +212,8 @@ def main() -> int:
     args.max_depth = args.max_depth or (2 if tiny else 5)
     args.resolution_scale = args.resolution_scale or (0.0625 if tiny else 1.0)
     args.gpus = [g.strip() for g in args.gpus.split(",") if g.strip()]
-    if len(args.gpus) < 2:
-        parser.error("--gpus must name at least 2 GPUs")
+    if not args.gpus:
+        parser.error("--gpus must name a GPU (one: the per-GPU rate alone, no scaling)")
     args.out_dir.mkdir(parents=True, exist_ok=True)
     work = Path(tempfile.mkdtemp(prefix="bench-multigpu-")) if not args.keep_datasets else args.out_dir / "work"
     work.mkdir(parents=True, exist_ok=True)
@@ -222,7 +228,7 @@ def main() -> int:
             skipped.append(f"{cache_state} round {round_no}")
             continue
         pair = 0.0
-        for n_gpus in (1, 2):
+        for n_gpus in gpu_counts(args):
             result = one_run(n_gpus, cache_state, round_no, set_file, work, args)
             pair += result["wall_s"]
             results.append(result)
