@@ -271,6 +271,18 @@ def test_compiled_build_gives_the_numpy_tree_bit_for_bit(leaf_size, threads, mon
         assert len(numpy_tree[3]) > 1, name
 
 
+def test_the_parallel_and_serial_level_splits_have_their_own_cache_entries():
+    """numba keys its cache by a function's module, name and line, not its compile options: the two builds
+    of the level split are copies under their own names, so neither loads the other's code from the cache
+    (the parallel split ran on one thread when both shared ``_split_level``'s entry)."""
+    pytest.importorskip("numba")
+    from tofcore.scene import bvh_build
+
+    parallel, serial = bvh_build._split_level_parallel, bvh_build._split_level_serial
+    assert parallel.targetoptions.get("parallel") and not serial.targetoptions.get("parallel")
+    assert parallel._cache._cache_file._index_path != serial._cache._cache_file._index_path
+
+
 def test_build_uses_the_compiled_levels_above_the_size_rule(monkeypatch):
     """`BVH.build` takes the compiled levels for a mesh of COMPILED_BUILD_MIN triangles or more, and the
     records equal the NumPy build's; TOFCORE_TRACER=numpy keeps the build in NumPy."""

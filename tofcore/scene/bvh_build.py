@@ -112,8 +112,21 @@ def _split_level(records, order, records_scratch, order_scratch, starts, counts,
                                        area_right, c_min, scale, keys)
 
 
-_split_level_parallel = _compiled_parallel(_split_level)
-_split_level_serial = _compiled(_split_level)  # prange is range here
+def _named(function, name):
+    """A copy of ``function`` under another name. numba's cache keys a function by its module, name and
+    line, not by its compile options: the parallel and the serial build of one function would share one
+    cache entry, and the second to load would get the first's code (the serial split ran on the parallel
+    path, or the reverse)."""
+    import types
+
+    copy = types.FunctionType(function.__code__, function.__globals__, name, function.__defaults__,
+                              function.__closure__)
+    copy.__qualname__, copy.__doc__ = name, function.__doc__
+    return copy
+
+
+_split_level_parallel = _compiled_parallel(_named(_split_level, "_split_level_parallel"))
+_split_level_serial = _compiled(_named(_split_level, "_split_level_serial"))  # prange is range here
 
 
 @_compiled
