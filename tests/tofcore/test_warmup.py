@@ -59,7 +59,7 @@ def test_after_the_bvh_warm_up_no_mesh_build_compiles(monkeypatch):
     monkeypatch.setenv("TOFCORE_TRACER", "auto")
     from tofcore.scene import bvh, bvh_build
 
-    bvh_build.warm_up()          # compiles once per checkout (~6 s on 2 cores), then loads from numba's cache
+    bvh_build.warm_up()          # compiles once per checkout (~9 s on 2 cores), then loads from numba's cache
     rng = np.random.default_rng(0)
     with _Compiles() as compiles:
         for m in (bvh.COMPILED_BUILD_MIN, bvh_build.PARALLEL_LEVEL):

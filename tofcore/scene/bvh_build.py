@@ -91,7 +91,7 @@ def split_level(records, order, starts, counts, leaf_size: int, n_bins: int, *, 
 def warm_up(leaf_size: int = 4, n_bins: int = 32) -> None:
     """Compile (or load from numba's cache) every compiled loop of a mesh's build (`DRIVERS`), the parallel and
     the serial build of each, on a mesh of 8 triangles: the argument types of a mesh's build, so that a mesh of
-    at least ``bvh.COMPILED_BUILD_MIN`` triangles loads them (``tofcore warmup``: about 15 s of compile on 2
+    at least ``bvh.COMPILED_BUILD_MIN`` triangles loads them (``tofcore warmup``: about 9 s of compile on 2
     cores, once)."""
     m = 8
     centroids = np.arange(m, dtype=np.float32)[:, None] * np.ones(3, np.float32)
