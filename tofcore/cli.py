@@ -477,7 +477,7 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     estimate runs too. On the CPU it is 16 pixels wide: numba compiles per argument type, not per image size (a
     Kinect room frame at any size, 1 or 2 tracer threads, then compiles nothing more: tests/tofcore/
     test_warmup.py). On the GPU it has the preset's full size: some of CuPy's kernels (its CUB reductions) are
-    compiled per array size. Then, on either device, both builds of the BVH's compiled level split (numba, on the
+    compiled per array size. Then, on either device, both builds of the BVH build's compiled loops (numba, on the
     CPU; meshes of 4,096 triangles or more: :func:`tofcore.scene.bvh_build.warm_up`). Batch runs call this once
     before their workers start (batch/warmup.py), the Blender add-on after installing numba or CuPy."""
     import time

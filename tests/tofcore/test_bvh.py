@@ -271,6 +271,53 @@ def test_compiled_build_gives_the_numpy_tree_bit_for_bit(leaf_size, threads, mon
         assert len(numpy_tree[3]) > 1, name
 
 
+@pytest.mark.parametrize("leaf_size, threads", [(1, "one"), (2, "one"), (4, "one"), (1, "all"), (2, "all"),
+                                                (4, "all")])
+def test_compiled_build_gives_the_numpy_records_bit_for_bit(leaf_size, threads, monkeypatch):
+    """`BVH.build` in compiled loops (bvh_build: the triangle records, the levels, the padding, the collapse
+    to 4-wide nodes, the node and leaf records) gives the NumPy build's records and stats: every bit, on the
+    meshes of the level test, a single triangle (the root a leaf) and a mesh with zeros of both signs."""
+    pytest.importorskip("numba")
+    from tofcore.scene import bvh as bvh_module, bvh_build
+
+    monkeypatch.setattr(bvh_build, "PARALLEL_LEVEL", 0 if threads == "all" else 1 << 62)
+    monkeypatch.setattr(bvh_module, "COMPILED_BUILD_MIN", 1)
+    meshes = _meshes_for_the_build()
+    meshes["one"] = (np.eye(3, dtype=np.float32), np.array([[0, 1, 2]], np.int32))
+    v_zero, t_zero = meshes["terrain"]
+    v_zero = v_zero - np.float32(0.5)  # a vertex row at x = 0 and y = 0
+    v_zero[::2][v_zero[::2] == 0] = np.float32(-0.0)
+    meshes["signed zeros"] = (v_zero, t_zero)
+    calls = []
+    tree_records = bvh_build.tree_records
+    monkeypatch.setattr(bvh_build, "tree_records", lambda *a, **k: calls.append(1) or tree_records(*a, **k))
+    for name, (v, t) in meshes.items():
+        monkeypatch.setenv("TOFCORE_TRACER", "numpy")
+        reference = BVH.build(v, t, leaf_size=leaf_size)
+        monkeypatch.setenv("TOFCORE_TRACER", "auto")
+        calls.clear()
+        compiled = BVH.build(v, t, leaf_size=leaf_size)
+        assert calls, name
+        for what in ("_nodes", "_leaves"):
+            a, b = getattr(reference, what), getattr(compiled, what)
+            assert a.dtype == b.dtype and a.shape == b.shape, f"{name}, leaf size {leaf_size}: {what}"
+            assert np.array_equal(a, b), f"{name}, leaf size {leaf_size}: {what} differs"
+        stats = [{k: x for k, x in tree.stats.items() if k != "build_time_s"} for tree in (reference, compiled)]
+        assert stats[0] == stats[1], name
+
+
+def test_the_parallel_and_serial_level_splits_have_their_own_cache_entries():
+    """numba keys its cache by a function's module, name and line, not its compile options: the two builds
+    of the level split are copies under their own names, so neither loads the other's code from the cache
+    (the parallel split ran on one thread when both shared ``_split_level``'s entry)."""
+    pytest.importorskip("numba")
+    from tofcore.scene import bvh_build
+
+    parallel, serial = bvh_build._split_level_parallel, bvh_build._split_level_serial
+    assert parallel.targetoptions.get("parallel") and not serial.targetoptions.get("parallel")
+    assert parallel._cache._cache_file._index_path != serial._cache._cache_file._index_path
+
+
 def test_build_uses_the_compiled_levels_above_the_size_rule(monkeypatch):
     """`BVH.build` takes the compiled levels for a mesh of COMPILED_BUILD_MIN triangles or more, and the
     records equal the NumPy build's; TOFCORE_TRACER=numpy keeps the build in NumPy."""
@@ -281,7 +328,7 @@ def test_build_uses_the_compiled_levels_above_the_size_rule(monkeypatch):
     v, t = soup(np.random.default_rng(5), bvh_module.COMPILED_BUILD_MIN)
     calls = []
     split = bvh_build.split_level
-    monkeypatch.setattr(bvh_build, "split_level", lambda *a: calls.append(1) or split(*a))
+    monkeypatch.setattr(bvh_build, "split_level", lambda *a, **k: calls.append(1) or split(*a, **k))
     compiled = BVH.build(v, t)
     assert calls
     monkeypatch.setenv("TOFCORE_TRACER", "numpy")
@@ -299,7 +346,7 @@ def test_a_failing_compiled_build_falls_back_to_numpy_with_a_warning(monkeypatch
 
     from tofcore.scene import bvh as bvh_module, bvh_build
 
-    def broken(*args):
+    def broken(*args, **kwargs):
         raise pickle.UnpicklingError("pickle data was truncated")
 
     v, t = soup(np.random.default_rng(6), 500)

@@ -13,6 +13,7 @@ from __future__ import annotations
 import os
 import subprocess
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -52,18 +53,26 @@ class _Compiles:
 
 
 def test_after_the_bvh_warm_up_no_mesh_build_compiles(monkeypatch):
-    """Both builds of the compiled level split (parallel for meshes of PARALLEL_LEVEL triangles or more, serial
-    below) get the argument types of a mesh's build: building then compiles nothing."""
+    """Both builds of every compiled loop of the BVH build (parallel for meshes of PARALLEL_LEVEL triangles or
+    more, serial below: the level split, the triangle records, the node and leaf records) get the argument
+    types of a mesh's build: building then compiles nothing."""
     monkeypatch.setenv("TOFCORE_TRACER", "auto")
     from tofcore.scene import bvh, bvh_build
 
-    bvh_build.warm_up()          # compiles once per checkout (~6 s on 2 cores), then loads from numba's cache
+    bvh_build.warm_up()          # compiles once per checkout (~9 s on 2 cores), then loads from numba's cache
     rng = np.random.default_rng(0)
     with _Compiles() as compiles:
         for m in (bvh.COMPILED_BUILD_MIN, bvh_build.PARALLEL_LEVEL):
             lo = rng.random((3, m), dtype=np.float32)
             order, *_ = bvh._build_binary(lo, lo + np.float32(0.01), 2, bvh.N_BINS)
             assert sorted(order) == list(range(m))
+            vertices = rng.random((3 * m, 3), dtype=np.float32)
+            for triangles, leaf_size in ((np.arange(3 * m, dtype=np.int32).reshape(m, 3), 2),
+                                         (np.arange(3 * m).reshape(3, m).T, 4)):  # int32; int64 not contiguous
+                with warnings.catch_warnings():
+                    warnings.simplefilter("error", RuntimeWarning)  # the compiled build, not its NumPy fallback
+                    tree = bvh.BVH.build(vertices, triangles, leaf_size=leaf_size)
+                assert tree.stats["triangles"] == m
     assert compiles.names == []
 
 

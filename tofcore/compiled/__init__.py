@@ -95,7 +95,7 @@ def cpu_kernels_cached() -> bool | None:
 
 def cpu_warm() -> bool | None:
     """Whether ``tofcore warmup --device cpu`` would find everything a CPU render compiles in numba's cache: the
-    kernels (:func:`cpu_kernels_cached`) and both builds of the BVH's compiled level split
+    kernels (:func:`cpu_kernels_cached`) and the compiled loops of the BVH's build, both builds of each
     (:func:`tofcore.scene.bvh_build.warm_up`, meshes of 4,096 triangles or more); None where the compiled tracer
     will not run on the CPU. A batch warms the cache once before its workers where this is False (batch/warmup.py)."""
     cached = cpu_kernels_cached()
@@ -103,8 +103,8 @@ def cpu_warm() -> bool | None:
         return cached
     from ..scene import bvh_build
 
-    return all(hasattr(split._cache, "_cache_file") and _index_is_whole(split._cache)  # not numba's NullCache
-               for split in (bvh_build._split_level_parallel, bvh_build._split_level_serial))
+    return all(hasattr(driver._cache, "_cache_file") and _index_is_whole(driver._cache)  # not numba's NullCache
+               for driver in bvh_build.DRIVERS)
 
 
 def _index_is_whole(cache) -> bool:

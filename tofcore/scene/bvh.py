@@ -357,17 +357,16 @@ def _half_area(lo, hi):
     return ext[0] * ext[1] + ext[1] * ext[2] + ext[2] * ext[0]
 
 
-def _split_level(lo, hi, cen, order, lvl_start, lvl_count, leaf_size, n_bins):
+def _split_level(lo, hi, cen, order, lvl_start, lvl_count, leaf_size, n_bins, *, out=None):
     """Split every node of one level in NumPy (the reference of :func:`tofcore.scene.bvh_build.split_level`).
 
     Node ``k`` holds triangles ``order[lvl_start[k]:lvl_start[k] + lvl_count[k]]``; ``order`` is
     partitioned in place (lefts first, each side in its previous order). Returns ``(node_lo, node_hi,
     n_left)``: (K, 3) float32 node boxes and (K,) int64 triangles sent left (0 for a leaf). Nodes are
-    split in batches of `_BUILD_BATCH` to bound the memory.
+    split in batches of `_BUILD_BATCH` to bound the memory. ``out``: two (K, 3) float32 arrays for the boxes.
     """
     k = lvl_count.size
-    node_lo = np.empty((k, 3), np.float32)
-    node_hi = np.empty((k, 3), np.float32)
+    node_lo, node_hi = (np.empty((k, 3), np.float32), np.empty((k, 3), np.float32)) if out is None else out
     split = lvl_count > leaf_size
     n_left = np.zeros(k, np.int64)
     for b0 in range(0, k, _BUILD_BATCH):
@@ -423,7 +422,9 @@ def _build_binary(lo, hi, leaf_size, n_bins, *, compiled=None):
         if bvh_build.available():
             try:
                 records = np.ascontiguousarray(np.concatenate([lo, hi, cen]).T)  # (M, 9), in the order of `order`
-                return _levels(m, functools.partial(bvh_build.split_level, records), leaf_size, n_bins)
+                split = functools.partial(bvh_build.split_level, records,
+                                          scratch=(np.empty_like(records), np.empty(m, np.int64)))
+                return _levels(m, split, leaf_size, n_bins)
             except Exception as exc:  # noqa: BLE001 — numba's compile and cache errors have no common base
                 # numba could not compile or load the level split (e.g. a damaged cache file: an
                 # UnpicklingError or EOFError): the NumPy levels build the same tree
@@ -432,31 +433,93 @@ def _build_binary(lo, hi, leaf_size, n_bins, *, compiled=None):
     return _levels(m, functools.partial(_split_level, lo, hi, cen), leaf_size, n_bins)
 
 
+def _build_compiled(v, tri, leaf_size):
+    """`BVH.build`'s tree in compiled loops (:mod:`tofcore.scene.bvh_build`): the triangle records, the levels
+    and the node and leaf records — the arrays of the NumPy build (:func:`_build_binary`, :func:`_tree_records`)
+    bit for bit. Returns ``(nodes, leaves, depth, left, count)``, or None where numba does not run here or
+    failed (with a warning: the NumPy build then makes the same tree)."""
+    from . import bvh_build  # imports numba: only for meshes that need it
+
+    if not bvh_build.available():
+        return None
+    try:
+        records = bvh_build.triangle_records(v, tri)
+        split = functools.partial(bvh_build.split_level, records,
+                                  scratch=(np.empty_like(records), np.empty(len(tri), np.int64)))
+        order, b_lo, b_hi, left, right, start, count = _levels(len(tri), split, leaf_size, N_BINS)
+        del records, split
+        nodes, leaves, depth = bvh_build.tree_records(
+            v, tri, order, b_lo, b_hi, left, right, start, count, leaf_size, box_pad=BOX_PAD, width=WIDTH,
+            node_rows=_NODE_ROWS, child_row=_CHILD_ROW, leaf_rows=_LEAF_ROWS, prim_row=_PRIM_ROW)
+    except Exception as exc:  # noqa: BLE001 — numba's compile and cache errors have no common base
+        warnings.warn(f"the compiled BVH build failed ({type(exc).__name__}: {exc}); building in NumPy",
+                      RuntimeWarning, stacklevel=3)
+        return None
+    return nodes, leaves, int(depth), left, count
+
+
+def _tree_records(corner_rows, order, b_lo, b_hi, left, right, start, count, leaf_size):
+    """The 4-wide tree's records from the binary tree of :func:`_build_binary` (the NumPy reference of
+    :func:`tofcore.scene.bvh_build.tree_records`): boxes padded by `BOX_PAD`, collapsed (:func:`_collapse`),
+    node records and leaf records (:func:`_leaf_records`) as `BVH.build` describes them. Returns ``(nodes,
+    leaves, depth)``: (W · `_NODE_ROWS`, `WIDTH`) and (L · `_LEAF_ROWS`, leaf_size) int32, wide levels."""
+    magnitude, extent = np.maximum(np.abs(b_lo), np.abs(b_hi)), b_hi - b_lo
+    pad = BOX_PAD * (np.maximum(np.maximum(magnitude[:, 0], magnitude[:, 1]), magnitude[:, 2])
+                     + np.maximum(np.maximum(extent[:, 0], extent[:, 1]), extent[:, 2]))
+    b_lo = b_lo - pad[:, None]
+    b_hi = b_hi + pad[:, None]
+    slots, depth = _collapse(left, right, _half_area(b_lo.T, b_hi.T))
+
+    is_leaf = left < 0
+    leaf_id = np.cumsum(is_leaf) - 1  # binary node -> leaf
+    w = len(slots)
+    wide_id = np.full(len(left), -1, np.int64)
+    inner_slots = (slots >= 0) & ~is_leaf[np.maximum(slots, 0)]
+    wide_id[slots[inner_slots]] = np.arange(1, w)  # breadth-first, root is wide node 0
+    safe = np.maximum(slots, 0)
+    used = (slots >= 0)[..., None]
+    c_lo = np.where(used, b_lo[safe], np.float32(np.inf))  # (W, WIDTH, 3)
+    c_hi = np.where(used, b_hi[safe], np.float32(-np.inf))
+    nodes = np.empty((w, _NODE_ROWS, WIDTH), np.int32)
+    nodes[:, 0:3].view(np.float32)[...] = c_lo.transpose(0, 2, 1)
+    nodes[:, 3:6].view(np.float32)[...] = c_hi.transpose(0, 2, 1)
+    to_node = np.maximum(wide_id[safe], 0) * _NODE_ROWS
+    nodes[:, _CHILD_ROW] = np.where(is_leaf[safe] & used[..., 0], ~(leaf_id[safe] * _LEAF_ROWS), to_node)
+    leaves = np.flatnonzero(is_leaf)
+    leaf_rec = _leaf_records(corner_rows, order, start[leaves], count[leaves], leaf_size)
+    return nodes.reshape(-1, WIDTH), leaf_rec.reshape(-1, leaf_size), depth
+
+
 def _levels(m, split_level, leaf_size, n_bins):
-    """The level loop of :func:`_build_binary`; ``split_level(order, starts, counts, leaf_size, n_bins)``
-    splits the nodes of one level."""
+    """The level loop of :func:`_build_binary`; ``split_level(order, starts, counts, leaf_size, n_bins,
+    out=(node_lo, node_hi))`` splits the nodes of one level, their boxes into ``out``.
+
+    The tree's arrays are allocated once for the most nodes a tree of ``m`` triangles has (2m − 1) and each
+    level writes its rows: pages never written are never mapped, and there is no copy of every level's
+    arrays into one at the end (at 3M triangles that copy took 0.2–0.4 s, mostly first touches of memory).
+    """
     order = np.arange(m)
     lvl_start = np.zeros(1, np.int64)  # first position in `order` of each node of the level
     lvl_count = np.full(1, m, np.int64)  # triangle count of each node of the level
-    out_lo, out_hi, out_left, out_right, out_start, out_count = [], [], [], [], [], []
+    most = 2 * m - 1
+    out_lo, out_hi = np.empty((most, 3), np.float32), np.empty((most, 3), np.float32)
+    out_left, out_right, out_start, out_count = (np.empty(most, np.int64) for _ in range(4))
     n_done = 0  # nodes of the levels above
     while lvl_count.size:
         k = lvl_count.size
+        rows = slice(n_done, n_done + k)
         split = lvl_count > leaf_size
-        node_lo, node_hi, n_left = split_level(order, lvl_start, lvl_count, leaf_size, n_bins)
+        n_left = split_level(order, lvl_start, lvl_count, leaf_size, n_bins, out=(out_lo[rows], out_hi[rows]))[2]
         ids = n_done + k + 2 * (np.cumsum(split) - 1)
-        out_lo.append(node_lo)
-        out_hi.append(node_hi)
-        out_left.append(np.where(split, ids, -1))
-        out_right.append(np.where(split, ids + 1, -1))
-        out_start.append(lvl_start)
-        out_count.append(lvl_count)
+        np.copyto(out_left[rows], np.where(split, ids, -1))
+        np.copyto(out_right[rows], np.where(split, ids + 1, -1))
+        out_start[rows], out_count[rows] = lvl_start, lvl_count
         n_done += k
         s, c, nl = lvl_start[split], lvl_count[split], n_left[split]
         lvl_start = np.stack([s, s + nl], axis=1).ravel()
         lvl_count = np.stack([nl, c - nl], axis=1).ravel()
-    cat = np.concatenate
-    return order, cat(out_lo), cat(out_hi), cat(out_left), cat(out_right), cat(out_start), cat(out_count)
+    n = slice(0, n_done)
+    return order, out_lo[n], out_hi[n], out_left[n], out_right[n], out_start[n], out_count[n]
 
 
 def _collapse(left, right, area):
@@ -556,7 +619,10 @@ class BVH:
         -----
         Binned SAH with `N_BINS` bins per axis over centroid bounds, all nodes
         of a level at once (`_build_binary`), boxes padded by `BOX_PAD`, then
-        collapsed to `WIDTH` children per node (`_collapse`).
+        collapsed to `WIDTH` children per node (`_collapse`; `_tree_records`).
+        Meshes of at least `COMPILED_BUILD_MIN` triangles are built in
+        compiled loops where numba runs (`_build_compiled`): the same records
+        bit for bit.
 
         Storage: one record of `_NODE_ROWS` rows of `WIDTH` children per node:
         the box minimum x, y, z and maximum x, y, z (float32), and the
@@ -575,41 +641,24 @@ class BVH:
         if v.ndim != 2 or v.shape[1] != 3 or tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0:
             raise SceneError(f"BVH.build: vertices and triangles must be (N, 3) and (M >= 1, 3), "
                              f"got {v.shape} and {tri.shape}")
-        axes = np.ascontiguousarray(v.T)  # (3, N)
-        corner_rows = np.concatenate([axes[:, tri[:, j]] for j in range(3)])  # (9, M): v0 xyz, v1 xyz, v2 xyz
-        v0, v1, v2 = corner_rows[0:3], corner_rows[3:6], corner_rows[6:9]
-        lo = np.minimum(np.minimum(v0, v1), v2)  # elementwise: far faster than a reduction over the corners
-        hi = np.maximum(np.maximum(v0, v1), v2)
-        order, b_lo, b_hi, left, right, start, count = _build_binary(lo, hi, leaf_size, N_BINS)
-        magnitude, extent = np.maximum(np.abs(b_lo), np.abs(b_hi)), b_hi - b_lo
-        pad = BOX_PAD * (np.maximum(np.maximum(magnitude[:, 0], magnitude[:, 1]), magnitude[:, 2])
-                         + np.maximum(np.maximum(extent[:, 0], extent[:, 1]), extent[:, 2]))
-        b_lo = b_lo - pad[:, None]
-        b_hi = b_hi + pad[:, None]
-        slots, depth = _collapse(left, right, _half_area(b_lo.T, b_hi.T))
-
-        is_leaf = left < 0
-        leaf_id = np.cumsum(is_leaf) - 1  # binary node -> leaf
-        w = len(slots)
-        wide_id = np.full(len(left), -1, np.int64)
-        inner_slots = (slots >= 0) & ~is_leaf[np.maximum(slots, 0)]
-        wide_id[slots[inner_slots]] = np.arange(1, w)  # breadth-first, root is wide node 0
-        safe = np.maximum(slots, 0)
-        used = (slots >= 0)[..., None]
-        c_lo = np.where(used, b_lo[safe], np.float32(np.inf))  # (W, WIDTH, 3)
-        c_hi = np.where(used, b_hi[safe], np.float32(-np.inf))
-        nodes = np.empty((w, _NODE_ROWS, WIDTH), np.int32)
-        nodes[:, 0:3].view(np.float32)[...] = c_lo.transpose(0, 2, 1)
-        nodes[:, 3:6].view(np.float32)[...] = c_hi.transpose(0, 2, 1)
-        to_node = np.maximum(wide_id[safe], 0) * _NODE_ROWS
-        nodes[:, _CHILD_ROW] = np.where(is_leaf[safe] & used[..., 0], ~(leaf_id[safe] * _LEAF_ROWS), to_node)
-
-        leaves = np.flatnonzero(is_leaf)
-        leaf_rec = _leaf_records(corner_rows, order, start[leaves], count[leaves], leaf_size)
+        built = _build_compiled(v, tri, leaf_size) if len(tri) >= COMPILED_BUILD_MIN else None
+        if built is None:
+            axes = np.ascontiguousarray(v.T)  # (3, N)
+            corner_rows = np.concatenate([axes[:, tri[:, j]] for j in range(3)])  # (9, M): v0 xyz, v1 xyz, v2 xyz
+            v0, v1, v2 = corner_rows[0:3], corner_rows[3:6], corner_rows[6:9]
+            lo = np.minimum(np.minimum(v0, v1), v2)  # elementwise: far faster than a reduction over the corners
+            hi = np.maximum(np.maximum(v0, v1), v2)
+            order, b_lo, b_hi, left, right, start, count = _build_binary(lo, hi, leaf_size, N_BINS,
+                                                                         compiled=False)
+            nodes, leaf_rec, depth = _tree_records(corner_rows, order, b_lo, b_hi, left, right, start, count,
+                                                   leaf_size)
+        else:
+            nodes, leaf_rec, depth, left, count = built
+        leaves = np.flatnonzero(left < 0)
         sizes = count[leaves]
         stats = {
             "triangles": len(tri),
-            "nodes": w,
+            "nodes": len(nodes) // _NODE_ROWS,
             "binary_nodes": len(left),
             "leaves": len(leaves),
             "depth": depth,
@@ -619,7 +668,7 @@ class BVH:
             "memory_bytes": nodes.nbytes + leaf_rec.nbytes,
             "build_time_s": time.perf_counter() - t0,
         }
-        return cls(nodes=nodes.reshape(-1, WIDTH), leaves=leaf_rec.reshape(-1, leaf_size), stats=stats)
+        return cls(nodes=nodes, leaves=leaf_rec, stats=stats)
 
     @classmethod
     def cached(cls, vertices: np.ndarray, triangles: np.ndarray, *, leaf_size: int = 2) -> "BVH":

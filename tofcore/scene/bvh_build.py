@@ -21,6 +21,10 @@ cuts are the same.
 The cost is linear in the triangles of a level (three binning sweeps, one partition), so the build is
 ``O(M log M)`` in compiled loops instead of NumPy's scatter-adds (``ufunc.at``), sorts and gathers per
 level: ``bench/bench_bvh.py --build-only`` measures both.
+
+The passes before and after the levels are compiled too (:func:`triangle_records`: the corner gathers,
+boxes and centroids; :func:`tree_records`: the padding, the collapse to 4-wide nodes, the node and leaf
+records), the same arrays as ``BVH.build``'s NumPy passes, without their temporaries.
 """
 
 from __future__ import annotations
@@ -57,7 +61,8 @@ def available() -> bool:
     return numba is not None and os.environ.get("TOFCORE_TRACER", "").strip().lower() != "numpy"
 
 
-def split_level(records, order, starts, counts, leaf_size: int, n_bins: int, *, parallel: bool | None = None):
+def split_level(records, order, starts, counts, leaf_size: int, n_bins: int, *, parallel: bool | None = None,
+                scratch=None, out=None):
     """Split every node of one level (compiled): ``records`` and ``order`` are partitioned in place; returns
     ``(node_lo, node_hi, n_left)``: (K, 3) float32 node boxes and (K,) int64 triangles sent left (0 for a
     leaf).
@@ -65,32 +70,42 @@ def split_level(records, order, starts, counts, leaf_size: int, n_bins: int, *, 
     ``records`` is (M, 9) float32, per position of ``order``: the triangle's box minimum, maximum and
     centroid (xyz each), so every pass reads its triangles in sequence; node ``k`` holds positions
     ``starts[k]:starts[k] + counts[k]``. ``parallel``: on numba's threads (default: for meshes of at least
-    `PARALLEL_LEVEL` triangles) or on this one.
+    `PARALLEL_LEVEL` triangles) or on this one. ``scratch``: arrays like ``records`` and ``order`` that the
+    partition may overwrite (default: new ones; a caller splitting every level passes the same two, so
+    their pages are mapped once, not once a level). ``out``: two C-contiguous (K, 3) float32 arrays for the
+    node boxes (default: new ones).
     """
     k = len(starts)
-    node_lo = np.empty((k, 3), np.float32)
-    node_hi = np.empty((k, 3), np.float32)
+    node_lo, node_hi = (np.empty((k, 3), np.float32), np.empty((k, 3), np.float32)) if out is None else out
     n_left = np.zeros(k, np.int64)
     scale_numerator = np.float32(n_bins * (1 - 1e-6))
     if parallel is None:
         parallel = len(order) >= PARALLEL_LEVEL
     split = _split_level_parallel if parallel else _split_level_serial
-    split(records, order, np.empty_like(records), np.empty_like(order), starts, counts, leaf_size, n_bins,
-          scale_numerator, node_lo, node_hi, n_left)
+    records_scratch, order_scratch = (np.empty_like(records), np.empty_like(order)) if scratch is None else scratch
+    split(records, order, records_scratch, order_scratch, starts, counts, leaf_size, n_bins, scale_numerator,
+          node_lo, node_hi, n_left)
     return node_lo, node_hi, n_left
 
 
 def warm_up(leaf_size: int = 4, n_bins: int = 32) -> None:
-    """Compile (or load from numba's cache) both builds of the level split, the parallel one and the serial one,
-    on a level of 8 triangles: the argument types of a mesh's build, so that a mesh of at least
-    ``bvh.COMPILED_BUILD_MIN`` triangles loads them (``tofcore warmup``: about 6 s of compile on 2 cores,
-    once)."""
+    """Compile (or load from numba's cache) every compiled loop of a mesh's build (`DRIVERS`), the parallel and
+    the serial build of each, on a mesh of 8 triangles: the argument types of a mesh's build, so that a mesh of
+    at least ``bvh.COMPILED_BUILD_MIN`` triangles loads them (``tofcore warmup``: about 9 s of compile on 2
+    cores, once)."""
     m = 8
     centroids = np.arange(m, dtype=np.float32)[:, None] * np.ones(3, np.float32)
+    vertices = np.ascontiguousarray(np.concatenate([centroids - 0.5, centroids + 0.5, centroids + [0.5, -0.5, 0]]))
+    triangles = np.arange(3 * m, dtype=np.int64).reshape(3, m).T.copy()
     for parallel in (True, False):
-        records = np.ascontiguousarray(np.concatenate([centroids - 0.5, centroids + 0.5, centroids], axis=1))
+        records = triangle_records(vertices, triangles, parallel=parallel)
         split_level(records, np.arange(m), np.zeros(1, np.int64), np.full(1, m, np.int64), leaf_size, n_bins,
                     parallel=parallel)
+        # a root over two leaves of four triangles
+        lo, hi = records[:3, :3].copy(), records[:3, 3:6].copy()
+        left, right = np.array([1, -1, -1], np.int64), np.array([2, -1, -1], np.int64)
+        tree_records(vertices, triangles, np.arange(m), lo, hi, left, right, np.array([0, 0, 4], np.int64),
+                     np.array([m, 4, 4], np.int64), 4, box_pad=2.0**-16, parallel=parallel, **LAYOUT)
 
 
 def _split_level(records, order, records_scratch, order_scratch, starts, counts, leaf_size, n_bins,
@@ -112,8 +127,21 @@ def _split_level(records, order, records_scratch, order_scratch, starts, counts,
                                        area_right, c_min, scale, keys)
 
 
-_split_level_parallel = _compiled_parallel(_split_level)
-_split_level_serial = _compiled(_split_level)  # prange is range here
+def _named(function, name):
+    """A copy of ``function`` under another name. numba's cache keys a function by its module, name and
+    line, not by its compile options: the parallel and the serial build of one function would share one
+    cache entry, and the second to load would get the first's code (the serial split ran on the parallel
+    path, or the reverse)."""
+    import types
+
+    copy = types.FunctionType(function.__code__, function.__globals__, name, function.__defaults__,
+                              function.__closure__)
+    copy.__qualname__, copy.__doc__ = name, function.__doc__
+    return copy
+
+
+_split_level_parallel = _compiled_parallel(_named(_split_level, "_split_level_parallel"))
+_split_level_serial = _compiled(_named(_split_level, "_split_level_serial"))  # prange is range here
 
 
 @_compiled
@@ -264,3 +292,190 @@ def _move(order, records, j, to_order, to_records, k):
     to_order[k] = order[j]
     for c in range(records.shape[1]):
         to_records[k, c] = records[j, c]
+
+
+# ----------------------------------------------------------------------------- before and after the levels
+# `BVH.build`'s NumPy passes around the levels (tofcore.scene.bvh: the corner gathers and boxes; `_tree_records`:
+# the padding, `_collapse` to 4-wide nodes, the node and leaf records) as compiled loops: the same arrays bit for
+# bit, without the (M,)- and (W, 4)-sized temporaries of the NumPy passes (fresh memory costs a page fault a page).
+# Ties of min/max keep NumPy's choice (``np.minimum(a, b)`` is ``b`` where ``a == b``, so ``min(b, a)`` here: the
+# sign of a zero), and the float32 arithmetic is the reference's own, in its order.
+
+
+LAYOUT = dict(width=4, node_rows=7, child_row=6, leaf_rows=10, prim_row=9)
+"""The records :func:`tree_records` writes (``tofcore.scene.bvh``'s `WIDTH`, `_NODE_ROWS`, `_CHILD_ROW`,
+`_LEAF_ROWS`, `_PRIM_ROW`; its caller passes them and they are checked)."""
+
+
+def triangle_records(vertices, triangles, *, parallel: bool | None = None):
+    """(M, 9) float32 records of :func:`split_level`: each triangle's box minimum, maximum and centroid (xyz
+    each), in triangle order — what ``bvh._build_binary`` stacks from the corner gathers, in one pass over the
+    triangles. ``vertices`` (N, 3) float32, ``triangles`` (M, 3) int64; ``parallel`` as :func:`split_level`'s."""
+    vertices, triangles = np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(triangles, np.int64)
+    records = np.empty((len(triangles), 9), np.float32)
+    if parallel is None:
+        parallel = len(triangles) >= PARALLEL_LEVEL
+    (_triangle_records_parallel if parallel else _triangle_records_serial)(vertices, triangles, records)
+    return records
+
+
+def _triangle_records(vertices, triangles, records):
+    """The loop of :func:`triangle_records`."""
+    half = np.float32(0.5)
+    for i in prange(len(triangles)):
+        p0, p1, p2 = triangles[i, 0], triangles[i, 1], triangles[i, 2]
+        for a in range(3):
+            x0, x1, x2 = vertices[p0, a], vertices[p1, a], vertices[p2, a]
+            lo = min(x2, min(x1, x0))  # np.minimum(np.minimum(x0, x1), x2), ties included
+            hi = max(x2, max(x1, x0))
+            records[i, a], records[i, 3 + a], records[i, 6 + a] = lo, hi, (lo + hi) * half
+
+
+def tree_records(vertices, triangles, order, node_lo, node_hi, left, right, start, count, leaf_size: int, *,
+                 box_pad: float, width: int, node_rows: int, child_row: int, leaf_rows: int, prim_row: int,
+                 parallel: bool | None = None):
+    """The 4-wide tree's node and leaf records from the binary tree of the levels, as
+    ``bvh._tree_records`` (the NumPy reference) makes them: ``(nodes, leaves, depth)``, (W · node_rows, width)
+    and (L · leaf_rows, leaf_size) int32 and the number of wide levels.
+
+    ``node_lo, node_hi`` (K, 3) float32 binary node boxes are padded in place; ``left, right, start, count``
+    (K,) int64 as ``bvh._build_binary`` returns them. The layout (`width` children, rows of a record) is
+    ``tofcore.scene.bvh``'s, passed in (this module imports nothing of it).
+    """
+    layout = dict(width=width, node_rows=node_rows, child_row=child_row, leaf_rows=leaf_rows, prim_row=prim_row)
+    if layout != LAYOUT:
+        raise ValueError(f"tree_records: the layout must be {LAYOUT} (the compiled loops'), got {layout}")
+    vertices, triangles = np.ascontiguousarray(vertices, np.float32), np.ascontiguousarray(triangles, np.int64)
+    if parallel is None:
+        parallel = len(order) >= PARALLEL_LEVEL
+    is_leaf = left < 0
+    leaf_of = np.cumsum(is_leaf) - 1  # binary node -> leaf
+    leaves = np.flatnonzero(is_leaf)
+    _pad_boxes(node_lo, node_hi, np.float32(box_pad))
+    slots = np.empty((max(1, len(left) - len(leaves)), 4), np.int64)  # pages of rows never written stay unmapped
+    w, depth = _collapse_wide(left, right, node_lo, node_hi, slots)
+    nodes = np.empty((w, node_rows, width), np.int32)
+    leaf_rec = np.empty((len(leaves), leaf_rows, leaf_size), np.int32)
+    fill_nodes, fill_leaves = ((_node_records_parallel, _leaf_records_parallel) if parallel else
+                               (_node_records_serial, _leaf_records_serial))
+    fill_nodes(slots, left, leaf_of, node_lo, node_hi, nodes, nodes.view(np.float32))
+    fill_leaves(vertices, triangles, order, start, count, leaves, leaf_rec, leaf_rec.view(np.float32))
+    return nodes.reshape(-1, width), leaf_rec.reshape(-1, leaf_size), depth
+
+
+@_compiled
+def _pad_boxes(node_lo, node_hi, box_pad):
+    """Pad each box by ``box_pad`` · (largest |coordinate| + largest extent), in float32, in place."""
+    for k in range(len(node_lo)):
+        m0 = max(abs(node_hi[k, 0]), abs(node_lo[k, 0]))
+        m1 = max(abs(node_hi[k, 1]), abs(node_lo[k, 1]))
+        m2 = max(abs(node_hi[k, 2]), abs(node_lo[k, 2]))
+        e0, e1, e2 = node_hi[k, 0] - node_lo[k, 0], node_hi[k, 1] - node_lo[k, 1], node_hi[k, 2] - node_lo[k, 2]
+        pad = box_pad * (max(m2, max(m1, m0)) + max(e2, max(e1, e0)))
+        for a in range(3):
+            node_lo[k, a] = node_lo[k, a] - pad
+            node_hi[k, a] = node_hi[k, a] + pad
+
+
+@_compiled
+def _collapse_wide(left, right, node_lo, node_hi, slots):
+    """``bvh._collapse`` as a queue: wide node ``i`` (breadth first, the root 0) takes the two children of
+    binary node ``queue[i]``, then twice replaces its inner child of the largest box area (the first of equals)
+    by that child's two children; its inner children join the queue in slot order. ``slots`` (≥ W, 4) gets the
+    binary children (−1 empty); returns (W, number of wide levels)."""
+    if left[0] < 0:  # the root is a leaf
+        slots[0, 0], slots[0, 1], slots[0, 2], slots[0, 3] = 0, -1, -1, -1
+        return 1, 1
+    queue = np.empty(len(slots), np.int64)  # binary node of each wide node
+    level = np.empty(len(slots), np.int64)  # wide level of each wide node
+    queue[0], level[0] = 0, 0
+    w = 1
+    for i in range(len(slots)):
+        if i == w:
+            break
+        f = queue[i]
+        slots[i, 0], slots[i, 1], slots[i, 2], slots[i, 3] = left[f], right[f], -1, -1
+        for j in range(2, 4):
+            pick, best = 0, -1.0
+            for s in range(4):
+                c = slots[i, s]
+                area = -1.0
+                if c >= 0 and left[c] >= 0:
+                    area = np.float64(_half_area(node_lo[c, 0], node_lo[c, 1], node_lo[c, 2],
+                                                 node_hi[c, 0], node_hi[c, 1], node_hi[c, 2]))
+                if s == 0 or area > best:
+                    pick, best = s, area
+            c = slots[i, pick]
+            if c >= 0 and left[c] >= 0:
+                slots[i, pick], slots[i, j] = left[c], right[c]
+        for s in range(4):
+            c = slots[i, s]
+            if c >= 0 and left[c] >= 0:
+                queue[w], level[w] = c, level[i] + 1
+                w += 1
+    return w, level[w - 1] + 1
+
+
+def _node_records(slots, left, leaf_of, node_lo, node_hi, nodes, nodes_f):
+    """The node records (see `BVH.build`): child boxes (+∞/−∞ for an empty slot) and child rows (the wide node's
+    first row, ``~`` the leaf's first row, 0 for an empty slot); wide ids are the queue order of
+    :func:`_collapse_wide` (counted here again: each wide node's inner children, in slot order)."""
+    w = len(nodes)
+    first_child = np.empty(w, np.int64)  # wide id of each wide node's first inner child
+    n = 1
+    for i in range(w):
+        first_child[i] = n
+        for s in range(4):
+            c = slots[i, s]
+            if c >= 0 and left[c] >= 0:
+                n += 1
+    inf = np.float32(np.inf)
+    for i in prange(w):
+        next_id = first_child[i]
+        for s in range(4):
+            c = slots[i, s]
+            if c < 0:
+                for a in range(3):
+                    nodes_f[i, a, s], nodes_f[i, 3 + a, s] = inf, -inf
+                nodes[i, 6, s] = 0
+                continue
+            for a in range(3):
+                nodes_f[i, a, s], nodes_f[i, 3 + a, s] = node_lo[c, a], node_hi[c, a]
+            if left[c] < 0:
+                nodes[i, 6, s] = ~(leaf_of[c] * 10)
+            else:
+                nodes[i, 6, s] = next_id * 7
+                next_id += 1
+
+
+def _leaf_records(vertices, triangles, order, start, count, leaves, leaf_rec, leaf_rec_f):
+    """The leaf records (see `BVH.build`): v0, v1, v2 per axis of each slot's triangle (NaN padding), then the
+    triangle index (−1 padding); leaf ``i`` is binary node ``leaves[i]``."""
+    nan = np.float32(np.nan)
+    leaf_size = leaf_rec.shape[2]
+    for i in prange(len(leaves)):
+        node = leaves[i]
+        for k in range(leaf_size):
+            if k < count[node]:
+                p = order[start[node] + k]
+                for j in range(3):
+                    for a in range(3):
+                        leaf_rec_f[i, 3 * j + a, k] = vertices[triangles[p, j], a]
+                leaf_rec[i, 9, k] = p
+            else:
+                for r in range(9):
+                    leaf_rec_f[i, r, k] = nan
+                leaf_rec[i, 9, k] = -1
+
+
+_triangle_records_parallel = _compiled_parallel(_named(_triangle_records, "_triangle_records_parallel"))
+_triangle_records_serial = _compiled(_named(_triangle_records, "_triangle_records_serial"))
+_node_records_parallel = _compiled_parallel(_named(_node_records, "_node_records_parallel"))
+_node_records_serial = _compiled(_named(_node_records, "_node_records_serial"))
+_leaf_records_parallel = _compiled_parallel(_named(_leaf_records, "_leaf_records_parallel"))
+_leaf_records_serial = _compiled(_named(_leaf_records, "_leaf_records_serial"))
+
+DRIVERS = (_split_level_parallel, _split_level_serial, _triangle_records_parallel, _triangle_records_serial,
+           _pad_boxes, _collapse_wide, _node_records_parallel, _node_records_serial, _leaf_records_parallel,
+           _leaf_records_serial)
+"""The compiled functions a mesh's build calls from Python (:func:`warm_up` compiles them all)."""
