@@ -28,6 +28,8 @@ from tofcore.sensor import decode as decoding
 from tofcore.sensor.modulation import ideal_raw
 from tofcore.sensor.noise import NoiseStream
 
+from .test_depth_error import _no_numba_cuda
+
 render_module = importlib.import_module("tofcore.render")  # the module (tofcore.render is the function)
 numba = pytest.importorskip("numba")
 
@@ -220,16 +222,6 @@ def test_cuda_build_of_the_decode_in_the_simulator(tmp_path):
     assert {int(decoding.Reason.EDGE_FILTERED), int(decoding.Reason.UNWRAPPING_FAILED)} <= reasons
     simulated = decoding.Decoded(**dict(np.load(tmp_path / "out.npz")))
     assert_decodes_agree(simulated, reference)
-
-
-def _no_numba_cuda() -> str:
-    from tofcore import backend, compiled
-
-    try:
-        backend.select_device("gpu")
-    except backend.GpuUnavailable as exc:
-        return str(exc)
-    return compiled.cuda_unavailable() or ""
 
 
 needs_numba_cuda = pytest.mark.skipif(bool(_no_numba_cuda()),
