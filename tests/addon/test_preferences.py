@@ -396,7 +396,10 @@ def test_one_install_at_a_time(prefs, numba_pip):
 
 
 def test_preferences_draw_numba_box(prefs, monkeypatch):
+    from tofcore.compiled import child_compile
+
     monkeypatch.setattr(compiled, "_last", {})
+    monkeypatch.setattr(child_compile, "_child", {})  # no background compile of an earlier test in this process
     log: list = []
     preferences.draw_compiled(RecordingLayout(log))
     labels = [(text, icon) for kind, text, icon in log if kind == "label"]
