@@ -369,12 +369,11 @@ def inverse_direction(d):
             F32_ONE / (d[2] if abs(d[2]) >= TINY_DIR else (-TINY_DIR if d[2] < F32_ZERO else TINY_DIR)))
 
 
-# The four children's slab tests of a node at once. On the CPU one function of LLVM vector instructions
-# (issue 32's route (b): LLVM's SLP vectorizer did not pack the scalar loop by itself, so the vectors are
-# written out); for CUDA (one thread per ray already; the GPU traces with tofcore.gpu.traversal, so this build
-# never calls it) the same tests one child at a time. Both round as the scalar code: each lane is the float32
-# subtract and multiply, max and min as numba's max(a, b) = b if b > a else a (NaN as Python keeps it), and the
-# ordered a <= b.
+# The four children's slab tests of a node at once, as LLVM vector instructions (issue 32's route (b): LLVM's
+# SLP vectorizer did not pack the scalar loop by itself, so the vectors are written out). Each lane rounds as the
+# scalar tests did: the float32 subtract and multiply, max and min as numba's max(a, b) = b if b > a else a (NaN as
+# Python keeps it), and the ordered a <= b (tests/tofcore/test_kernel_twins.py holds it to the scalar loop bit for
+# bit). CPU build only: the CUDA build never traverses here (the GPU traces with tofcore.gpu.traversal).
 if cuda is None:
     from llvmlite import ir as _ir
     from numba import types as _types
@@ -438,24 +437,6 @@ if cuda is None:
             return context.make_tuple(builder, sig.return_type, [mask, entries])
 
         return signature, codegen
-else:
-    @fn
-    def slab_test(planes, node, ex, ey, ez, o, inv, best_t):
-        """The CPU's slab_test one child at a time."""
-        mask = 0
-        t = (F32_ZERO, F32_ZERO, F32_ZERO, F32_ZERO)
-        for c in range(WIDTH):
-            near_x = (planes[node + ex, c] - o[0]) * inv[0]
-            far_x = (planes[node + 3 - ex, c] - o[0]) * inv[0]
-            near_y = (planes[node + ey, c] - o[1]) * inv[1]
-            far_y = (planes[node + 5 - ey, c] - o[1]) * inv[1]
-            near_z = (planes[node + ez, c] - o[2]) * inv[2]
-            far_z = (planes[node + 7 - ez, c] - o[2]) * inv[2]
-            t_in = max(max(max(near_x, near_y), near_z), F32_ZERO)
-            if t_in <= min(min(min(far_x, far_y), far_z), best_t):
-                mask |= 1 << c
-            t = t[:c] + (t_in,) + t[c + 1:]
-        return mask, t
 
 
 @fn
