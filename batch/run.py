@@ -142,6 +142,20 @@ class InlineExecutor:
         pass
 
 
+def _exit_code(process, timeout_s: float) -> int | None:
+    """A dead worker's exit status, waiting up to ``timeout_s`` for it.
+
+    The pool's manager thread reaps its broken workers too; when it wins the race for ``waitpid``, this
+    thread's poll sees ``ECHILD`` and None for a moment, until the other has stored the status. So poll
+    until a status appears rather than trust the first look.
+    """
+    deadline = time.monotonic() + timeout_s
+    process.join(timeout=timeout_s)
+    while (code := process.exitcode) is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    return code
+
+
 @dataclass
 class _Slot:
     """One worker process of the local pool: its own one-process pool, its GPU, the view it renders, and
@@ -254,8 +268,7 @@ class LocalExecutor:
         process, where = slot.process, f" for GPU {slot.gpu}" if slot.gpu is not None else ""
         code = None
         if process is not None:
-            process.join(timeout=2.0)
-            code = process.exitcode
+            code = _exit_code(process, timeout_s=2.0)
         how = "ended" if code is None else f"exit code {code}"
         if code is not None and code < 0:
             try:
