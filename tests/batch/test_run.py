@@ -294,3 +294,22 @@ suggested = true
     card = (dataset / "README.md").read_bytes().decode("utf-8")  # valid UTF-8
     assert "sets\\xff" in card
     assert all(r["status"] == "ok" and r["error"] is None for r in read_index(dataset))
+
+
+def test_a_dead_workers_exit_status_is_waited_for_when_another_thread_reaps_it():
+    """The pool's manager thread reaps a broken worker too: while it holds the status, this thread's look sees
+    None (waitpid's ECHILD). ``_exit_code`` polls until the status appears (it was 'ended' in 1 of 10 kills)."""
+    from batch.run import _exit_code
+
+    class Reaped:  # the status shows on the third look, as after the other thread's waitpid returns
+        looks = 0
+
+        def join(self, timeout=None):
+            pass
+
+        @property
+        def exitcode(self):
+            self.looks += 1
+            return -9 if self.looks >= 3 else None
+
+    assert _exit_code(Reaped(), timeout_s=2.0) == -9
