@@ -494,7 +494,15 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     sensor = load_preset(args.preset)
     if chosen.name == "cpu":
         sensor = sensor.scaled(16 / sensor.camera.width)
-    frame = render(demo_scene("corner"), sensor, spp=4, device=chosen)  # 4 spp: the error estimate runs too
+    bvh_child = bvh_build_aside() if bvh_build.available() else None
+    try:
+        frame = render(demo_scene("corner"), sensor, spp=4, device=chosen)  # 4 spp: the error estimate runs too
+        if bvh_child is not None:
+            bvh_child.wait()
+    finally:
+        if bvh_child is not None and bvh_child.poll() is None:  # interrupted: the child's compile is not wanted
+            bvh_child.kill()
+            bvh_child.wait()
     transport, device = frame.stats["transport"], frame.stats["device"]["name"]
     where = ""
     if transport["tracer"] == "compiled" and device == "cpu":
@@ -503,12 +511,40 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     elif transport["tracer"] == "compiled":
         where = f"; kernels cached in {compiled.cache_location()}"
     if bvh_build.available():
-        bvh_build.warm_up()
+        bvh_build.warm_up()  # loads what the child compiled; compiles here where it could not
         where += f"; the BVH build in {getattr(bvh_build._split_level_serial._cache, 'cache_path', 'no cache')}"
     why = f" ({transport['tracer_reason']})" if transport.get("tracer_reason") else ""
     say(f"{transport['tracer']} tracer on the {device.upper()}{why}: ready in {time.perf_counter() - start:.1f} s"
         f"{where}")
     return 0
+
+
+BVH_WARM_UP = "from tofcore.scene import bvh_build; bvh_build.warm_up()"
+"""What the child of :func:`bvh_build_aside` runs."""
+
+
+def bvh_build_aside():
+    """The BVH build's compile (:func:`tofcore.scene.bvh_build.warm_up`, about 9 s on 2 cores) started in a
+    child process, so that it runs beside the kernels' compile (about 26 s) instead of after it; the child's
+    ``Popen``, or None where its loops are cached, the machine has one CPU or no Python can be started (then
+    the warm-up compiles them itself, afterwards). numba writes its cache files by atomic renames: a child
+    that is stopped or fails leaves nothing half-written, and the parent's own ``warm_up`` then compiles
+    what is missing."""
+    import subprocess
+
+    from .compiled import bvh_build_cached
+    from .compiled.child_compile import child_environment
+    from .limits import usable_cpus
+    from .tracer.workers import python_executable
+
+    python = python_executable()
+    if python is None or usable_cpus() < 2 or bvh_build_cached():
+        return None
+    try:
+        return subprocess.Popen([python, "-c", BVH_WARM_UP], env=child_environment(), stdin=subprocess.DEVNULL,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    except OSError:
+        return None
 
 
 class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter, argparse.RawDescriptionHelpFormatter):

@@ -282,6 +282,7 @@ def test_compiled_build_gives_the_numpy_records_bit_for_bit(leaf_size, threads, 
 
     monkeypatch.setattr(bvh_build, "PARALLEL_LEVEL", 0 if threads == "all" else 1 << 62)
     monkeypatch.setattr(bvh_module, "COMPILED_BUILD_MIN", 1)
+    monkeypatch.setattr(bvh_module, "COMPILE_PAYS_MIN", 1)  # compiled even before numba's cache holds it
     meshes = _meshes_for_the_build()
     meshes["one"] = (np.eye(3, dtype=np.float32), np.array([[0, 1, 2]], np.int32))
     v_zero, t_zero = meshes["terrain"]
@@ -353,6 +354,7 @@ def test_a_failing_compiled_build_falls_back_to_numpy_with_a_warning(monkeypatch
     reference = BVH.build(v, t)
     monkeypatch.setenv("TOFCORE_TRACER", "auto")
     monkeypatch.setattr(bvh_module, "COMPILED_BUILD_MIN", 1)
+    monkeypatch.setattr(bvh_module, "COMPILE_PAYS_MIN", 1)  # compiled even before numba's cache holds it
     monkeypatch.setattr(bvh_build, "split_level", broken)
     with pytest.warns(RuntimeWarning, match="compiled BVH build failed.*UnpicklingError"):
         tree = BVH.build(v, t)
@@ -376,3 +378,32 @@ def test_cached_tree_is_shared_by_equal_geometry_only():
     for seed in range(bvh_module.CACHED_TREES + 1):  # the oldest tree is dropped
         BVH.cached(*soup(np.random.default_rng(100 + seed), 50))
     assert BVH.cached(v, t) is not first
+
+
+def test_a_mesh_below_a_million_triangles_waits_for_no_compile_of_the_build(monkeypatch):
+    """The compiled build costs 4–6 s of compile the first time, more than the NumPy build of a mesh below
+    `COMPILE_PAYS_MIN` triangles: such a mesh uses it only where it is compiled or cached already; a bigger mesh
+    compiles it."""
+    pytest.importorskip("numba")
+    from tofcore.scene import bvh as bvh_module, bvh_build
+
+    monkeypatch.setenv("TOFCORE_TRACER", "auto")
+    m = bvh_module.COMPILED_BUILD_MIN
+    monkeypatch.setattr(bvh_build, "cached", lambda parallel: False)
+    assert not bvh_module._compiled_build_pays(m) and not bvh_module._compiled_build_pays(m - 1)
+    assert bvh_module._compiled_build_pays(bvh_module.COMPILE_PAYS_MIN)
+    monkeypatch.setattr(bvh_build, "cached", lambda parallel: parallel is (m >= bvh_build.PARALLEL_LEVEL))
+    assert bvh_module._compiled_build_pays(m) and not bvh_module._compiled_build_pays(m - 1)
+    monkeypatch.setenv("TOFCORE_TRACER", "numpy")
+    assert not bvh_module._compiled_build_pays(bvh_module.COMPILE_PAYS_MIN)
+
+
+def test_the_build_counts_as_cached_once_compiled(monkeypatch):
+    """``bvh_build.cached`` is True for a build whose loops this process compiled (the warm-up), whatever the
+    cache folder holds."""
+    pytest.importorskip("numba")
+    from tofcore.scene import bvh_build
+
+    monkeypatch.setenv("TOFCORE_TRACER", "auto")
+    bvh_build.warm_up()
+    assert bvh_build.cached(True) and bvh_build.cached(False)

@@ -101,6 +101,12 @@ def cpu_warm() -> bool | None:
     cached = cpu_kernels_cached()
     if not cached:
         return cached
+    return bvh_build_cached()
+
+
+def bvh_build_cached() -> bool:
+    """Whether numba's cache holds every compiled loop of the BVH's build, both builds of each
+    (:func:`tofcore.scene.bvh_build.warm_up`), whole."""
     from ..scene import bvh_build
 
     return all(hasattr(driver._cache, "_cache_file") and _index_is_whole(driver._cache)  # not numba's NullCache

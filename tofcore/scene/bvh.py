@@ -74,6 +74,24 @@ COMPILED_BUILD_MIN = 4096
 """Meshes with fewer triangles are built by the NumPy levels alone (:func:`_split_level`): milliseconds,
 less than importing numba for the compiled levels (:mod:`tofcore.scene.bvh_build`)."""
 
+COMPILE_PAYS_MIN = 1_000_000
+"""Meshes of fewer triangles use the compiled build only where numba's cache holds it (``tofcore warmup``
+compiles it; so does a first build of a bigger mesh): compiling it costs 4.1 s (a 10k-triangle room) to 6.3 s
+(200k) once, more than the NumPy build of those meshes (0.06 s and 1.5 s; ≈ 6 µs a triangle, 3.1 s at 500k: 2
+cores, 2026-12-02). So a fresh install's first render of the demo room does not wait for a compile that saves
+it 55 ms."""
+
+
+def _compiled_build_pays(m: int) -> bool:
+    """Whether a mesh of ``m`` triangles is built in compiled loops (where numba runs): at least
+    `COMPILED_BUILD_MIN` triangles, and the loops cached or the mesh big enough to pay for their compile
+    (`COMPILE_PAYS_MIN`)."""
+    if m < COMPILED_BUILD_MIN:
+        return False
+    from . import bvh_build  # imports numba: only for meshes that may need it
+
+    return bvh_build.available() and (m >= COMPILE_PAYS_MIN or bvh_build.cached(m >= bvh_build.PARALLEL_LEVEL))
+
 RAY_CHUNK = 8192
 """Rays traversed together; keeps the per-level temporaries in L2."""
 
@@ -405,8 +423,8 @@ def _build_binary(lo, hi, leaf_size, n_bins, *, compiled=None):
     ``lo, hi`` are (3, M) float32 triangle boxes.  All nodes of a level are
     split together (:func:`_split_level`, or its compiled twin
     :func:`tofcore.scene.bvh_build.split_level` — the same tree — where numba
-    runs and the mesh has at least `COMPILED_BUILD_MIN` triangles;
-    ``compiled`` True/False overrides the size rule); a node with at most
+    runs and :func:`_compiled_build_pays`; ``compiled`` True/False overrides
+    that rule); a node with at most
     ``leaf_size`` triangles is a leaf; a node whose centroids cannot be
     separated by the bins is cut at its middle.  Triangles of a node stay
     contiguous in ``order`` (stable partition in place).
@@ -417,7 +435,7 @@ def _build_binary(lo, hi, leaf_size, n_bins, *, compiled=None):
     """
     m = lo.shape[1]
     cen = (lo + hi) * np.float32(0.5)
-    if m >= COMPILED_BUILD_MIN if compiled is None else compiled:
+    if _compiled_build_pays(m) if compiled is None else compiled:
         from . import bvh_build  # imports numba: only for meshes that need it
         if bvh_build.available():
             try:
@@ -621,8 +639,9 @@ class BVH:
         of a level at once (`_build_binary`), boxes padded by `BOX_PAD`, then
         collapsed to `WIDTH` children per node (`_collapse`; `_tree_records`).
         Meshes of at least `COMPILED_BUILD_MIN` triangles are built in
-        compiled loops where numba runs (`_build_compiled`): the same records
-        bit for bit.
+        compiled loops where numba runs and their compile is cached or pays
+        (`_compiled_build_pays`, `_build_compiled`): the same records bit
+        for bit.
 
         Storage: one record of `_NODE_ROWS` rows of `WIDTH` children per node:
         the box minimum x, y, z and maximum x, y, z (float32), and the
@@ -641,7 +660,7 @@ class BVH:
         if v.ndim != 2 or v.shape[1] != 3 or tri.ndim != 2 or tri.shape[1] != 3 or len(tri) == 0:
             raise SceneError(f"BVH.build: vertices and triangles must be (N, 3) and (M >= 1, 3), "
                              f"got {v.shape} and {tri.shape}")
-        built = _build_compiled(v, tri, leaf_size) if len(tri) >= COMPILED_BUILD_MIN else None
+        built = _build_compiled(v, tri, leaf_size) if _compiled_build_pays(len(tri)) else None
         if built is None:
             axes = np.ascontiguousarray(v.T)  # (3, N)
             corner_rows = np.concatenate([axes[:, tri[:, j]] for j in range(3)])  # (9, M): v0 xyz, v1 xyz, v2 xyz
