@@ -21,6 +21,13 @@ Constants read from the reference modules (rng, qmc, bsdf, …) are frozen into 
 the cache folder is named after a hash of every constant defined above the decorators
 (:func:`tofcore.compiled._target.constants_fingerprint`): a changed constant compiles anew. Function
 bodies therefore read only this module's globals, never ``module.attribute`` of another module.
+
+numba compiles a function once per argument type, and a constant argument (``0``, ``-1``, ``False``, a
+global such as ``DIM_PIXEL``) has a type of its own (``Literal[int](0)``), as has a loop variable's first
+value while numba infers the loop's types. So constants a call passes, and the first values of such
+variables, go through ``np.int64(...)`` or ``bool(np.int64(0))``: each function compiles for its one
+argument type, 86 overloads instead of 111, the kernels' first compile 21 s instead of 28 (2 cores). The
+literal ``any_hit`` of :func:`traverse` is kept on purpose: a closest-hit and an any-hit traversal.
 """
 
 from __future__ import annotations
@@ -618,18 +625,18 @@ def surface_at(geo, prim, u, v, ray_origin, ray_direction):
         tex_u = w0 * uvs[i0, 0] + u64 * uvs[i1, 0] + v64 * uvs[i2, 0]
         tex_v = w0 * uvs[i0, 1] + u64 * uvs[i1, 1] + v64 * uvs[i2, 1]
         if slots[m, REFLECTANCE_MAP] >= 0:
-            reflectance = np.float64(texture_sample(textures, slots[m, REFLECTANCE_MAP], tex_u, tex_v, 0))
+            reflectance = np.float64(texture_sample(textures, slots[m, REFLECTANCE_MAP], tex_u, tex_v, np.int64(0)))
         if slots[m, ROUGHNESS_MAP] >= 0:
-            roughness = np.float64(texture_sample(textures, slots[m, ROUGHNESS_MAP], tex_u, tex_v, 0))
+            roughness = np.float64(texture_sample(textures, slots[m, ROUGHNESS_MAP], tex_u, tex_v, np.int64(0)))
         if slots[m, METALLIC_MAP] >= 0:
-            metallic = np.float64(texture_sample(textures, slots[m, METALLIC_MAP], tex_u, tex_v, 0))
+            metallic = np.float64(texture_sample(textures, slots[m, METALLIC_MAP], tex_u, tex_v, np.int64(0)))
         normal_map = slots[m, NORMAL_MAP]
         if normal_map >= 0:
             c = dot(ns, ng)
             side = 1.0 if c > 0 else (-1.0 if c < 0 else 0.0)  # np.sign
-            rgb = (texture_sample(textures, normal_map, tex_u, tex_v, 0),
-                   texture_sample(textures, normal_map, tex_u, tex_v, 1),
-                   texture_sample(textures, normal_map, tex_u, tex_v, 2))
+            rgb = (texture_sample(textures, normal_map, tex_u, tex_v, np.int64(0)),
+                   texture_sample(textures, normal_map, tex_u, tex_v, np.int64(1)),
+                   texture_sample(textures, normal_map, tex_u, tex_v, np.int64(2)))
             ns = perturb_normal(geo, prim, scale(ns, side), rgb)
     ns = scale(ns, -1.0 if dot(ns, ng) < 0 else 1.0)
     tangent, bitangent = orthonormal_basis(ns)
@@ -727,7 +734,7 @@ def ambient_radiance(sky, textures, radiance, d):
     v = math.atan2(d[2], math.hypot(d[0], d[1])) / PI + 0.5
     h = textures[0][t, 1]
     v = min(max(v, 0.5 / h), 1.0 - 0.5 / h)
-    return radiance + np.float64(mul32(np.float32(sky[0]), texture_sample(textures, t, u, v, 0)))
+    return radiance + np.float64(mul32(np.float32(sky[0]), texture_sample(textures, t, u, v, np.int64(0))))
 
 
 @fn
@@ -1182,12 +1189,12 @@ def light_ray(frame, leds, rng):
     the float64 emission direction, its pdf, the float32 query origin and direction)."""
     key, pixel, sample, independent = rng
     led_positions, led_table, led_cdf = leds[0], leds[1], leds[2]
-    u_led = sample_1d(key, pixel, sample, DIM_LED_CHOICE, independent)
+    u_led = sample_1d(key, pixel, sample, np.int64(DIM_LED_CHOICE), independent)
     index = 0
     for c in range(led_cdf.shape[0]):
         if u_led >= led_cdf[c]:
             index += 1
-    u1, u2 = sample_2d(key, pixel, sample, DIM_EMISSION, independent)
+    u1, u2 = sample_2d(key, pixel, sample, np.int64(DIM_EMISSION), independent)
     kind = np.int64(led_table[index, LED_KIND])
     local = sample_emission(kind, u1, u2)
     pdf_dir = led_table[index, LED_PROBABILITY] * emission_pdf(kind, local[2])
@@ -1228,7 +1235,7 @@ def light_vertex(geo, frame, leds, rng, work):
     """The sample's light vertex y (light_paths.trace_light_vertices): the ``light`` tuple of :func:`light_vertex_at`."""
     ray = light_ray(frame, leds, rng)
     work[0][3] += 1
-    t, prim, u, v = intersect(geo, ray[4], ray[5], F32_INF, -1, False, work)
+    t, prim, u, v = intersect(geo, ray[4], ray[5], F32_INF, np.int64(-1), False, work)
     return light_vertex_at(geo, leds, ray, prim, u, v)
 
 
@@ -1275,8 +1282,8 @@ def camera_start(scene, rng):
     """Scene-frame origin and unit direction of the sample's camera ray (stages.camera_rays)."""
     cam, cam_table, frame = scene[1], scene[2], scene[3]
     key, pixel, sample, independent = rng
-    pixel_u, pixel_v = sample_2d(key, pixel, sample, DIM_PIXEL, independent)
-    lens_u, lens_v = sample_2d(key, pixel, sample, DIM_LENS, independent)
+    pixel_u, pixel_v = sample_2d(key, pixel, sample, np.int64(DIM_PIXEL), independent)
+    lens_u, lens_v = sample_2d(key, pixel, sample, np.int64(DIM_LENS), independent)
     o_s, d_s = camera_ray(cam, cam_table, pixel, pixel_u, pixel_v, lens_u, lens_v)
     o_w = rotate(o_s, frame)
     origin = (o_w[0] + frame[3, 0], o_w[1] + frame[3, 1], o_w[2] + frame[3, 2])
@@ -1404,15 +1411,15 @@ def trace_path(scene, settings, pixel, sample, sums, work):
     if light_paths:
         light = light_vertex(geo, scene[3], scene[4], rng, work)
     else:
-        y = surface_at(geo, 0, F32_ZERO, F32_ZERO, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
-        light = (False, y, (0.0, 0.0, 1.0), 0.0, 0.0, 0.0, 0.0)
+        y = surface_at(geo, np.int64(0), F32_ZERO, F32_ZERO, (0.0, 0.0, 0.0), (0.0, 0.0, 1.0))
+        light = (bool(np.int64(0)), y, (0.0, 0.0, 1.0), 0.0, 0.0, 0.0, 0.0)
     origin, direction = camera_start(scene, rng)
     prev_point = origin
     throughput = 1.0      # β
     path_length = 0.0     # metres from the lens
-    prev_prim = -1        # triangle the ray leaves
+    prev_prim = np.int64(-1)  # triangle the ray leaves
     prev_pdf = 0.0        # solid-angle pdf of the bounce that led here
-    prev_delta = False    # ... and whether it was a mirror lobe
+    prev_delta = bool(np.int64(0))  # ... and whether it was a mirror lobe (False)
     for depth in range(1, max_depth + 1):
         prim, u, v = next_hit(geo, origin, direction, depth, prev_prim, work)
         if prim < 0:  # the ray left the scene: it sees the ambient radiance, β · L_amb (stages.intersect)
@@ -1514,7 +1521,7 @@ def first_hits(geo, lens, directions, out):
         work = (np.zeros(N_COUNTERS, np.int64), np.empty(STACK_SIZE, np.int64), np.empty(STACK_SIZE, np.float32))
         for i in range(block * FIRST_HIT_BLOCK, min(n, (block + 1) * FIRST_HIT_BLOCK)):
             d = (directions[i, 0], directions[i, 1], directions[i, 2])
-            prim, u, v = next_hit(geo, lens, d, 1, -1, work)
+            prim, u, v = next_hit(geo, lens, d, np.int64(1), np.int64(-1), work)
             prim_out[i] = prim
             if prim < 0:
                 continue
@@ -1669,7 +1676,7 @@ def wf_start(scene, settings, launch, path, pstate, rays, light_rays, counters):
     store_vec(f, j, 7, origin)
     store_vec(f, j, 10, direction)
     pstate[1][j] = -1
-    store_ray(rays, j, ray_query(origin, direction, 1), to_f32(direction), -1)
+    store_ray(rays, j, ray_query(origin, direction, np.int64(1)), to_f32(direction), np.int64(-1))
     rays[3][j] = F32_INF
     counters[0, j] += 1
     if light_paths:
