@@ -358,9 +358,9 @@ def _say_setup(args: argparse.Namespace, scene, sensor, ambient, device) -> None
         from . import compiled
 
         if compiled.cpu_kernels_cached() is False:  # the progress bar shows the compile's seconds meanwhile
-            print("compiling the tracer for this process only (about 40 s on 2 cores; its cache cannot be used, "
+            print("compiling the tracer for this process only (about 20 s on 2 cores; its cache cannot be used, "
                   "see the note)" if compiled.cache_problem() else
-                  f"{COMPILE_TEXT}: about 40 s on 2 cores; later renders load the kernels in about a second "
+                  f"{COMPILE_TEXT}: about 20 s on 2 cores; later renders load the kernels in about a second "
                   f"(`tofcore warmup` compiles them ahead)", file=sys.stderr)
 
 

@@ -104,7 +104,7 @@ def note(message: str) -> None:
         warnings.warn(message, CompiledWarning, stacklevel=2)
 
 
-RECOMPILE_COST = "about 40 s on 2 cores"
+RECOMPILE_COST = "about 20 s on 2 cores"
 """What compiling the CPU kernels costs (docs/benchmarks.md), for the notes."""
 
 UNUSABLE: dict[str, str] = {}
