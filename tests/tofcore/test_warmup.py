@@ -113,3 +113,25 @@ def test_after_warmup_a_first_render_compiles_nothing(tmp_path):
                            text=True, timeout=600)
     assert first.returncode == 0, first.stderr
     assert first.stdout.strip().splitlines()[-1] == "compiled: []", first.stdout
+
+
+def test_the_warm_up_compiles_the_bvh_build_in_a_child_beside_the_kernels(monkeypatch, tmp_path):
+    """``tofcore warmup`` starts the BVH build's compile in a child process (it then runs beside the kernels'
+    compile, 8 s of the 35 it took one after the other on 2 cores): the child fills numba's cache — here an empty
+    one of its own (about 8 s of compile) —, so the parent's own ``warm_up`` loads. No child where the loops are
+    cached or only one CPU is usable."""
+    import tofcore.compiled as compiled
+    import tofcore.limits as limits
+    from tofcore import cli
+
+    monkeypatch.setattr(limits, "usable_cpus", lambda: 1)
+    assert cli.bvh_build_aside() is None
+    monkeypatch.setattr(limits, "usable_cpus", lambda: 2)
+    monkeypatch.setattr(compiled, "bvh_build_cached", lambda: True)
+    assert cli.bvh_build_aside() is None
+    monkeypatch.setattr(compiled, "bvh_build_cached", lambda: False)
+    monkeypatch.setenv("NUMBA_CACHE_DIR", str(tmp_path))
+    child = cli.bvh_build_aside()
+    assert child is not None and child.wait(timeout=300) == 0
+    cached = {p.name.split(".")[1].rsplit("-", 1)[0] for p in tmp_path.rglob("bvh_build.*.nbi")}
+    assert {"_split_level_parallel", "_split_level_serial", "_leaf_records_serial"} <= cached, cached
