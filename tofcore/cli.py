@@ -478,7 +478,8 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     Kinect room frame at any size, 1 or 2 tracer threads, then compiles nothing more: tests/tofcore/
     test_warmup.py). On the GPU it has the preset's full size: some of CuPy's kernels (its CUB reductions) are
     compiled per array size. Then, on either device, both builds of the BVH build's compiled loops (numba, on the
-    CPU; meshes of 4,096 triangles or more: :func:`tofcore.scene.bvh_build.warm_up`). Batch runs call this once
+    CPU; meshes of 4,096 triangles or more: :func:`tofcore.scene.bvh_build.warm_up`), in a child process beside
+    the render where the machine has two CPUs or more (:func:`bvh_build_aside`). Batch runs call this once
     before their workers start (batch/warmup.py), the Blender add-on after installing numba or CuPy."""
     import time
 
@@ -524,8 +525,8 @@ BVH_WARM_UP = "from tofcore.scene import bvh_build; bvh_build.warm_up()"
 
 
 def bvh_build_aside():
-    """The BVH build's compile (:func:`tofcore.scene.bvh_build.warm_up`, about 9 s on 2 cores) started in a
-    child process, so that it runs beside the kernels' compile (about 26 s) instead of after it; the child's
+    """The BVH build's compile (:func:`tofcore.scene.bvh_build.warm_up`, about 8 s on 2 cores) started in a
+    child process, so that it runs beside the kernels' compile (about 20 s) instead of after it; the child's
     ``Popen``, or None where its loops are cached, the machine has one CPU or no Python can be started (then
     the warm-up compiles them itself, afterwards). numba writes its cache files by atomic renames: a child
     that is stopped or fails leaves nothing half-written, and the parent's own ``warm_up`` then compiles

@@ -484,9 +484,9 @@ DRIVERS = (_split_level_parallel, _split_level_serial, _triangle_records_paralle
 def cached(parallel: bool) -> bool:
     """Whether this process has compiled, or numba's cache holds, the loops of one build (``parallel``: the build
     of meshes of at least `PARALLEL_LEVEL` triangles, else the serial one), fresh for these sources and this
-    numba — a build then
-    loads them in milliseconds instead of compiling them (4–6 s on 2 cores). A damaged data file behind a fresh
-    index is compiled anew by numba; an index that cannot be read counts as not cached."""
+    numba — a build then loads them in milliseconds instead of compiling them (4–6 s on 2 cores). A damaged
+    data file behind a fresh index is compiled anew by numba; an index that cannot be read counts as not
+    cached."""
     other = "_serial" if parallel else "_parallel"
     for driver in DRIVERS:
         if driver.py_func.__name__.endswith(other):
