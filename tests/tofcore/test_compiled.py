@@ -447,10 +447,12 @@ def test_cuda_build_of_the_kernels_traces_the_numpy_frame_in_the_simulator(tmp_p
 def test_the_kernels_material_record_is_read_by_the_tables_names():
     """kernels.surface_params builds the record in the material table's order, so params[layout.<NAME>] is
     the parameter of that name (tofcore.scene.material.PARAMETERS)."""
+    import numba
+
     from tofcore.compiled import kernels, layout
 
     values = tuple(float(i + 1) for i in range(len(layout.MATERIAL_COLUMNS)))
-    record = kernels.surface_params(*values)
+    record = numba.njit(lambda v: kernels.surface_params(*v))(values)  # kernel functions have no Python wrapper
     for name, value in zip(layout.MATERIAL_COLUMNS, values):
         assert record[getattr(layout, name.upper())] == value, name
 
@@ -459,14 +461,16 @@ def test_the_kernels_material_record_is_read_by_the_tables_names():
 def test_the_wavefronts_light_table_round_trips_a_light_vertex():
     """store_light / load_light (the GPU wavefront's light table) compiled for the CPU: the same tuple back,
     bit for bit (numba types the heterogeneous tuple as the CUDA build does)."""
+    import numba
+
     from tofcore.compiled import kernels
 
     surf = ((1.0, 2.0, 3.0), (0.0, 0.0, 1.0), (1.0, 0.0, 0.0), (0.0, 1.0, 0.0), (0.0, 0.6, 0.8),
             (0.5, 0.2, 0.0, 1.5, 0.0, 0.4, 0.1))
     light = (True, surf, (0.0, -0.6, -0.8), 2.5, 0.125, 3.0e-2, 1e-6)
     table = np.zeros((kernels.LIGHT_COLUMNS, 3))
-    kernels.store_light(table, 1, light)
-    assert kernels.load_light(table, 1) == light
+    numba.njit(lambda t, v: kernels.store_light(t, 1, v))(table, light)  # kernel functions have no Python wrapper
+    assert numba.njit(lambda t: kernels.load_light(t, 1))(table) == light
     assert not table[:, [0, 2]].any()  # the other paths' columns untouched
 
 
