@@ -478,10 +478,34 @@ def test_the_wavefronts_light_table_round_trips_a_light_vertex():
 def test_sobol_bit_by_bit_equals_the_lookup_tables():
     """The GPU build's Sobol' dimension 2 (a loop over the index's bits: constant-memory tables serialise a
     warp) is the CPU build's table lookup, number for number: every single-bit index, and 20,000 random ones."""
+    import numba
+
     from tofcore.compiled import kernels
+
+    @numba.njit
+    def both(indices):
+        out = np.empty((len(indices), 2), np.uint64)
+        for k in range(len(indices)):
+            out[k, 0], out[k, 1] = kernels.sobol_dim1_bits(indices[k]), kernels.sobol_dim1_lookup(indices[k])
+        return out
 
     rng = np.random.default_rng(5)
     indices = np.concatenate([np.uint64(1) << np.arange(32, dtype=np.uint64), [0, 0xFFFFFFFF],
                               rng.integers(0, 2 ** 32, 20_000, dtype=np.uint64)]).astype(np.uint64)
-    for i in indices:
-        assert kernels.sobol_dim1_bits(i) == kernels.sobol_dim1_lookup(i), hex(int(i))
+    bits, lookup = both(indices).T
+    differ = np.flatnonzero(bits != lookup)
+    assert differ.size == 0, [hex(int(i)) for i in indices[differ[:5]]]
+
+
+@needs_numba
+def test_a_kernel_function_called_from_python_says_it_is_for_jitted_code():
+    """The scalar kernel functions are built without numba's Python wrapper (a third of their first compile): a
+    call from Python raises a TypeError naming the function, and never reaches the missing wrapper (which would
+    crash the interpreter)."""
+    import numba
+
+    from tofcore.compiled import kernels
+
+    with pytest.raises(TypeError, match="dot is compiled for calls from jitted code only"):
+        kernels.dot((1.0, 0.0, 0.0), (0.0, 1.0, 0.0))
+    assert numba.njit(lambda: kernels.dot((1.0, 2.0, 3.0), (4.0, 5.0, 6.0)))() == 32.0

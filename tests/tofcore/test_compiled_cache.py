@@ -33,7 +33,8 @@ if sys.argv[1] == "changed":
     rng._M1 = np.uint64(0x9E3779B97F4A7C15)
 from tofcore import compiled
 from tofcore.compiled import kernels as k
-value = k.uniform(np.uint64(1), 2, 3, 4)
+import numba
+value = numba.njit(lambda: k.uniform(np.uint64(1), np.int64(2), np.int64(3), np.int64(4)))()  # jitted callers only
 from tofcore import rng
 print(json.dumps({"value": float(value), "numpy": float(rng.uniform(np.uint64(1), np.array([2]), np.array([3]), 4)[0]),
                   "hits": sum(k.uniform.stats.cache_hits.values()), "folder": k.uniform.stats.cache_path,
@@ -244,7 +245,8 @@ REINSTALL_PROBE = """
 import json
 import numpy as np
 from tofcore.compiled import kernels as k
-k.uniform(np.uint64(1), 2, 3, 4)
+import numba
+numba.njit(lambda: k.uniform(np.uint64(1), np.int64(2), np.int64(3), np.int64(4)))()  # jitted callers only
 print(json.dumps({"hits": sum(k.uniform.stats.cache_hits.values()), "file": k.__file__}))
 """
 

@@ -579,7 +579,7 @@ def test_textures_sky_map_normal_maps_and_transient_bins_equal_numpy():
     values = (0.25, 0.5, 0.75, 1.5, 2.5, 0.6, 0.125)
     reference = bsdf.SurfaceParams(**dict(zip(PARAMETER_NAMES, values)))
     assert tuple(f.name for f in dataclasses.fields(bsdf.SurfaceParams)) == PARAMETER_NAMES
-    twin("surface_params", np.array(kernels.surface_params(*values)),
+    twin("surface_params", np.array(_params(np.array([values]), 0)),
          [getattr(reference, name)[0] for name in PARAMETER_NAMES], what="(fields in the material table's order)")
 
 

@@ -255,13 +255,30 @@ def _cpu_jit(module_name: str, kind: str):
 
     def decorate(function):
         if folder is None:
-            return numba.njit(**options)(function)
-        with _numba_cache_dir(folder):
-            dispatcher = numba.njit(cache=True, **options)(function)
-        dispatcher._cache.__class__ = guarded_cache_class()  # same state, guarded load and save
+            dispatcher = numba.njit(**options)(function)
+        else:
+            with _numba_cache_dir(folder):
+                dispatcher = numba.njit(cache=True, **options)(function)
+            dispatcher._cache.__class__ = guarded_cache_class()  # same state, guarded load and save
+        if options.get("no_cpython_wrapper"):
+            dispatcher.__class__ = jitted_only_class(type(dispatcher))
         return dispatcher
 
     return decorate
+
+
+@functools.cache
+def jitted_only_class(dispatcher_class):
+    """``dispatcher_class`` (numba's ``CPUDispatcher``) for functions built without a CPython wrapper
+    (:data:`CPU_DECORATORS`): called from Python, one of them raises a TypeError that says so, where numba
+    would jump to the missing wrapper and crash the interpreter. Calls from jitted code do not pass here."""
+
+    class JittedOnly(dispatcher_class):
+        def __call__(self, *args, **kwargs):
+            raise TypeError(f"tofcore.compiled: {self.py_func.__name__} is compiled for calls from jitted code only "
+                            f"(no Python wrapper, _target.CPU_DECORATORS); call it from a numba.njit function")
+
+    return JittedOnly
 
 
 def device_function(module_name: str):
