@@ -358,9 +358,9 @@ def _say_setup(args: argparse.Namespace, scene, sensor, ambient, device) -> None
         from . import compiled
 
         if compiled.cpu_kernels_cached() is False:  # the progress bar shows the compile's seconds meanwhile
-            print("compiling the tracer for this process only (about 20 s on 2 cores; its cache cannot be used, "
+            print("compiling the tracer for this process only (about 15 s on 2 cores; its cache cannot be used, "
                   "see the note)" if compiled.cache_problem() else
-                  f"{COMPILE_TEXT}: about 20 s on 2 cores; later renders load the kernels in about a second "
+                  f"{COMPILE_TEXT}: about 15 s on 2 cores; later renders load the kernels in about a second "
                   f"(`tofcore warmup` compiles them ahead)", file=sys.stderr)
 
 
@@ -526,7 +526,7 @@ BVH_WARM_UP = "from tofcore.scene import bvh_build; bvh_build.warm_up()"
 
 def bvh_build_aside():
     """The BVH build's compile (:func:`tofcore.scene.bvh_build.warm_up`, about 8 s on 2 cores) started in a
-    child process, so that it runs beside the kernels' compile (about 20 s) instead of after it; the child's
+    child process, so that it runs beside the kernels' compile (about 14 s) instead of after it; the child's
     ``Popen``, or None where its loops are cached, the machine has one CPU or no Python can be started (then
     the warm-up compiles them itself, afterwards). numba writes its cache files by atomic renames: a child
     that is stopped or fails leaves nothing half-written, and the parent's own ``warm_up`` then compiles

@@ -1,6 +1,6 @@
 """batch.warmup: the workers' kernels compiled once, by one child process, before any worker starts.
 
-The real warm-up compiles for ~20 s on 2 cores; here its command is a stand-in (a Python line that notes when it
+The real warm-up compiles for ~15 s on 2 cores; here its command is a stand-in (a Python line that notes when it
 ran) and the cache state is given, in a wrapper process that patches :mod:`batch.warmup` and runs
 ``python -m batch run`` (the tests' workers render with the NumPy tracer, tests/conftest.py).
 """

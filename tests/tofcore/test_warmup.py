@@ -117,7 +117,7 @@ def test_after_warmup_a_first_render_compiles_nothing(tmp_path):
 
 def test_the_warm_up_compiles_the_bvh_build_in_a_child_beside_the_kernels(monkeypatch, tmp_path):
     """``tofcore warmup`` starts the BVH build's compile in a child process (it then runs beside the kernels'
-    compile, 8 s of the 35 it took one after the other on 2 cores): the child fills numba's cache — here an empty
+    compile instead of after it; 8 s of the 35 the warm-up took on 2 cores): the child fills numba's cache — here an empty
     one of its own (about 8 s of compile) —, so the parent's own ``warm_up`` loads. No child where the loops are
     cached or only one CPU is usable."""
     import tofcore.compiled as compiled

@@ -104,7 +104,7 @@ def note(message: str) -> None:
         warnings.warn(message, CompiledWarning, stacklevel=2)
 
 
-RECOMPILE_COST = "about 20 s on 2 cores"
+RECOMPILE_COST = "about 15 s on 2 cores"
 """What compiling the CPU kernels costs (docs/benchmarks.md), for the notes."""
 
 UNUSABLE: dict[str, str] = {}
@@ -236,7 +236,7 @@ CPU_DECORATORS = {"device": dict(_nrt=False, no_cpython_wrapper=True, no_cfunc_w
 """numba options of the scalar functions and of the driver. The scalar functions allocate nothing (no reference
 counting) and are called only by compiled code, the drivers' or a test's jitted loop, never from Python: numba
 builds them no CPython or C wrapper (which it would compile and optimise for every overload: the wrappers of
-functions taking the scene's tuples of arrays are large), a third of the kernels' first compile (23.9 → 16.5 s
+functions taking the scene's tuples of arrays are large), 30 % of the kernels' first compile (19.6 → 13.9 s
 for the warm-up's frame on 2 cores)."""
 
 CACHE_FOLDERS: dict[str, str | None] = {}
