@@ -84,6 +84,7 @@ VALUE_TESTED = (
     "qmc_seeds", "sample_2d", "sample_1d",
     # warps, LEDs, correlations
     "concentric_disk", "cosine_hemisphere", "led_intensity", "emission_pdf", "sample_emission", "correlation",
+    "channel_value",
     # camera
     "distort_with_jacobian", "undistort_near", "camera_ray",
     # BVH and surfaces
@@ -463,10 +464,14 @@ def _warps_and_leds(u1, u2, cos_axis, intensity_w_sr, kinds, table, data, tau):
             led[k, 0, i] = kernels.led_intensity(np.int64(kind), intensity_w_sr, cos_axis[i])
             led[k, 1, i] = kernels.emission_pdf(np.int64(kind), cos_axis[i])
             _put(emission[k], i, kernels.sample_emission(np.int64(kind), u1[i], u2[i]))
-    channels = np.empty((len(kinds), len(tau)))
+    channels = np.empty((2, len(kinds), len(tau)))  # correlation, channel_value (the channels in order)
     for j in range(len(kinds)):
         for i in range(len(tau)):
-            channels[j, i] = kernels.correlation(kinds[j], table[j], data, tau[i])
+            channels[0, j, i] = kernels.correlation(kinds[j], table[j], data, tau[i])
+    for i in range(len(tau)):
+        phase = kernels.NO_PHASE
+        for j in range(len(kinds)):
+            channels[1, j, i], phase = kernels.channel_value(kinds[j], table[j], data, tau[i], phase)
     return disk, hemisphere, led, emission, channels
 
 
@@ -513,7 +518,13 @@ def test_warps_leds_and_correlations_equal_numpy():
     for j, g_j in enumerate(channels.functions):
         exact = g_j.func in (modulation.square_correlation, modulation.pulsed_correlation,
                              modulation.tabulated_correlation)
-        twin("correlation", got[j], g_j(tau), EXACT if exact else TRANSCENDENTAL, what=f"channel {j}: {g_j}")
+        twin("correlation", got[0, j], g_j(tau), EXACT if exact else TRANSCENDENTAL, what=f"channel {j}: {g_j}")
+        # the phasor's cos and sin from one sincos per frequency: the sin channel ≈ 1e-15 from the reference's
+        # cos(2πfτ − π/2), within the transcendental tolerance of the channel's largest value
+        twin("channel_value", got[1, j], g_j(tau), EXACT if exact else TRANSCENDENTAL, what=f"channel {j}: {g_j}")
+    phasor_cos = [j for j, g_j in enumerate(channels.functions)
+                  if g_j.func is modulation.phasor_component and g_j.keywords["quarter"] == 0]
+    assert phasor_cos and np.array_equal(got[1, phasor_cos], got[0, phasor_cos])  # q = 0: the same bits
 
 
 # ------------------------------------------------------------------ textures, the sky, transient bins (scene, tracer)

@@ -178,14 +178,22 @@ class CorrelationKind:
     row: object         # keywords of the partial → (row values, coefficients for the shared data array)
 
 
+def _quarter_turn(quarter) -> tuple[float, float]:
+    """(cos qπ/2, sin qπ/2) of a phasor channel's ``quarter`` q (kernels.channel_value): exact (0, ±1) for a
+    whole number of quarter turns (the phasor's cos and sin channels), else from the angle."""
+    if float(quarter).is_integer():
+        return ((1.0, 0.0), (0.0, 1.0), (-1.0, 0.0), (0.0, -1.0))[int(quarter) % 4]
+    return float(np.cos(0.5 * np.pi * quarter)), float(np.sin(0.5 * np.pi * quarter))
+
+
 def _square_row(k: dict) -> tuple:
     duty = k["duty"]
     return [k["f_hz"], k["offset_fraction"], duty, max(0.0, duty - 0.5), min(duty, 0.5), 0.25 + 0.5 * duty], []
 
 
 CORRELATION_KINDS = {
-    phasor_component: CorrelationKind(layout.PHASOR, ("2πf", "qπ/2"),
-                                      lambda k: ([2.0 * np.pi * k["f_hz"], 0.5 * np.pi * k["quarter"]], [])),
+    phasor_component: CorrelationKind(layout.PHASOR, ("2πf", "qπ/2", "cos qπ/2", "sin qπ/2"), lambda k: (
+        [2.0 * np.pi * k["f_hz"], 0.5 * np.pi * k["quarter"], *_quarter_turn(k["quarter"])], [])),
     sine_correlation: CorrelationKind(layout.SINE, ("f", "k/N"), lambda k: ([k["f_hz"], k["offset_fraction"]], [])),
     square_correlation: CorrelationKind(layout.SQUARE, ("f", "k/N", "D", "lower clip", "upper clip", "¼ + D/2"),
                                         _square_row),

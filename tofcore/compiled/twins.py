@@ -102,6 +102,10 @@ TWINS: dict[str, str | tuple[str, ...]] = {
                     "tofcore.sensor.modulation.square_correlation", "tofcore.sensor.modulation.pulsed_correlation",
                     "tofcore.sensor.modulation.harmonic_correlation",
                     "tofcore.sensor.modulation.tabulated_correlation"),
+    "channel_value": ("tofcore.sensor.modulation.phasor_component", "tofcore.sensor.modulation.sine_correlation",
+                      "tofcore.sensor.modulation.square_correlation", "tofcore.sensor.modulation.pulsed_correlation",
+                      "tofcore.sensor.modulation.harmonic_correlation",
+                      "tofcore.sensor.modulation.tabulated_correlation"),
     # one path: the stages of tofcore.tracer.stages, per path
     "led_estimate": "tofcore.tracer.stages._to_led",
     "connect_led": "tofcore.tracer.stages._to_led",
