@@ -481,6 +481,7 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     CPU; meshes of 4,096 triangles or more: :func:`tofcore.scene.bvh_build.warm_up`), in a child process beside
     the render where the machine has two CPUs or more (:func:`bvh_build_aside`). Batch runs call this once
     before their workers start (batch/warmup.py), the Blender add-on after installing numba or CuPy."""
+    import subprocess
     import time
 
     from . import compiled
@@ -499,7 +500,9 @@ def cmd_warmup(args: argparse.Namespace) -> int:
     try:
         frame = render(demo_scene("corner"), sensor, spp=4, device=chosen)  # 4 spp: the error estimate runs too
         if bvh_child is not None:
-            bvh_child.wait()
+            bvh_child.wait(timeout=BVH_CHILD_TIMEOUT_S)
+    except subprocess.TimeoutExpired:  # a stuck child: killed below, and warm_up compiles here
+        pass
     finally:
         if bvh_child is not None and bvh_child.poll() is None:  # interrupted: the child's compile is not wanted
             bvh_child.kill()
@@ -522,6 +525,9 @@ def cmd_warmup(args: argparse.Namespace) -> int:
 
 BVH_WARM_UP = "from tofcore.scene import bvh_build; bvh_build.warm_up()"
 """What the child of :func:`bvh_build_aside` runs."""
+
+BVH_CHILD_TIMEOUT_S = 600.0
+"""How long ``tofcore warmup`` waits for that child after its own render (it takes about 8 s on 2 cores)."""
 
 
 def bvh_build_aside():

@@ -645,7 +645,8 @@ def frame_setup(sensor, plan: Plan, xp=np) -> FrameSetup:
         else sensor.invalid.edge_filter_fx_px / sensor.camera.fx)
     clean = decoding.DecodeSettings(unwrap_tolerance_m=sensor.invalid.unwrap_tolerance_m,
                                     unwrap_weights=sensor.processing.unwrap_weights)
-    return FrameSetup(camera=camera, clean=clean, psf=scattering_kernel(sensor.scattering) if plan.scattering else None)
+    psf = scattering_kernel(sensor.scattering) if plan.scattering else None
+    return FrameSetup(camera=camera, clean=clean, psf=psf)
 
 
 @functools.lru_cache(maxsize=16)

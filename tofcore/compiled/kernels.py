@@ -1093,8 +1093,9 @@ def correlation(kind, par, data, tau):
     """g_j(τ) of one channel; ``par`` is its row of tofcore.compiled.setup.correlation_table, ``data`` the
     channels' shared coefficients (a harmonic series' or a table's values).
 
-    PHASOR cos(2πf τ − qπ/2) (modulation.phasor_component; the tracer's loops use :func:`channel_value`); SINE ½ + cos(2π(fτ − k/N))/π; SQUARE the
-    clipped triangle/trapezoid of modulation.square_correlation; PULSED clip(1 − |τ/t0 − b|, 0, 1);
+    PHASOR cos(2πf τ − qπ/2) (modulation.phasor_component; the tracer's channel loops use
+    :func:`channel_value`); SINE ½ + cos(2π(fτ − k/N))/π; SQUARE the clipped triangle/trapezoid of
+    modulation.square_correlation; PULSED clip(1 − |τ/t0 − b|, 0, 1);
     HARMONIC a₀ + Σₙ aₙ cos(nφ) + bₙ sin(nφ), φ = 2πfτ (modulation.harmonic_correlation); TABLE the
     periodic table linearly interpolated (modulation.tabulated_correlation).
     """
@@ -1125,6 +1126,27 @@ def correlation(kind, par, data, tau):
     return min(max(1.0 - abs(tau / par[0] - par[1]), 0.0), 1.0)  # PULSED, par: t0, bucket
 
 
+NO_PHASE = (-1.0, 0.0, 0.0)
+"""The phase a channel loop starts :func:`channel_value` with: no phasor channel evaluated yet (2πf is never −1)."""
+
+
+@fn
+def channel_value(kind, par, data, tau, phase):
+    """(g_j(τ), ``phase``) as :func:`correlation`, for a loop over the channels in order: a PHASOR channel's
+    cos(2πfτ − qπ/2) is c·cos(qπ/2) + s·sin(qπ/2) from ``phase`` = (2πf, c = cos 2πfτ, s = sin 2πfτ), computed
+    once per frequency and handed on, so the cos and sin channels of one frequency share one ``sincos`` (the
+    cross-check's six phasor channels took 12–17 % of its corner trace). ``par[2]``, ``par[3]`` are cos(qπ/2)
+    and sin(qπ/2), exact (0, ±1). Against the reference, the cos channel (q = 0) is the same bits; the sin
+    channel is sin 2πfτ, where the reference rounds 2πfτ − π/2 first: ≈ 1e-15 apart. Other kinds:
+    :func:`correlation`."""
+    if kind != PHASOR:
+        return correlation(kind, par, data, tau), phase
+    if par[0] != phase[0]:
+        angle = par[0] * tau
+        phase = (par[0], math.cos(angle), math.sin(angle))
+    return phase[1] * par[2] + phase[2] * par[3], phase
+
+
 # ------------------------------------------------------------------ one path (tofcore.transport._trace_chunk)
 #
 # The path's arguments travel in tuples (numba compiles heterogeneous tuples of arrays and scalars):
@@ -1140,26 +1162,6 @@ def correlation(kind, par, data, tau):
 #   sums     = (nee_w, nee_wg, con_w, con_wg, total, film)                     a pixel's sums (trace_path); film:
 #                                                                              the frame's transient histogram
 #   work     = (counters, stack, stack_t, wg)                                  scratch (traverse, trace_path)
-NO_PHASE = (-1.0, 0.0, 0.0)
-"""The phase a channel loop starts :func:`channel_value` with: no phasor channel evaluated yet (2πf is never −1)."""
-
-
-@fn
-def channel_value(kind, par, data, tau, phase):
-    """(g_j(τ), ``phase``) as :func:`correlation`, for a loop over the channels in order: a PHASOR channel's
-    cos(2πfτ − qπ/2) is c·cos(qπ/2) + s·sin(qπ/2) from ``phase`` = (2πf, c = cos 2πfτ, s = sin 2πfτ), computed
-    once per frequency and handed on, so the cos and sin channels of one frequency share one ``sincos`` (the
-    cross-check's six phasor channels took 12–17 % of its corner trace). ``par[2]``, ``par[3]`` are cos(qπ/2)
-    and sin(qπ/2), exact (0, ±1). Against the reference, the cos channel (q = 0) is the same bits; the sin
-    channel is sin 2πfτ, where the reference rounds 2πfτ − π/2 first: ≈ 1e-15 apart. Other kinds: :func:`correlation`."""
-    if kind != PHASOR:
-        return correlation(kind, par, data, tau), phase
-    if par[0] != phase[0]:
-        angle = par[0] * tau
-        phase = (par[0], math.cos(angle), math.sin(angle))
-    return phase[1] * par[2] + phase[2] * par[3], phase
-
-
 @fn
 def led_estimate(frame, leds, vertex, state, i):
     """Next-event estimate to LED ``i`` before its shadow test: (w, distance to the LED, the LED's position)

@@ -92,6 +92,7 @@ def _compiled_build_pays(m: int) -> bool:
 
     return bvh_build.available() and (m >= COMPILE_PAYS_MIN or bvh_build.cached(m >= bvh_build.PARALLEL_LEVEL))
 
+
 RAY_CHUNK = 8192
 """Rays traversed together; keeps the per-level temporaries in L2."""
 
