@@ -29,7 +29,7 @@ $(VENV)/.installed: requirements-dev.txt pyproject.toml
 venv: $(VENV)/.installed
 
 # The demo needs the runtime only (NumPy, tqdm) and numba for the compiled tracer (the same frame as NumPy's in
-# 0.38x the time on 2 cores; it compiles once, about 40 s): no bpy, Dask or pytest. A venv that `make test` made
+# 0.38x the time on 2 cores; it compiles once, about 15 s): no bpy, Dask or pytest. A venv that `make test` made
 # already has them; pip then installs nothing. The render stops at a real Kinect's 2 mm of depth noise (about 44
 # spp, under 60 s on 2 cores), or at 64 spp.
 $(VENV)/.runtime: pyproject.toml
