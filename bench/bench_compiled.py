@@ -107,7 +107,7 @@ def kernel_costs(n: int = 200_000) -> dict:
     @numba.njit
     def traverse(geo, o, d, t_max, any_hit):
         hits = 0
-        work = (np.zeros(k.N_COUNTERS, np.int64), np.empty(k.STACK_SIZE, np.int64), np.empty(k.STACK_SIZE, np.float32),
+        work = (np.zeros(k.N_COUNTERS, np.int64), np.empty(k.STACK_SIZE, np.int64), np.empty(k.STACK_T_SIZE, np.float32),
                 np.zeros(1))
         for i in range(o.shape[0]):
             h = k.intersect(geo, (o[i, 0], o[i, 1], o[i, 2]), (d[i, 0], d[i, 1], d[i, 2]), t_max[i], -1,

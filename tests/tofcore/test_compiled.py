@@ -248,7 +248,7 @@ def test_kernels_match_their_numpy_twins():
         prim = np.empty(len(o), np.int64)
         t = np.empty(len(o), np.float32)
         work = (np.zeros(kernels.N_COUNTERS, np.int64), np.empty(kernels.STACK_SIZE, np.int64),
-                np.empty(kernels.STACK_SIZE, np.float32), np.zeros(1))
+                np.empty(kernels.STACK_T_SIZE, np.float32), np.zeros(1))
         for i in range(len(o)):
             h = kernels.intersect(geo, (o[i, 0], o[i, 1], o[i, 2]), (d[i, 0], d[i, 1], d[i, 2]), t_max[i], -1,
                                   any_hit, work)

@@ -856,7 +856,7 @@ def _scene_queries(geo, o, d, t_max, ignore, o64, d64, prim, u, v):
     hit = np.empty((3, n), np.int64)
     bary = np.empty((2, 2, n), np.float32)
     work = (np.zeros(kernels.N_COUNTERS, np.int64), np.empty(kernels.STACK_SIZE, np.int64),
-            np.empty(kernels.STACK_SIZE, np.float32), np.zeros(1))
+            np.empty(kernels.STACK_T_SIZE, np.float32), np.zeros(1))
     bvh_arrays = (geo[0], geo[1], geo[2], geo[3])
     for i in range(n):
         ray_o, ray_d = _vec(o, i), _vec(d, i)
@@ -976,7 +976,7 @@ def _camera_paths(scene, key, independent, pixel, sample, origin, direction, dep
     hit = np.empty(m, np.int64)
     bary = np.empty((2, m), np.float32)
     work = (np.zeros(kernels.N_COUNTERS, np.int64), np.empty(kernels.STACK_SIZE, np.int64),
-            np.empty(kernels.STACK_SIZE, np.float32), np.zeros(1))
+            np.empty(kernels.STACK_T_SIZE, np.float32), np.zeros(1))
     for i in range(n):
         o, d = kernels.camera_start(scene, (key, pixel[i], sample[i], independent))
         _put(start[0], i, o)
@@ -995,7 +995,7 @@ def _vertices(scene, key, independent, pixel, sample, depth, use_mis, rows, spaw
     geo, frame, leds, corr_kinds = scene[0], scene[3], scene[4], scene[5]
     n, n_led, n_corr, n_depth = len(rows), leds[0].shape[0], corr_kinds.shape[0], depth + 1
     work = (np.zeros(kernels.N_COUNTERS, np.int64), np.empty(kernels.STACK_SIZE, np.int64),
-            np.empty(kernels.STACK_SIZE, np.float32), np.zeros(n_corr))
+            np.empty(kernels.STACK_T_SIZE, np.float32), np.zeros(n_corr))
     vertex_out = np.empty((2, n, 3))
     to_led = np.empty((2, n_led, 2, n))       # (estimate, shadow-tested) × LED × (w, distance)
     to_light = np.empty((2, 2, n))            # (estimate, shadow-tested) × (w_B, extra length)
@@ -1108,7 +1108,7 @@ def _light_rays(scene, key, independent, pixel, sample):
     rows = np.empty((n, SURFACE_ROWS))
     rest = np.empty((n, 7))
     work = (np.zeros(kernels.N_COUNTERS, np.int64), np.empty(kernels.STACK_SIZE, np.int64),
-            np.empty(kernels.STACK_SIZE, np.float32), np.zeros(1))
+            np.empty(kernels.STACK_T_SIZE, np.float32), np.zeros(1))
     for i in range(n):
         rng = (key, pixel[i], sample[i], independent)
         index, origin, direction, pdf_dir, query, dir_f32 = kernels.light_ray(frame, leds, rng)
@@ -1185,7 +1185,7 @@ def _trace_paths(scene, settings, first, counts, n_depth, n_rep, n_bins):
         nee_wg, con_wg = np.zeros((n_depth, n_corr)), np.zeros((n_depth, n_corr))
         total = np.zeros(n_ch)
         work = (np.zeros(kernels.N_COUNTERS, np.int64), np.empty(kernels.STACK_SIZE, np.int64),
-                np.empty(kernels.STACK_SIZE, np.float32), np.zeros(n_corr))
+                np.empty(kernels.STACK_T_SIZE, np.float32), np.zeros(n_corr))
         for sample in range(first[p], first[p] + counts[p]):
             kernels.trace_path(scene, settings, p, sample, (nee_w, nee_wg, con_w, con_wg, total, film), work)
             for c in range(n_ch):

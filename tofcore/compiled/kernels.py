@@ -48,7 +48,7 @@ from ._target import cpu_parallel_function, device_function, gpu_kernel_function
 from .layout import (COAT, COAT_ROUGHNESS, EXTINCTION, HARMONIC, IOR, LAMBERTIAN, LED_INTENSITY, LED_KIND, LED_POWER,
                      LED_PROBABILITY, LED_SKIP_FIRST_SHADOW, MATERIAL_COLUMNS, METALLIC, METALLIC_MAP, NORMAL_MAP,
                      N_COUNTERS, PHASOR, POINT, PULSED, REFLECTANCE, REFLECTANCE_MAP, ROUGHNESS, ROUGHNESS_MAP, SINE,
-                     SQUARE, STACK_SIZE, TABLE)
+                     SQUARE, STACK_SIZE, STACK_T_SIZE, TABLE)
 
 # ------------------------------------------------------------------ constants, from the reference modules
 GOLDEN, MIX_PIXEL, MIX_SAMPLE, MIX_DIM = _rng._GOLDEN, _rng._MIX_PIXEL, _rng._MIX_SAMPLE, _rng._MIX_DIM
@@ -384,6 +384,7 @@ def inverse_direction(d):
 if cuda is None:
     from llvmlite import ir as _ir
     from numba import types as _types
+    from numba.cpython.unsafe.numbers import trailing_zeros
     from numba.extending import intrinsic as _intrinsic
 
     @_intrinsic
@@ -471,10 +472,13 @@ def traverse(bvh, o, d, t_max, ignore, any_hit, stack, stack_t):
     visited near to far (:func:`push_child`); an any-hit ray, whose answer does not depend on the order,
     visits them as they come. Returns (t, prim, u, v); prim −1 on a miss.
     ``bvh`` = (node planes, node children, leaf vertices, leaf triangles): the first four arrays of the
-    scene tuple (tofcore.compiled.setup.scene_arrays); ``stack`` (int64) and ``stack_t`` (float32) are
-    scratch arrays of STACK_SIZE entries, the first row of a node record and its entry distance.
+    scene tuple (tofcore.compiled.setup.scene_arrays); ``stack`` (int64, STACK_SIZE entries) and ``stack_t``
+    (float32, STACK_T_SIZE) are scratch: the first row of a node record and its entry distance, and after the
+    stack the WIDTH entry distances of the node being opened, which the loop over its entered children (set
+    bits of the slab test's mask, lowest first: the order of the children) reads by index.
     """
     nodes_f, nodes_i, leaves_f, leaves_i = bvh
+    children = stack_t.shape[0] - WIDTH  # the last WIDTH entries hold a node's children's entry distances
     inv = inverse_direction(d)
     # Entry-plane rows per axis: the box minimum (row a) for a positive direction, else the maximum (3 + a).
     ex, ey, ez = 3 if d[0] < F32_ZERO else 0, 4 if d[1] < F32_ZERO else 1, 5 if d[2] < F32_ZERO else 2
@@ -490,10 +494,15 @@ def traverse(bvh, o, d, t_max, ignore, any_hit, stack, stack_t):
         node = stack[top]
         first = top  # the children entered go to stack[first:top], far (bottom) to near (top)
         mask, entries = slab_test(nodes_f, node, ex, ey, ez, o, inv, best_t)
-        for c in range(WIDTH):  # the children whose boxes the ray enters before the best t so far, in order
-            t_in = entries[c]
+        if mask == 0:
+            continue
+        stack_t[children], stack_t[children + 1], stack_t[children + 2], stack_t[children + 3] = entries
+        while mask != 0:  # the children whose boxes the ray enters before the best t so far, in order
+            c = trailing_zeros(mask)  # one branch per child entered, not four per node
+            mask &= mask - 1
+            t_in = stack_t[children + c]
             # best_t may have fallen since the test (a leaf before c): the exit clipped at it again, as before
-            if not ((mask >> c) & 1 and t_in <= best_t):
+            if not t_in <= best_t:
                 continue
             child = nodes_i[node + CHILD_ROW, c]
             if child >= 0:
@@ -1506,7 +1515,7 @@ def trace_pixels(scene, settings, pixels, out):
         total = np.zeros(n_ch)
         replicate = np.zeros((n_rep, n_ch))
         count = np.zeros(N_COUNTERS, np.int64)
-        work = (count, np.empty(STACK_SIZE, np.int64), np.empty(STACK_SIZE, np.float32), np.zeros(n_corr))
+        work = (count, np.empty(STACK_SIZE, np.int64), np.empty(STACK_T_SIZE, np.float32), np.zeros(n_corr))
         sums = (nee_w, nee_wg, con_w, con_wg, total, transient_sum)
         seen = 0.0  # the pixel's ambient radiance of this pass (accumulate.Tally.finish)
         for sample in range(first[p], first[p] + counts[p]):
@@ -1544,7 +1553,7 @@ def first_hits(geo, lens, directions, out):
     prim_out, point_out, normal_out = out
     n = directions.shape[0]
     for block in prange((n + FIRST_HIT_BLOCK - 1) // FIRST_HIT_BLOCK):
-        work = (np.zeros(N_COUNTERS, np.int64), np.empty(STACK_SIZE, np.int64), np.empty(STACK_SIZE, np.float32))
+        work = (np.zeros(N_COUNTERS, np.int64), np.empty(STACK_SIZE, np.int64), np.empty(STACK_T_SIZE, np.float32))
         for i in range(block * FIRST_HIT_BLOCK, min(n, (block + 1) * FIRST_HIT_BLOCK)):
             d = (directions[i, 0], directions[i, 1], directions[i, 2])
             prim, u, v = next_hit(geo, lens, d, np.int64(1), np.int64(-1), work)

@@ -31,3 +31,5 @@ N_COUNTERS = 5
 
 STACK_SIZE = 128
 """Traversal stack entries per ray (a 4-wide tree pushes at most 3 a level)."""
+STACK_T_SIZE = STACK_SIZE + 4
+"""float32 entries beside the stack: its entry distances, then the 4 children's of the node being opened."""
