@@ -71,7 +71,8 @@ def main() -> int:
                                 (render, "_frame", "frame (camera, per-k, read-back)"),
                                 (trace, "make_setup", "trace: set-up (scene tables on the device)"),
                                 (compiled_tracer, "_choice", "trace: packing and upload"),
-                                (stages, "first_hit", "trace: first hits"),
+                                (cuda_build, "first_hit", "trace: first hits"),
+                                (stages, "first_hit", "trace: first hits (array program)"),
                                 (trace, "_empty_transport", "trace: the frame's sums"),
                                 (cuda_build, "trace_pass", "trace: the passes")):
         timed(module, name, label)

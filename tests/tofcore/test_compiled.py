@@ -420,6 +420,22 @@ cuda.trace_pass(cuda.upload(packed, room.bvh), out, np.zeros(20, np.int64), np.f
                 threads_per_block=32)
 for name in ("signal_sum", "correlation_sum", "replicate_sum", "ambient_sum", "transient_sum"):
     same(getattr(out, name), getattr(ref, name), f"textured {name}")
+# the ground truth's kernels: the reference's record field by field (a room seen through its open side:
+# misses too), twice on the kept device scene with the camera moved between
+from tofcore.tracer import stages
+from tofcore.tracer.transport import TraceStats
+pose = np.array(tofcore.suggested_pose(room), dtype=float)
+for turn in range(2):
+    ts = make_setup(room, Camera.from_fov(7, 5, 150.0), leds, TraceSettings(**dict(lit, world_from_sensor=pose)),
+                    backend.select_device("cpu"))
+    device_scene, stats = cuda.upload(setup.pack(ts), room.bvh), TraceStats()
+    got, want = cuda.first_hit(device_scene, ts, stats, threads_per_block=32), stages.first_hit(ts, TraceStats())
+    assert stats.camera_rays == 35 and 0 < (want.material_id >= 0).sum() < 35 or turn, want.material_id
+    for name in ("distance_m", "position_m", "normal", "material_id", "object_id", "direction"):
+        a, b = getattr(got, name), getattr(want, name)
+        assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), f"first hit {turn} {name}"
+    cuda.release(device_scene)
+    pose[:3, 3] += (0.3, 0.2, 0.0)
 print("ok")
 """
 

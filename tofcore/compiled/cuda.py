@@ -356,6 +356,67 @@ class Workspace:
         return backend.to_host(self.arrays["counters"].sum(axis=1))
 
 
+class FirstHitWork:
+    """The device buffers and prepared kernels of the ground truth's P pixel-centre rays
+    (:func:`first_hit`), kept with the device scene while the frame size stays."""
+
+    def __init__(self, device_scene: DeviceScene, xp, n_pix: int, threads_per_block: int):
+        module = load_kernels()
+        self.n_pix = n_pix
+        self.directions = xp.zeros((n_pix, 3), np.float32)  # the camera's sensor-frame pixel directions
+        self.camera_directions = None  # the host array they were copied from (kept alive: its id stays its own)
+        self.object_ids = xp.zeros(len(device_scene.host[0][8]), np.int32)
+        self.rays = (xp.empty((n_pix, 3), np.float32), xp.empty((n_pix, 3), np.float32), xp.empty(n_pix, np.float32),
+                     xp.empty(n_pix, np.int32))  # origin, direction, t_max, ignore: the traversal's order
+        self.hits = (xp.empty(n_pix, np.int32), xp.empty(n_pix, np.float32), xp.empty(n_pix, np.float32),
+                     xp.empty(n_pix, np.float32))  # prim, u, v, t
+        self.record = (xp.empty(n_pix), xp.empty((3, n_pix, 3), np.float32), xp.empty((2, n_pix), np.int32))
+        self.status = xp.zeros(1, np.int32)
+        scene, k = device_scene.scene, _kernel_arrays
+        origin = (Slot("ox", np.float64), Slot("oy", np.float64), Slot("oz", np.float64))
+        self.kernels = {
+            "rays": PreparedKernel(module.wf_first_rays, (scene[3], _kernel_array(self.directions), k(self.rays)),
+                                   threads_per_block),
+            "record": PreparedKernel(module.wf_first_hit, (scene[0], _kernel_array(self.object_ids), origin, scene[3],
+                                                           _kernel_array(self.directions), k(self.hits[:3]),
+                                                           k(self.record)), threads_per_block)}
+
+
+def first_hit(device_scene: DeviceScene, setup, stats, threads_per_block: int = THREADS_PER_BLOCK):
+    """The noise-free ground truth of a GPU trace (:func:`tofcore.tracer.stages.first_hit`: the same rays,
+    traversal and hit geometry), as the :class:`~tofcore.tracer.transport.FirstHit` of host arrays: one thread
+    per pixel makes the rays (``wf_first_rays``), the BVH's traversal traces them, one thread per pixel makes the
+    record (``wf_first_hit``), which comes back in three copies."""
+    from .. import backend
+    from ..tracer.transport import FirstHit
+
+    camera = setup.camera
+    shape = (camera.height, camera.width)
+    n_pix = shape[0] * shape[1]
+    work = device_scene.work.get("first_hit")
+    if work is None or work.n_pix != n_pix or len(work.object_ids) != len(setup.table.object_ids):
+        work = device_scene.work["first_hit"] = None  # the old buffers go back to the pool first
+        work = device_scene.work["first_hit"] = FirstHitWork(device_scene, _device_namespace(), n_pix,
+                                                             threads_per_block)
+    directions = camera.pixel_center_directions()  # cached per camera, read-only
+    if directions is not work.camera_directions:
+        work.directions[...] = _device_namespace().asarray(directions.reshape(n_pix, 3))
+        work.camera_directions = directions
+    work.object_ids[...] = setup.table.object_ids
+    origin = np.asarray(setup.scene.origin_m, dtype=np.float64)
+    work.kernels["record"].set(ox=origin[0], oy=origin[1], oz=origin[2])
+    work.kernels["rays"].launch(n_pix)
+    tr = _traversal()
+    tr.closest_hits_into(device_scene.bvh, work.rays, n_pix, work.hits, work.status)
+    work.kernels["record"].launch(n_pix)
+    tr.check_status(work.status)
+    distance, vectors, ids = (backend.to_host(a) for a in work.record)
+    stats.camera_rays += n_pix
+    return FirstHit(distance_m=distance.reshape(shape), position_m=vectors[0].reshape(shape + (3,)),
+                    normal=vectors[1].reshape(shape + (3,)), material_id=ids[0].reshape(shape),
+                    object_id=ids[1].reshape(shape), direction=vectors[2].reshape(shape + (3,)))
+
+
 def _traversal():
     """The traversal of the rays (tofcore.gpu.traversal on the GPU; the NumPy BVH under the simulator)."""
     if numba.config.ENABLE_CUDASIM:

@@ -1983,3 +1983,70 @@ def wf_transient(launch, transient_bin_m, path, pend, occluded, film):
         for k in range(n):
             if not occluded[j * slots + k]:
                 add_transient(film, p, pend_w[k, j], pend_length[k, j], transient_bin_m)
+
+
+# ------------------------------------------------------------------ GPU: the ground truth (tofcore.tracer.stages.first_hit)
+# The pixel-centre rays in two kernels around one traversal launch, and their record in three arrays that come
+# back in three copies (tofcore.compiled.cuda.first_hit): as ~40 CuPy operations with a read-back each for six
+# fields it took 8–9 ms of a Kinect v2 frame on an H200 (docs/benchmarks.md).
+@fn
+def pixel_centre_direction(frame, directions, i):
+    """Pixel i's sensor-frame unit direction (``directions`` (P, 3) float32) in the scene frame: rotated by
+    ``frame``'s rows 0–2 as tofcore.tracer.surface.rotate adds the products, in float64."""
+    x, y, z = np.float64(directions[i, 0]), np.float64(directions[i, 1]), np.float64(directions[i, 2])
+    return (x * frame[0, 0] + y * frame[0, 1] + z * frame[0, 2], x * frame[1, 0] + y * frame[1, 1] + z * frame[1, 2],
+            x * frame[2, 0] + y * frame[2, 1] + z * frame[2, 2])
+
+
+@gpu_kernel
+def wf_first_rays(frame, directions, rays):
+    """The ground truth's ray of each of the P pixels, one thread per pixel: from the lens centre (``frame``'s
+    row 3) along :func:`pixel_centre_direction`, leaving the lens as a camera ray does (:func:`ray_query`), into
+    ``rays`` = (origin (P, 3) float32, direction (P, 3) float32, t_max (P,) float32, ignore (P,) int32): the
+    traversal's order (tofcore.gpu.traversal.closest_hits_into)."""
+    i = cuda.grid(1)
+    if i >= directions.shape[0]:
+        return
+    origin, direction, t_max, ignore = rays
+    d = pixel_centre_direction(frame, directions, i)
+    o = ray_query((frame[3, 0], frame[3, 1], frame[3, 2]), d, np.int64(1))
+    d32 = to_f32(d)
+    for a in range(3):
+        origin[i, a] = o[a]
+        direction[i, a] = d32[a]
+    ignore[i] = -1
+    t_max[i] = F32_INF
+
+
+@gpu_kernel
+def wf_first_hit(geo, object_ids, origin_m, frame, directions, hits, record):
+    """The ground truth's record of each of the P pixels from its ray's hit ``hits`` = (prim, u, v), one thread
+    per pixel (tofcore.tracer.stages.first_hit_record): ``record`` = (distance (P,) float64, the radial distance
+    lens → surface; vectors (3, P, 3) float32: the world-frame position (the scene-frame point + ``origin_m``),
+    the normal facing the camera, the ray's direction; ids (2, P) int32: material, object). A miss: NaN distance,
+    position and normal, ids −1."""
+    i = cuda.grid(1)
+    if i >= directions.shape[0]:
+        return
+    distance, vectors, ids = record
+    d = pixel_centre_direction(frame, directions, i)
+    for a in range(3):
+        vectors[2, i, a] = np.float32(d[a])
+    prim = hits[0][i]
+    if prim < 0:
+        distance[i] = np.nan
+        for a in range(3):
+            vectors[0, i, a] = np.float32(np.nan)
+            vectors[1, i, a] = np.float32(np.nan)
+        ids[0, i] = -1
+        ids[1, i] = -1
+        return
+    lens = (frame[3, 0], frame[3, 1], frame[3, 2])
+    point, normal = hit_point(geo, prim, hits[1][i], hits[2][i], lens, d)
+    offset = sub(point, lens)
+    distance[i] = math.sqrt(offset[0] * offset[0] + offset[1] * offset[1] + offset[2] * offset[2])
+    for a in range(3):
+        vectors[0, i, a] = np.float32(point[a] + origin_m[a])
+        vectors[1, i, a] = np.float32(normal[a])
+    ids[0, i] = geo[8][prim]
+    ids[1, i] = object_ids[prim]

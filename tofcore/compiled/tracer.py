@@ -69,8 +69,13 @@ class CompiledTracer:
 
     def first_hit(self, trace_setup: TraceSetup, stats: TraceStats) -> FirstHit:
         """The ground truth's rays: on the CPU by the kernels where they are compiled or cached (else the NumPy
-        reference's traversal, while the kernels compile for the passes), on the GPU by its own traversal."""
-        if self.choice.device_scene is None and not needs_compile():
+        reference's traversal, while the kernels compile for the passes), on the GPU by the CUDA build's two
+        kernels around the BVH's traversal (:func:`tofcore.compiled.cuda.first_hit`)."""
+        if self.choice.device_scene is not None:
+            from . import cuda
+
+            return cuda.first_hit(self.choice.device_scene, trace_setup, stats)
+        if not needs_compile():
             from . import cpu
 
             return cpu.first_hit(self.choice.packed, trace_setup, stats)
