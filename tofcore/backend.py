@@ -120,11 +120,22 @@ def select_device(device: str | Device | None = "cpu") -> Device:
     return Device("gpu", xp, description, device)
 
 
+_CHECKED_GPUS: dict[int, str] = {}
+"""The description of each CUDA device this process has checked (:func:`_gpu_module`), by device id: a device
+that answered once is not asked again (its properties and a test launch took 1.3 ms and a synchronisation of
+every render, twice per preview frame: docs/benchmarks.md). A device that fails later fails in the render,
+as any CUDA error there does (:func:`gpu_errors`)."""
+
+
 def _gpu_module() -> tuple[ModuleType, str]:
-    """Import CuPy, check that a CUDA device answers, and return (cupy, description)."""
+    """Import CuPy, check that the current CUDA device answers (once per device and process), and return
+    (cupy, description)."""
     cp = _load_cupy()
     try:
         dev = cp.cuda.Device()
+        checked = _CHECKED_GPUS.get(dev.id)
+        if checked is not None:
+            return cp, checked
         props = cp.cuda.runtime.getDeviceProperties(dev.id)
         name = props["name"].decode() if isinstance(props["name"], bytes) else str(props["name"])
         cp.zeros(1).sum().item()  # a kernel launch proves the driver, the runtime and NVRTC work
@@ -135,7 +146,8 @@ def _gpu_module() -> tuple[ModuleType, str]:
                              f"({type(exc).__name__}: {_first_line(exc)})") from None
     visible = os.environ.get("CUDA_VISIBLE_DEVICES")
     where = f" (CUDA_VISIBLE_DEVICES={visible})" if visible is not None else ""
-    return cp, f"GPU {dev.id}{where}: {name} (CuPy {cp.__version__})"
+    description = _CHECKED_GPUS[dev.id] = f"GPU {dev.id}{where}: {name} (CuPy {cp.__version__})"
+    return cp, description
 
 
 def _load_cupy() -> ModuleType:

@@ -460,6 +460,21 @@ def test_cuda_build_of_the_kernels_traces_the_numpy_frame_in_the_simulator(tmp_p
 
 
 @needs_numba
+@pytest.mark.parametrize("counts", [np.full(50, 3), np.zeros(7, np.int64), np.zeros(0, np.int64),
+                                    np.random.default_rng(1).integers(0, 9, 1000),
+                                    np.r_[np.random.default_rng(2).integers(0, 3, 100), 70_000]],
+                         ids=["uniform", "zeros", "empty", "adaptive", "past 16 bits"])
+def test_the_wavefronts_launch_plan_orders_pixels_by_decreasing_count_stably(counts):
+    """cuda.launch_plan's order (a uniform pass as it is, 16-bit keys where the counts allow) is the stable
+    argsort of −counts, and active[s] counts the pixels with more than s samples."""
+    from tofcore.compiled import cuda
+
+    order, active = cuda.launch_plan(counts)
+    np.testing.assert_array_equal(order, np.argsort(-np.asarray(counts, np.int64), kind="stable"))
+    np.testing.assert_array_equal(active, [(counts > s).sum() for s in range(int(counts.max(initial=0)))])
+
+
+@needs_numba
 def test_the_kernels_material_record_is_read_by_the_tables_names():
     """kernels.surface_params builds the record in the material table's order, so params[layout.<NAME>] is
     the parameter of that name (tofcore.scene.material.PARAMETERS)."""

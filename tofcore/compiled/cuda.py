@@ -149,8 +149,12 @@ def launch_plan(counts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(order, active): pixels by decreasing sample count (stable), and for each sample index s < the
     largest count how many pixels have more than s samples — pixel order[i] has sample s for i < active[s]."""
     counts = np.asarray(counts, dtype=np.int64)
-    order = np.argsort(-counts, kind="stable")
     most = int(counts.max()) if counts.size else 0
+    if counts.size and int(counts.min()) == most:
+        order = np.arange(counts.size)  # a uniform pass
+    else:  # NumPy's stable sort of 16-bit keys is a radix sort: 217,088 adaptive counts in 4 ms, not 13 ms
+        shortfall = most - counts
+        order = np.argsort(shortfall.astype(np.uint16) if most < 1 << 16 else shortfall, kind="stable")
     more_than = counts.size - np.cumsum(np.bincount(counts, minlength=most + 1))  # [s]: #pixels with count > s
     return order, more_than[:most]
 

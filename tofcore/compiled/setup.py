@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..backend import to_host
+from ..scene.camera import shared_centre_rows
 from ..sensor.modulation import (CorrelationBank, harmonic_correlation, phasor_component, pulsed_correlation,
                                 sine_correlation, square_correlation, tabulated_correlation)
 from . import layout
@@ -138,10 +139,11 @@ def camera_numbers(camera) -> np.ndarray:
 
 
 def camera_table(camera) -> np.ndarray:
-    """(5, P) undistorted pixel centres and inverse Jacobians (Camera._centre_table), or (5, 1) zeros."""
+    """(5, P) undistorted pixel centres and inverse Jacobians (Camera._centre_table), or (5, 1) zeros; the
+    same read-only array for equal cameras (:func:`tofcore.scene.camera.shared_centre_rows`)."""
     if not camera.has_distortion:
         return np.zeros((5, 1))
-    return np.ascontiguousarray(np.stack(camera._centre_table))
+    return shared_centre_rows(camera)
 
 
 def frame_array(ctx) -> np.ndarray:

@@ -602,11 +602,11 @@ def radial_to_z(distance: np.ndarray, ray_directions: np.ndarray) -> np.ndarray:
     ray_directions : (*shape, 3) unit ray directions in the sensor frame (x right, y down, z forward).
     """
     distance = asarray(distance, dtype=np.float64)
-    directions = asarray(ray_directions, dtype=np.float64)
+    directions = asarray(ray_directions)
     if directions.shape != distance.shape + (3,):
         raise ConfigError(f"radial_to_z: ray_directions must have shape {distance.shape + (3,)}, "
                           f"got {directions.shape}")
-    return (distance * directions[..., 2]).astype(np.float32)
+    return (distance * directions[..., 2].astype(np.float64)).astype(np.float32)  # only z made float64
 
 
 def systematic_error_curve(modulation: Modulation, distances_m: np.ndarray) -> np.ndarray:
