@@ -24,4 +24,10 @@ for tree in base new; do
       --out /tmp/prof-$tree --frames 24 --preview-frames 40 --top 40) > $OUT/profile_$tree.log 2>&1
   cat /tmp/prof-$tree/preview.txt >> $OUT/profile_$tree.log 2>/dev/null
 done
-echo done >> $OUT/profile_new.log
+
+# the first frame of a fresh process with warm caches, and one GPU's dataset rate (48 frames), this tree only
+NUMBA_CACHE_DIR=/tmp/nb-new PYTHONPATH=$here timeout 40 python3 bench/gpu_cupy_compiles.py kinect 64 >> $OUT/warmup.log 2>&1
+NUMBA_CACHE_DIR=/tmp/nb-new PYTHONPATH=$here timeout 100 python3 bench/bench_multigpu.py --gpus 0 --out-dir /tmp/rate48 \
+    --frames 48 --rounds 1 --cold-rounds 0 --warm-cache /tmp/nb-new --budget 90 >> $OUT/gpu_tests.log 2>&1
+cat /tmp/rate48/bench_multigpu.md >> $OUT/gpu_tests.log 2>/dev/null
+echo done >> $OUT/gpu_tests.log
