@@ -144,6 +144,9 @@ TWINS: dict[str, str | tuple[str, ...]] = {
                         "them); the CUDA simulator test in tests/tofcore/test_compiled.py checks the sums"),
     "wf_gather": _GPU_STAGE,
     "wf_transient": _GPU_STAGE,
+    "pixel_centre_direction": "tofcore.tracer.surface.rotate",
+    "wf_first_rays": "tofcore.tracer.stages.first_hit",  # the rays; the CUDA simulator test checks the record
+    "wf_first_hit": "tofcore.tracer.stages.first_hit_record",
 }
 """Kernel function name → its NumPy reference (``module.qualname``, or a tuple of them), or why it has none."""
 
