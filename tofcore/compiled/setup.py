@@ -140,7 +140,7 @@ def camera_numbers(camera) -> np.ndarray:
 
 def camera_table(camera) -> np.ndarray:
     """(5, P) undistorted pixel centres and inverse Jacobians (Camera._centre_table), or (5, 1) zeros; the
-    same read-only array for equal cameras (:func:`tofcore.scene.camera.shared_centre_rows`)."""
+    same array (never written) for equal cameras (:func:`tofcore.scene.camera.shared_centre_rows`)."""
     if not camera.has_distortion:
         return np.zeros((5, 1))
     return shared_centre_rows(camera)
